@@ -1,0 +1,96 @@
+"""The ``fluoronav`` command line.
+
+Each command lives in its own module of this package and exposes ``register(app)``; this module
+assembles them and turns :class:`~fluoronav.errors.InputError` into one line on stderr and exit
+status 2 (no traceback for user errors).
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+
+import typer
+
+from fluoronav import __version__
+from fluoronav.errors import FluoronavError, InputError
+
+#: command modules, in the order their commands appear in ``--help``
+COMMAND_MODULES = (
+    "demo",
+    "render",
+    "simulate",
+    "train",
+    "detect",
+    "evaluate",
+    "study",
+    "register",
+    "calibrate",
+    "report",
+    "bench",
+)
+
+app = typer.Typer(
+    name="fluoronav",
+    help="Fluoroscopic navigation of a surgical robot with a continuum manipulator.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"fluoronav {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details to stderr."),
+) -> None:
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+
+
+def _register_all() -> None:
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(f"fluoronav.cli.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"fluoronav.cli.{name}":
+                continue  # command not built yet
+            raise
+        module.register(app)
+
+
+_register_all()
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point: run the app, reporting user errors in one line."""
+    try:
+        app(args=argv, standalone_mode=False)
+    except InputError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        sys.exit(2)
+    except FluoronavError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        sys.exit(1)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except typer.Abort:
+        typer.echo("aborted", err=True)
+        sys.exit(130)
+    except KeyboardInterrupt:
+        typer.echo("interrupted; finished results are kept on disk", err=True)
+        sys.exit(130)
+    except Exception as exc:  # click usage errors
+        import click
+
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            sys.exit(exc.exit_code)
+        raise

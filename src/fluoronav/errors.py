@@ -1,0 +1,31 @@
+"""User-facing errors.
+
+Every problem with user input is raised as :class:`InputError`, which names the file and the
+problem. The CLI turns it into one line on stderr and a non-zero exit status, without a traceback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class FluoronavError(Exception):
+    """Base class of every error fluoronav raises on purpose."""
+
+
+class InputError(FluoronavError):
+    """Bad user input: an unreadable, empty, malformed or inconsistent file or argument.
+
+    Args:
+        source: the file (or argument name) at fault.
+        problem: what is wrong with it, as a short phrase.
+    """
+
+    def __init__(self, source: str | Path, problem: str) -> None:
+        self.source = str(source)
+        self.problem = problem
+        super().__init__(f"{self.source}: {problem}")
+
+
+class RegistrationFailure(FluoronavError):
+    """A registration or calibration that did not converge; carries the reason."""
