@@ -3,7 +3,7 @@
 See docs/conventions.md for the frame conventions used everywhere in fluoronav.
 """
 
-from fluoronav.geometry.camera import CIOS_FUSION, Camera, DetectorSpec, project_points
+from fluoronav.geometry.camera import CIOS_FUSION, Camera, DetectorSpec, project_points, stack_cameras
 from fluoronav.geometry.carm import carm_camera, carm_camera_from_world, orbit_camera
 
 __all__ = [
@@ -14,4 +14,5 @@ __all__ = [
     "carm_camera_from_world",
     "orbit_camera",
     "project_points",
+    "stack_cameras",
 ]

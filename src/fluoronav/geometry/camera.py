@@ -25,7 +25,7 @@ import torch
 
 from fluoronav.errors import InputError
 
-__all__ = ["CIOS_FUSION", "Camera", "DetectorSpec", "project_points"]
+__all__ = ["CIOS_FUSION", "Camera", "DetectorSpec", "project_points", "stack_cameras"]
 
 
 @dataclass(frozen=True)
@@ -105,8 +105,6 @@ class Camera:
         if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
             raise InputError("camera", "K must have positive focal lengths and last row [0, 0, 1]")
         _check_rigid(T, "camera_from_world", "camera")
-        K.setflags(write=False)
-        T.setflags(write=False)
         object.__setattr__(self, "rows", int(self.rows))
         object.__setattr__(self, "cols", int(self.cols))
         object.__setattr__(self, "K", K)
@@ -152,6 +150,15 @@ class Camera:
             return None
         return self.focal_length_px * self.pixel_spacing_mm
 
+    def tensors(
+        self, *, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(K (3,3), camera_from_world (4,4))`` as torch tensors."""
+        return (
+            torch.tensor(self.K, dtype=dtype, device=device),
+            torch.tensor(self.camera_from_world, dtype=dtype, device=device),
+        )
+
     @property
     def projection_matrix(self) -> np.ndarray:
         """(3, 4) world → homogeneous pixel matrix ``K [R | t]``."""
@@ -173,15 +180,16 @@ class Camera:
     def backproject(self, uv: np.ndarray, depth_mm: np.ndarray | float) -> np.ndarray:
         """Pixels (..., 2) at camera-frame depth z (mm) → world points (..., 3)."""
         uv = np.asarray(uv, dtype=np.float64)
-        ones = np.ones(uv.shape[:-1] + (1,))
+        ones = np.ones((*uv.shape[:-1], 1))
         dirs = np.concatenate([uv, ones], axis=-1) @ np.linalg.inv(self.K).T  # z = 1
         cam = dirs * np.asarray(depth_mm, dtype=np.float64)[..., None]
         return cam @ self.world_from_camera[:3, :3].T + self.world_from_camera[:3, 3]
 
     def pixel_grid(self) -> np.ndarray:
         """(rows, cols, 2) pixel centres as (u, v)."""
-        v, u = np.meshgrid(np.arange(self.rows, dtype=np.float64), np.arange(self.cols, dtype=np.float64),
-                           indexing="ij")
+        v, u = np.meshgrid(
+            np.arange(self.rows, dtype=np.float64), np.arange(self.cols, dtype=np.float64), indexing="ij"
+        )
         return np.stack([u, v], axis=-1)
 
     def ray_directions_world(self, uv: np.ndarray | None = None) -> np.ndarray:
@@ -193,7 +201,7 @@ class Camera:
         if uv is None:
             uv = self.pixel_grid()
         uv = np.asarray(uv, dtype=np.float64)
-        ones = np.ones(uv.shape[:-1] + (1,))
+        ones = np.ones((*uv.shape[:-1], 1))
         d_cam = np.concatenate([uv, ones], axis=-1) @ np.linalg.inv(self.K).T
         d_world = d_cam @ self.world_from_camera[:3, :3].T
         return d_world / np.linalg.norm(d_world, axis=-1, keepdims=True)
@@ -210,12 +218,13 @@ class Camera:
         K[1, 2] -= row0
         return Camera(rows, cols, K, self.camera_from_world, self.pixel_spacing_mm)
 
-    def crop_around(self, center_uv: np.ndarray | tuple[float, float], size: int | tuple[int, int]
-                    ) -> tuple[Camera, tuple[int, int]]:
+    def crop_around(
+        self, center_uv: np.ndarray | tuple[float, float], size: int | tuple[int, int]
+    ) -> tuple[Camera, tuple[int, int]]:
         """Crop of ``size`` (rows, cols) centred on pixel ``center_uv``; returns (camera, (row0, col0))."""
         rows, cols = (size, size) if isinstance(size, int) else size
-        col0 = int(round(float(center_uv[0]) - (cols - 1) / 2.0))
-        row0 = int(round(float(center_uv[1]) - (rows - 1) / 2.0))
+        col0 = round(float(center_uv[0]) - (cols - 1) / 2.0)
+        row0 = round(float(center_uv[1]) - (rows - 1) / 2.0)
         return self.crop(row0=row0, col0=col0, rows=rows, cols=cols), (row0, col0)
 
     def downsample(self, factor: int) -> Camera:
@@ -297,6 +306,22 @@ class Camera:
         except json.JSONDecodeError as exc:
             raise InputError(p, f"camera file is not valid JSON ({exc.msg} at line {exc.lineno})") from None
         return cls.from_dict(d, source=str(p))
+
+
+def stack_cameras(
+    cameras: list[Camera] | tuple[Camera, ...],
+    *,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batch cameras of one image size: ``(K (V,3,3), camera_from_world (V,4,4))``."""
+    if not cameras:
+        raise ValueError("need at least one camera")
+    if len({(c.rows, c.cols) for c in cameras}) != 1:
+        raise ValueError("cameras in one batch must share rows and cols")
+    K = torch.tensor(np.stack([c.K for c in cameras]), dtype=dtype, device=device)
+    T = torch.tensor(np.stack([c.camera_from_world for c in cameras]), dtype=dtype, device=device)
+    return K, T
 
 
 def project_points(K: torch.Tensor, camera_from_world: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

@@ -68,8 +68,13 @@ def carm_camera(
     return Camera.from_detector(detector, T)
 
 
-def orbit_camera(camera: Camera, *, angle_deg: float, isocenter_world: np.ndarray,
-                 axis_world: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 1.0)) -> Camera:
+def orbit_camera(
+    camera: Camera,
+    *,
+    angle_deg: float,
+    isocenter_world: np.ndarray,
+    axis_world: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 1.0),
+) -> Camera:
     """Rotate a camera about an axis through the isocentre (default: the patient's long axis).
 
     Used for multi-view acquisitions ("views rotated about the C-arm orbit").

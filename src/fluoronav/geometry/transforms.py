@@ -23,8 +23,12 @@ __all__ = [
 ]
 
 
-def as_tensor(x: torch.Tensor | np.ndarray | list, *, dtype: torch.dtype | None = None,
-              device: torch.device | str | None = None) -> torch.Tensor:
+def as_tensor(
+    x: torch.Tensor | np.ndarray | list,
+    *,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
     """``torch.as_tensor`` that keeps float64 numpy input as float64 unless ``dtype`` is given."""
     return torch.as_tensor(np.asarray(x) if isinstance(x, list) else x, dtype=dtype, device=device)
 

@@ -1,0 +1,146 @@
+"""Scenes: a CT volume, a C-arm view and a CM pose/shape, sampled as in the paper's data set.
+
+Sampling (Gao et al. 2022, §III-A; FACTS.md): control points U[−7.9°, 7.9°], source-to-isocentre
+U[400, 500] mm, LAO/RAO U[0°, 360°], CRAN/CAUD U[75°, 105°], volume translation U[−20, 20] mm per
+axis (applied here as the opposite shift of the isocentre, which is the same relative geometry).
+
+The CM is placed as for core decompression: its axis runs from the lateral greater trochanter
+(the ``entry_*`` landmark) towards the femoral head centre, inserted so that it overlaps bone. A CT
+without femur landmarks gets the CM in the bone nearest the volume centre, in a random direction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fluoronav.anatomy.volume import Volume
+from fluoronav.geometry.camera import CIOS_FUSION, Camera, DetectorSpec
+from fluoronav.geometry.carm import carm_camera_from_world
+from fluoronav.manipulator.config import CMConfig
+
+__all__ = ["Scene", "SceneSampling", "cm_pose_along", "place_cm_in_bone", "sample_scene"]
+
+#: HU above which a voxel counts as bone when placing a CM in an unlabelled CT
+BONE_HU = 200.0
+
+
+@dataclass(frozen=True)
+class SceneSampling:
+    """Ranges of the scene sampler (defaults: the paper's detection data set)."""
+
+    control_point_range_deg: tuple[float, float] = (-7.9, 7.9)
+    source_to_isocenter_mm: tuple[float, float] = (400.0, 500.0)
+    lao_rao_deg: tuple[float, float] = (0.0, 360.0)
+    cran_caud_deg: tuple[float, float] = (75.0, 105.0)
+    translation_mm: float = 20.0
+    #: how far the base origin A sits inside the bone from the entry point, mm
+    insertion_depth_mm: tuple[float, float] = (-5.0, 15.0)
+    #: tilt of the CM axis away from the entry → femoral head line, degrees
+    axis_tilt_deg: float = 10.0
+    detector: DetectorSpec = CIOS_FUSION
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """One simulated acquisition.
+
+    Attributes:
+        camera: full-detector camera in world (CT) coordinates.
+        world_from_cm: CM base pose (4, 4), mm.
+        control_points_deg: (5,) CM control points.
+        has_cm: False for negatives (no CM in the image).
+        volume_name: the CT's name.
+        side: which femur the CM is in ("left", "right" or "" when unlabelled).
+    """
+
+    camera: Camera
+    world_from_cm: np.ndarray
+    control_points_deg: np.ndarray
+    has_cm: bool = True
+    volume_name: str = "volume"
+    side: str = ""
+    cm_config: CMConfig = field(default_factory=CMConfig)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def _random_unit_perpendicular(rng: np.random.Generator, axis: np.ndarray) -> np.ndarray:
+    v = rng.normal(size=3)
+    v -= v.dot(axis) * axis
+    return _unit(v)
+
+
+def cm_pose_along(origin_world: np.ndarray, axis_world: np.ndarray, roll_rad: float) -> np.ndarray:
+    """``world_from_cm`` with base origin A at ``origin_world`` and +z along ``axis_world``.
+
+    ``roll_rad`` turns the bending plane about the axis.
+    """
+    z = _unit(np.asarray(axis_world, dtype=np.float64))
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x0 = _unit(np.cross(helper, z))
+    y0 = np.cross(z, x0)
+    c, s = math.cos(roll_rad), math.sin(roll_rad)
+    x = c * x0 + s * y0
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], axis=1)
+    T[:3, 3] = origin_world
+    return T
+
+
+def place_cm_in_bone(volume: Volume, rng: np.random.Generator, sampling: SceneSampling) -> tuple[np.ndarray, str]:
+    """A CM base pose inside a femur (labelled phantom/CT) or in the bone nearest the volume centre."""
+    sides = [s for s in ("left", "right") if f"entry_{s}" in volume.landmarks_world
+             and f"femoral_head_{s}" in volume.landmarks_world]
+    if sides:
+        side = sides[int(rng.integers(len(sides)))]
+        entry = np.asarray(volume.landmarks_world[f"entry_{side}"], dtype=np.float64)
+        head = np.asarray(volume.landmarks_world[f"femoral_head_{side}"], dtype=np.float64)
+        axis = _unit(head - entry)
+        tilt = math.radians(rng.uniform(0.0, sampling.axis_tilt_deg))
+        axis = _unit(math.cos(tilt) * axis + math.sin(tilt) * _random_unit_perpendicular(rng, axis))
+        depth = rng.uniform(*sampling.insertion_depth_mm)
+        origin = entry + depth * axis
+        return cm_pose_along(origin, axis, rng.uniform(0.0, 2.0 * math.pi)), side
+    # unlabelled CT: the bone voxel nearest the volume centre
+    bone = np.argwhere(volume.data > BONE_HU)  # (n, 3) as (k, j, i)
+    if len(bone) == 0:
+        origin = volume.center_world
+    else:
+        idx = bone[:, ::-1].astype(np.float64)
+        world = idx @ volume.world_from_index[:3, :3].T + volume.world_from_index[:3, 3]
+        origin = world[np.argmin(np.linalg.norm(world - volume.center_world, axis=1))]
+    axis = _unit(rng.normal(size=3))
+    return cm_pose_along(origin, axis, rng.uniform(0.0, 2.0 * math.pi)), ""
+
+
+def sample_scene(
+    volume: Volume,
+    rng: np.random.Generator,
+    *,
+    sampling: SceneSampling | None = None,
+    with_cm: bool = True,
+    cm_config: CMConfig | None = None,
+) -> Scene:
+    """Sample one scene with the paper's data set distribution (see module docstring)."""
+    sampling = sampling or SceneSampling()
+    cm_config = cm_config or CMConfig()
+    world_from_cm, side = place_cm_in_bone(volume, rng, sampling)
+    cp = rng.uniform(*sampling.control_point_range_deg, size=cm_config.n_control_points)
+    # isocentre: the middle of the CM (so it is in the field of view), shifted like the volume
+    mid_cm = np.array([0.0, 0.0, 0.5 * cm_config.tip_z_mm, 1.0])
+    iso = (world_from_cm @ mid_cm)[:3] - rng.uniform(-sampling.translation_mm, sampling.translation_mm, 3)
+    T = carm_camera_from_world(
+        lao_rao_deg=rng.uniform(*sampling.lao_rao_deg),
+        cran_caud_deg=rng.uniform(*sampling.cran_caud_deg),
+        source_to_isocenter_mm=rng.uniform(*sampling.source_to_isocenter_mm),
+        isocenter_world=iso,
+    )
+    camera = Camera.from_detector(sampling.detector, T)
+    return Scene(camera=camera, world_from_cm=world_from_cm, control_points_deg=cp, has_cm=with_cm,
+                 volume_name=volume.name, side=side, cm_config=cm_config)
