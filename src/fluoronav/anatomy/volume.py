@@ -86,7 +86,9 @@ class Volume:
     def corners_world(self) -> np.ndarray:
         """(8, 3) world positions of the outer corners of the voxel grid (half a voxel beyond centres)."""
         nx, ny, nz = self.shape_xyz
-        c = np.array([[i, j, k] for i in (-0.5, nx - 0.5) for j in (-0.5, ny - 0.5) for k in (-0.5, nz - 0.5)])
+        c = np.array(
+            [[i, j, k] for i in (-0.5, nx - 0.5) for j in (-0.5, ny - 0.5) for k in (-0.5, nz - 0.5)]
+        )
         return c @ self.world_from_index[:3, :3].T + self.world_from_index[:3, 3]
 
     def label_value(self, name: str) -> int | None:

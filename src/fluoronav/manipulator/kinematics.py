@@ -87,7 +87,9 @@ class CMKinematics:
         T[..., 2, 3] = pz_full - (c * zc)
         return T
 
-    def _point_on_link(self, control_points_deg: torch.Tensor, link: int, z_straight_mm: float) -> torch.Tensor:
+    def _point_on_link(
+        self, control_points_deg: torch.Tensor, link: int, z_straight_mm: float
+    ) -> torch.Tensor:
         T = self.link_transforms(control_points_deg)[..., link, :, :]
         return T[..., :3, 2] * z_straight_mm + T[..., :3, 3]
 
@@ -107,8 +109,14 @@ class CMKinematics:
         bounds = np.concatenate([[-c.base_length_mm], self.notch_z_mm, [c.tip_z_mm]])
         return np.stack([bounds[:-1], bounds[1:]], axis=1)
 
-    def centerline_cm(self, control_points_deg: torch.Tensor, *, n_points: int = 64,
-                      from_z_mm: float = 0.0, to_z_mm: float | None = None) -> torch.Tensor:
+    def centerline_cm(
+        self,
+        control_points_deg: torch.Tensor,
+        *,
+        n_points: int = 64,
+        from_z_mm: float = 0.0,
+        to_z_mm: float | None = None,
+    ) -> torch.Tensor:
         """(..., n) → (..., n_points, 3) points on the bent axis from A (z=0) to B by default."""
         to_z = self.config.distal_notch_plane_mm if to_z_mm is None else to_z_mm
         zs = np.linspace(from_z_mm, to_z, n_points)

@@ -1,0 +1,35 @@
+"""``fluoronav simulate``: realistic X-ray samples of the CM over anatomy."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("simulate")
+    def simulate(
+        n: int = typer.Option(..., "--n", min=1, help="Number of samples in the data set."),
+        out: Path = typer.Option(..., "--out", help="Output directory (rerun to resume)."),
+        ct: list[str] = typer.Option(["phantom"], "--ct", help="CT file/DICOM dir, or 'phantom' (repeatable)."),
+        seed: int = SEED_OPTION,
+        scheduler: str = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler."),
+        workers: int = typer.Option(None, "--workers", min=0,
+                                    help="Local worker processes (default: up to 2; 0 = in this process)."),
+        no_cm: bool = typer.Option(False, "--no-cm", help="Make the same kind of images without a CM."),
+        size: int = typer.Option(512, "--size", min=32,
+                                 help="Stored image size in pixels (the 1536² detector is binned to it)."),
+        phantoms: int = typer.Option(4, "--phantoms", min=1, help="Phantom anatomies (seeds) to cycle through."),
+        device: str = DEVICE_OPTION,
+    ) -> None:
+        """Simulate a data set of X-ray images with labels (manifest.jsonl + samples/*.npz)."""
+        from fluoronav.device import resolve_device
+        from fluoronav.simulation.dataset import DatasetSpec, simulate_dataset
+
+        spec = DatasetSpec(cts=tuple(ct), n_phantoms=phantoms, with_cm=not no_cm, image_size=size, seed=seed,
+                           device=str(resolve_device(device)))
+        rows = simulate_dataset(out, n, spec, scheduler=scheduler, workers=workers)
+        typer.echo(f"{len(rows)} new samples; data set in {out}/ (manifest.jsonl, contact_sheet.png)")

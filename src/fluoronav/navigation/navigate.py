@@ -1,0 +1,123 @@
+"""Navigation: registered poses → CM pose relative to the femur (eq. 7) → robot target (eq. 8).
+
+Frames: ``carm`` (C-arm camera), ``femur``, ``cm`` (CM base frame), ``ee`` (robot end effector),
+``rbase`` (robot base). The femur and the robot base do not move relative to each other between
+registration and navigation.
+
+Eq. 7 (our naming): ``femur_from_cm_regi = inv(carm_from_femur_regi) · carm_from_cm_regi``.
+
+Eq. 8 (our naming), from ``rbase_from_femur = rbase_from_ee_regi · ee_from_cm · cm_from_femur_regi``
+being the same before and after the move, and ``rbase_from_ee_tar · ee_from_cm · cm_from_femur_tar``
+= ``rbase_from_femur``::
+
+    rbase_from_ee_tar = rbase_from_ee_regi · ee_from_cm · inv(femur_from_cm_regi)
+                        · femur_from_cm_tar · inv(ee_from_cm)
+
+The paper prints these with T_A^B; they chain as printed when T_A^B is read as ``a_from_b`` (then
+T_Femur^CM = femur_from_cm, T_ee^Rbase = ee_from_rbase, T_CM^ee = cm_from_ee) and eq. 8 above is
+exactly the inverse of the paper's eq. 8 (see docs/robot-and-calibration.md and the tests).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from fluoronav.calibration import _se3
+from fluoronav.calibration.robot import IKFailure, SerialRobot
+from fluoronav.errors import FluoronavError
+
+__all__ = [
+    "UnreachableTarget",
+    "femur_from_cm_registered",
+    "rbase_from_ee_target",
+    "robot_target",
+]
+
+logger = logging.getLogger(__name__)
+
+
+class UnreachableTarget(FluoronavError):
+    """The robot cannot reach the pose that puts the CM at the planned pose."""
+
+
+def femur_from_cm_registered(carm_from_femur: np.ndarray, carm_from_cm: np.ndarray) -> np.ndarray:
+    """Eq. 7: registered CM pose relative to the femur.
+
+    Args:
+        carm_from_femur: (..., 4, 4) femur registration.
+        carm_from_cm: (..., 4, 4) CM registration.
+
+    Returns:
+        (..., 4, 4) ``femur_from_cm = inv(carm_from_femur) · carm_from_cm``.
+    """
+    F = _se3.as_transform_array(carm_from_femur, "carm_from_femur")
+    C = _se3.as_transform_array(carm_from_cm, "carm_from_cm")
+    return _se3.inv(F) @ C
+
+
+def rbase_from_ee_target(
+    rbase_from_ee_regi: np.ndarray,
+    ee_from_cm: np.ndarray,
+    femur_from_cm_regi: np.ndarray,
+    femur_from_cm_target: np.ndarray,
+) -> np.ndarray:
+    """Eq. 8: end-effector pose that moves the CM to ``femur_from_cm_target``.
+
+    Args:
+        rbase_from_ee_regi: (..., 4, 4) robot forward kinematics during registration.
+        ee_from_cm: (4, 4) hand-eye matrix.
+        femur_from_cm_regi: (..., 4, 4) eq. 7 result.
+        femur_from_cm_target: (..., 4, 4) planned CM pose relative to the femur.
+
+    Returns:
+        (..., 4, 4) ``rbase_from_ee`` target.
+    """
+    X = _se3.as_transform_array(ee_from_cm, "ee_from_cm")
+    return (
+        _se3.as_transform_array(rbase_from_ee_regi, "rbase_from_ee_regi")
+        @ X
+        @ _se3.inv(_se3.as_transform_array(femur_from_cm_regi, "femur_from_cm_regi"))
+        @ _se3.as_transform_array(femur_from_cm_target, "femur_from_cm_target")
+        @ _se3.inv(X)
+    )
+
+
+def robot_target(
+    robot: SerialRobot,
+    q_regi_deg: np.ndarray,
+    *,
+    ee_from_cm: np.ndarray,
+    carm_from_femur: np.ndarray,
+    carm_from_cm: np.ndarray,
+    femur_from_cm_target: np.ndarray,
+    tol_mm: float = 1e-6,
+    tol_deg: float = 1e-6,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Joint target that puts the CM at the planned pose (eqs. 7, 8, then IK near ``q_regi_deg``).
+
+    Args:
+        robot: the kinematic model the controller uses.
+        q_regi_deg: (6,) joint values recorded during registration.
+        ee_from_cm: (4, 4) hand-eye matrix.
+        carm_from_femur, carm_from_cm: (4, 4) registration results.
+        femur_from_cm_target: (4, 4) planned pose (e.g. :func:`planned_femur_from_cm`).
+        tol_mm, tol_deg: IK acceptance tolerance.
+
+    Returns:
+        (rbase_from_ee_target (4, 4), q_target_deg (6,)).
+
+    Raises:
+        UnreachableTarget: no joint configuration reaches the target pose.
+    """
+    q_regi = np.asarray(q_regi_deg, dtype=np.float64)
+    femur_from_cm_regi = femur_from_cm_registered(carm_from_femur, carm_from_cm)
+    target = rbase_from_ee_target(
+        robot.rbase_from_ee(q_regi), ee_from_cm, femur_from_cm_regi, femur_from_cm_target
+    )
+    sol = robot.inverse_kinematics(target, q_reference_deg=q_regi, tol_mm=tol_mm, tol_deg=tol_deg)
+    if isinstance(sol, IKFailure):
+        raise UnreachableTarget(f"{robot.name}: {sol.reason}")
+    logger.debug("robot target %s (branch %s)", np.round(sol.q_deg, 4), sol.branch)
+    return target, sol.q_deg

@@ -1,0 +1,216 @@
+"""Surgical plans: where the CM should go relative to the femur, and the planned CM pose.
+
+Plan file (JSON), coordinates in the CT's world frame (LPS, mm, as SimpleITK reads it)::
+
+    {
+      "target_name": "entry_left",
+      "entry_point_mm": [12.0, -30.5, 80.0],
+      "direction": [0.0, 0.6, -0.8],
+      "insertion_depth_mm": 5.0,              (optional, ≥ 0, default 0)
+      "bending_direction": [1.0, 0.0, 0.0],   (optional, default: see below)
+      "control_points_deg": [0, 0, 0, 0, 0],  (optional, CM shape at the target, default straight)
+      "coordinate_system": "LPS"              (optional, "LPS" or "RAS", default "LPS")
+    }
+
+``direction`` is the insertion direction (normalised on reading). The planned CM base frame has
++z along ``direction`` and its +y (the bending direction) along the component of
+``bending_direction`` orthogonal to it; by default the world axis least parallel to ``direction``
+is used for that. The CM **tip** (the distal end point of the model, the point the paper's tip and
+relative errors use) is placed at ``entry_point + insertion_depth · direction``.
+
+Femur frame: the CT world frame in which the plan is drawn; the femur registration estimates
+``carm_from_femur`` for this same frame. A different femur frame can be passed as ``femur_from_world``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from fluoronav.calibration import _se3
+from fluoronav.errors import InputError
+from fluoronav.manipulator.kinematics import CMKinematics
+
+__all__ = ["Plan", "load_plan", "plan_from_dict", "planned_femur_from_cm", "save_plan"]
+
+_KNOWN_KEYS = {
+    "target_name",
+    "entry_point_mm",
+    "direction",
+    "insertion_depth_mm",
+    "bending_direction",
+    "control_points_deg",
+    "coordinate_system",
+}
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A planned CM target.
+
+    Attributes:
+        target_name: label of the target (e.g. a landmark name).
+        entry_point_world_mm: (3,) entry point, world (LPS) mm.
+        direction_world: (3,) unit insertion direction, world.
+        insertion_depth_mm: distance of the CM tip beyond the entry point along the direction.
+        bending_direction_world: (3,) or None; the CM +y axis is its part orthogonal to ``direction``.
+        control_points_deg: (n,) or None; CM shape at the target (straight when None).
+    """
+
+    target_name: str
+    entry_point_world_mm: np.ndarray
+    direction_world: np.ndarray
+    insertion_depth_mm: float = 0.0
+    bending_direction_world: np.ndarray | None = None
+    control_points_deg: np.ndarray | None = None
+
+    @property
+    def tip_target_world_mm(self) -> np.ndarray:
+        """(3,) where the CM tip should be."""
+        return self.entry_point_world_mm + self.insertion_depth_mm * self.direction_world
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {
+            "target_name": self.target_name,
+            "entry_point_mm": [float(v) for v in self.entry_point_world_mm],
+            "direction": [float(v) for v in self.direction_world],
+            "insertion_depth_mm": float(self.insertion_depth_mm),
+            "coordinate_system": "LPS",
+        }
+        if self.bending_direction_world is not None:
+            d["bending_direction"] = [float(v) for v in self.bending_direction_world]
+        if self.control_points_deg is not None:
+            d["control_points_deg"] = [float(v) for v in self.control_points_deg]
+        return d
+
+
+def _vector(d: Mapping[str, Any], key: str, source: str, n: int | None = 3) -> np.ndarray:
+    value = d[key]
+    if not isinstance(value, list | tuple) or (n is not None and len(value) != n):
+        raise InputError(source, f"'{key}' must be a list of {n if n is not None else 'some'} numbers")
+    try:
+        arr = np.array([float(v) for v in value], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(source, f"'{key}' must contain only numbers") from None
+    if not np.all(np.isfinite(arr)):
+        raise InputError(source, f"'{key}' must contain finite numbers")
+    return arr
+
+
+def plan_from_dict(d: Mapping[str, Any], *, source: str | Path = "<plan>") -> Plan:
+    """Validate a plan mapping (the JSON object) → :class:`Plan`; errors name ``source``."""
+    src = str(source)
+    if not isinstance(d, Mapping):
+        raise InputError(src, "a plan must be a JSON object")
+    unknown = sorted(set(d) - _KNOWN_KEYS)
+    if unknown:
+        raise InputError(src, f"unknown key(s) {unknown}; allowed: {sorted(_KNOWN_KEYS)}")
+    for key in ("target_name", "entry_point_mm", "direction"):
+        if key not in d:
+            raise InputError(src, f"missing '{key}'")
+    name = d["target_name"]
+    if not isinstance(name, str) or not name.strip():
+        raise InputError(src, "'target_name' must be a non-empty string")
+    system = d.get("coordinate_system", "LPS")
+    if system not in ("LPS", "RAS"):
+        raise InputError(src, f"'coordinate_system' must be 'LPS' or 'RAS', got {system!r}")
+    flip = np.array([-1.0, -1.0, 1.0]) if system == "RAS" else np.ones(3)
+    entry = _vector(d, "entry_point_mm", src) * flip
+    direction = _vector(d, "direction", src) * flip
+    norm = float(np.linalg.norm(direction))
+    if norm < 1e-9:
+        raise InputError(src, "'direction' must be a non-zero vector")
+    direction = direction / norm
+    depth = d.get("insertion_depth_mm", 0.0)
+    if isinstance(depth, bool) or not isinstance(depth, int | float) or not math.isfinite(depth) or depth < 0:
+        raise InputError(src, "'insertion_depth_mm' must be a finite number ≥ 0")
+    bend = None
+    if d.get("bending_direction") is not None:
+        bend = _vector(d, "bending_direction", src) * flip
+        if np.linalg.norm(np.cross(bend, direction)) < 1e-6 * max(1.0, float(np.linalg.norm(bend))):
+            raise InputError(src, "'bending_direction' must not be parallel to 'direction'")
+    cps = None
+    if d.get("control_points_deg") is not None:
+        cps = _vector(d, "control_points_deg", src, n=None)
+    return Plan(
+        target_name=name,
+        entry_point_world_mm=entry,
+        direction_world=direction,
+        insertion_depth_mm=float(depth),
+        bending_direction_world=bend,
+        control_points_deg=cps,
+    )
+
+
+def load_plan(path: str | Path) -> Plan:
+    """Read and validate a plan file; every problem raises :class:`InputError` naming the file."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(p, f"cannot read plan file ({exc.__class__.__name__})") from None
+    if not text.strip():
+        raise InputError(p, "empty plan file")
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(p, f"not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    return plan_from_dict(data, source=p)
+
+
+def save_plan(plan: Plan, path: str | Path) -> Path:
+    """Write ``plan`` as JSON (LPS) and return the path."""
+    p = Path(path)
+    p.write_text(json.dumps(plan.to_dict(), indent=2) + "\n", encoding="utf-8")
+    return p
+
+
+def _frame_axes(direction: np.ndarray, bending: np.ndarray | None) -> np.ndarray:
+    """(3, 3) rotation with columns x, y, z: z = direction, y ⟂ z towards ``bending``."""
+    z = direction / np.linalg.norm(direction)
+    if bending is None:
+        bending = np.eye(3)[int(np.argmin(np.abs(z)))]
+    y = bending - np.dot(bending, z) * z
+    y = y / np.linalg.norm(y)
+    x = np.cross(y, z)
+    return np.stack([x, y, z], axis=1)
+
+
+def planned_femur_from_cm(
+    plan: Plan,
+    *,
+    femur_from_world: np.ndarray | None = None,
+    kinematics: CMKinematics | None = None,
+) -> np.ndarray:
+    """The CM base pose in the femur frame that realises ``plan`` → (4, 4) ``femur_from_cm``.
+
+    Rotation: CM +z along the planned direction, +y towards the bending direction. Translation:
+    chosen so that the CM tip (``kinematics.tip_cm`` at the planned control points, straight by
+    default) lands on ``plan.tip_target_world_mm``.
+
+    Args:
+        plan: the plan (world coordinates).
+        femur_from_world: (4, 4) femur frame from the CT world frame; identity by default.
+        kinematics: CM kinematics (paper CM by default).
+    """
+    kin = kinematics or CMKinematics()
+    n_cp = kin.config.n_control_points
+    cps = np.zeros(n_cp) if plan.control_points_deg is None else plan.control_points_deg
+    if cps.shape != (n_cp,):
+        raise ValueError(f"plan has {cps.shape[0]} control points, the CM model needs {n_cp}")
+    tip_cm = kin.tip_cm(torch.as_tensor(cps, dtype=torch.float64)).numpy()
+    R = _frame_axes(plan.direction_world, plan.bending_direction_world)
+    world_from_cm = _se3.make(R, plan.tip_target_world_mm - R @ tip_cm)
+    F = (
+        np.eye(4)
+        if femur_from_world is None
+        else _se3.as_transform_array(femur_from_world, "femur_from_world")
+    )
+    return F @ world_from_cm

@@ -1,0 +1,242 @@
+"""Realistic X-ray images of a scene: CT material decomposition + voxelised CM + physics.
+
+For each scene the simulator
+
+1. integrates the CT's per-material partial densities (:func:`~fluoronav.simulation.materials.
+   decompose_hu`) along every detector ray with the CT renderer (g/cm³·mm → g/cm²);
+2. removes the CT inside the CM's envelope (the drilled path: a solid cylinder of the CM's outer
+   radius along its bent axis), by integrating the removed densities on the CT grid around the CM
+   and subtracting them;
+3. voxelises the bent CM at high resolution (``cm_voxel_mm``, partial volumes) as nitinol (or as
+   the authors' 2000 HU material) and integrates it at the full detector resolution inside the CM's
+   projected box, then bins it to the stored resolution (the detector integrates over its pixels);
+4. forms the detector image with :class:`~fluoronav.simulation.physics.XrayPhysics` (polychromatic
+   spectrum, scatter, Poisson noise, blur, electronic noise, log transform).
+
+The analytic CM renderer used by the registration is *not* used for the image (no inverse crime);
+it only provides the label mask, whose definition is geometric: the projection of the CM envelope
+between landmarks A and B (the notched region).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from fluoronav.anatomy.volume import Volume
+from fluoronav.device import resolve_device
+from fluoronav.geometry.camera import Camera
+from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.geometry import voxelize_cm
+from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.rendering.cm import CMRenderer
+from fluoronav.rendering.ct import CTRenderer, render_line_integrals
+from fluoronav.simulation.materials import MM_PER_CM, decompose_hu, get_material
+from fluoronav.simulation.physics import XrayPhysics
+from fluoronav.simulation.scene import Scene
+
+log = logging.getLogger(__name__)
+
+__all__ = ["SimulatedImage", "SimulationConfig", "XraySimulator", "envelope_config"]
+
+#: CT materials rendered (air is left out: outside the body it is not in the CT, inside it is < 1 %)
+RENDERED_CT_MATERIALS = ("adipose", "soft_tissue", "bone_cortical")
+
+
+def envelope_config(config: CMConfig) -> CMConfig:
+    """The CM's envelope (solid cylinder, no lumen, no notches) with the same axis and landmarks."""
+    return config.model_copy(update={"inner_diameter_mm": 0.0, "notch_depth_mm": 1e-9})
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """Settings of the image simulation.
+
+    Attributes:
+        physics: spectrum, detector, scatter and noise model.
+        image_size: stored image rows = cols; the detector (e.g. 1536²) is binned to it.
+        cm_oversample: the CM is integrated at ``image_size · cm_oversample`` and area-binned.
+        cm_voxel_mm: voxel size of the CM voxelisation, mm.
+        cm_material: ``"nitinol"`` (6.45 g/cm³) or ``"hu2000"`` (the authors' 2000 HU voxels).
+        drill: remove the CT inside the CM envelope.
+        drill_voxel_mm: voxel size of the envelope used to remove the CT, mm.
+    """
+
+    physics: XrayPhysics = field(default_factory=lambda: XrayPhysics(energy_bin_keV=3.0))
+    image_size: int = 512
+    cm_oversample: int = 3
+    cm_voxel_mm: float = 0.1
+    cm_material: str = "nitinol"
+    drill: bool = True
+    drill_voxel_mm: float = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class SimulatedImage:
+    """One simulated X-ray with its labels (all at the stored resolution).
+
+    Attributes:
+        image: (H, W) float32, −ln(I/I0) (bone and metal bright).
+        mask: (H, W) uint8, 1 on the notched CM region (zeros without a CM).
+        landmarks_px: (2, 2) [[uA, vA], [uB, vB]] or None without a CM.
+        camera: the camera of the stored image (world = CT frame).
+        scene: the scene simulated.
+    """
+
+    image: np.ndarray
+    mask: np.ndarray
+    landmarks_px: np.ndarray | None
+    camera: Camera
+    scene: Scene
+
+
+class XraySimulator:
+    """Physics-based X-ray simulation of scenes in one CT (CPU or CUDA).
+
+    Args:
+        volume: CT in HU.
+        config: simulation settings.
+        device: torch device for rendering and physics.
+    """
+
+    def __init__(
+        self, volume: Volume, *, config: SimulationConfig | None = None, device: str | torch.device = "cpu"
+    ) -> None:
+        self.volume = volume
+        self.config = config or SimulationConfig()
+        self.device = resolve_device(device)
+        parts = decompose_hu(volume.data)
+        self._renderers = {
+            m: CTRenderer(volume.replace(data=parts[m], labels=None), device=self.device, mipmap=False)
+            for m in RENDERED_CT_MATERIALS
+        }
+        self._hu = volume.data
+
+    # ----- geometry ------------------------------------------------------------------------
+    def stored_camera(self, scene: Scene) -> Camera:
+        """The camera of the stored image: the scene's detector binned to ``image_size``."""
+        n = self.config.image_size
+        return scene.camera.scaled_to(n, n)
+
+    def _cm_material_densities(self, cm: CMConfig) -> dict[str, float]:
+        if self.config.cm_material == "nitinol":
+            return {"nitinol": get_material("nitinol").density_g_cm3}
+        if self.config.cm_material == "hu2000":
+            parts = decompose_hu(np.array([cm.hu_value], dtype=np.float32))
+            return {k: float(v[0]) for k, v in parts.items() if k in RENDERED_CT_MATERIALS and v[0] > 0}
+        raise ValueError(f"unknown cm_material {self.config.cm_material!r}; use 'nitinol' or 'hu2000'")
+
+    def _drilled_densities(self, scene: Scene, camera: Camera) -> dict[str, torch.Tensor]:
+        """Line integrals (g/cm³·mm) of the CT removed by the drilled path, per material.
+
+        The envelope (solid cylinder along the bent axis) is voxelised in the CM frame at
+        ``drill_voxel_mm``; the CT is sampled trilinearly at those voxels, decomposed, weighted by
+        the envelope fraction and integrated like the CT itself.
+        """
+        from scipy.ndimage import map_coordinates
+
+        env = voxelize_cm(envelope_config(scene.cm_config), np.asarray(scene.control_points_deg, np.float64),
+                          spacing_mm=self.config.drill_voxel_mm, supersample=2)
+        occ = env.occupancy
+        nz_idx = np.nonzero(occ)
+        if len(nz_idx[0]) == 0:
+            return {}
+        world_from_index = scene.world_from_cm @ env.world_from_index
+        ijk = np.stack([nz_idx[2], nz_idx[1], nz_idx[0], np.ones(len(nz_idx[0]))], axis=1).astype(np.float64)
+        ct_index = (ijk @ world_from_index.T) @ self.volume.index_from_world.T  # (n, 4) as (i, j, k, 1)
+        hu = map_coordinates(self._hu, [ct_index[:, 2], ct_index[:, 1], ct_index[:, 0]], order=1,
+                             mode="constant", cval=-1000.0)
+        parts = decompose_hu(hu.astype(np.float32))
+        K = torch.as_tensor(camera.K)[None]
+        T = torch.as_tensor(camera.camera_from_world)[None]
+        out = {}
+        for m in RENDERED_CT_MATERIALS:
+            if not np.any(parts[m] > 0):
+                continue
+            data = np.zeros_like(occ)
+            data[nz_idx] = parts[m] * occ[nz_idx]
+            out[m] = render_line_integrals(torch.as_tensor(data, device=self.device), world_from_index, K, T,
+                                           camera.rows, camera.cols, mipmap=False)[0]
+        return out
+
+    def _cm_integral(self, scene: Scene, camera: Camera) -> torch.Tensor:
+        """∫ occupancy dl (mm) of the voxelised CM at the stored resolution (area-binned)."""
+        cm = scene.cm_config
+        vox = voxelize_cm(
+            cm,
+            np.asarray(scene.control_points_deg, dtype=np.float64),
+            spacing_mm=self.config.cm_voxel_mm,
+            supersample=2,
+        )
+        f = self.config.cm_oversample
+        fine = scene.camera.scaled_to(camera.rows * f, camera.cols * f)
+        world_from_index = scene.world_from_cm @ vox.world_from_index
+        # projected box of the CM's voxel grid, in stored pixels
+        nz, ny, nx = vox.occupancy.shape
+        corners = np.array([[i, j, k, 1.0] for i in (0, nx) for j in (0, ny) for k in (0, nz)]) - [
+            0.5,
+            0.5,
+            0.5,
+            0,
+        ]
+        uv = camera.project((corners @ world_from_index.T)[:, :3])
+        c0, r0 = np.floor(uv.min(0)).astype(int) - 1
+        c1, r1 = np.ceil(uv.max(0)).astype(int) + 2
+        c0, r0 = max(c0, 0), max(r0, 0)
+        c1, r1 = min(c1, camera.cols), min(r1, camera.rows)
+        out = torch.zeros(camera.rows, camera.cols, dtype=torch.float32, device=self.device)
+        if c1 <= c0 or r1 <= r0:
+            return out
+        crop = fine.crop(row0=r0 * f, col0=c0 * f, rows=(r1 - r0) * f, cols=(c1 - c0) * f)
+        occ = torch.as_tensor(vox.occupancy, device=self.device)
+        img = render_line_integrals(
+            occ,
+            world_from_index,
+            torch.as_tensor(crop.K)[None],
+            torch.as_tensor(crop.camera_from_world)[None],
+            crop.rows,
+            crop.cols,
+            mipmap=False,
+        )[0]
+        binned = torch.nn.functional.avg_pool2d(img[None, None], f)[0, 0]
+        out[r0:r1, c0:c1] = binned
+        return out
+
+    # ----- images --------------------------------------------------------------------------
+    def areal_densities(self, scene: Scene, camera: Camera | None = None) -> dict[str, torch.Tensor]:
+        """Per-material areal densities (g/cm²) at the stored resolution."""
+        camera = camera or self.stored_camera(scene)
+        dens = {m: r.render([camera])[0] for m, r in self._renderers.items()}
+        if scene.has_cm:
+            if self.config.drill:
+                for m, removed in self._drilled_densities(scene, camera).items():
+                    dens[m] = (dens[m] - removed).clamp_min(0.0)
+            occ_mm = self._cm_integral(scene, camera)
+            for m, rho in self._cm_material_densities(scene.cm_config).items():
+                dens[m] = dens.get(m, torch.zeros_like(occ_mm)) + rho * occ_mm
+        return {m: v / MM_PER_CM for m, v in dens.items()}
+
+    def labels(self, scene: Scene, camera: Camera) -> tuple[np.ndarray, np.ndarray | None]:
+        """(mask uint8 (H, W), landmarks (2, 2) or None) at ``camera``."""
+        if not scene.has_cm:
+            return np.zeros((camera.rows, camera.cols), np.uint8), None
+        env = CMRenderer(envelope_config(scene.cm_config), mu_per_mm=1.0)
+        T = torch.as_tensor(camera.camera_from_world @ scene.world_from_cm)[None, None]
+        cp = torch.as_tensor(np.asarray(scene.control_points_deg, dtype=np.float64))[None]
+        K = torch.as_tensor(camera.K)[None]
+        mask = env.mask(T, cp, K, camera.rows, camera.cols)[0, 0].cpu().numpy().astype(np.uint8)
+        lm = env.landmarks_px(T, cp, K)[0, 0].cpu().numpy()
+        return mask, lm
+
+    def simulate(self, scene: Scene, *, seed: int, camera: Camera | None = None) -> SimulatedImage:
+        """A realistic image of ``scene`` (reproducible for a seed) with its labels."""
+        camera = camera or self.stored_camera(scene)
+        dens = self.areal_densities(scene, camera)
+        # blur/scatter widths are given in detector pixels: scale them to the stored pixels
+        physics = self.config.physics.with_pixel_scale(scene.camera.cols / camera.cols)
+        image = physics.apply(dens, seed=seed).float().cpu().numpy()
+        mask, lm = self.labels(scene, camera)
+        return SimulatedImage(image=image, mask=mask, landmarks_px=lm, camera=camera, scene=scene)
