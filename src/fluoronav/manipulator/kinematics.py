@@ -9,6 +9,12 @@ Each joint rotates everything distal to it about the x axis through the notch ce
 axis. There are ``N + 1`` rigid links: link 0 is the base (up to notch 0's centre), link ``k`` lies
 between notch ``k−1`` and ``k``, and link ``N`` is the top. ``cm_from_link[k]`` maps a point given
 in straight-configuration CM coordinates on link ``k`` to its bent position in the CM base frame.
+
+As in the authors' model, joints rotate about the tube axis at the notch centre. A real notched
+tube bends about its spine, so at a bent joint the spines of two neighbouring links overlap (or
+gap) by about |y|·tan φ: for typical shapes ~3 % of the CM's volume. The analytic renderer sums
+the overlapping material while the voxeliser used by the simulator counts it once, a small model
+mismatch between the registration's renderer and the simulated images.
 """
 
 from __future__ import annotations
