@@ -1,0 +1,37 @@
+"""``fluoronav evaluate``: accuracy of a detector on a ``simulate`` data set."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from fluoronav.cli.common import DEVICE_OPTION
+
+
+def evaluate_command(
+    data: Path = typer.Option(..., "--data", help="Data set directory written by `fluoronav simulate`."),
+    model: Path | None = typer.Option(None, "--model", help="Model file (default: the shipped weights)."),
+    out: Path | None = typer.Option(None, "--out", help="Write the summary JSON here."),
+    split: str = typer.Option("val", "--split", help="train, val (held out by id hash) or all."),
+    device: str = DEVICE_OPTION,
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
+) -> None:
+    """Dice, landmark error (px, mm), found rate and false-positive rate of a detector."""
+    from fluoronav.detection.detector import Detector
+    from fluoronav.detection.evaluate import evaluate
+    from fluoronav.errors import InputError
+
+    if split not in ("train", "val", "all"):
+        raise InputError("--split", f"unknown split {split!r}; use train, val or all")
+    summary = evaluate(Detector.load(model, device=device), data, split=split, progress=progress)
+    text = json.dumps(summary, indent=1)
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n")
+    typer.echo(text)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("evaluate")(evaluate_command)

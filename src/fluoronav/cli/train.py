@@ -1,0 +1,53 @@
+"""``fluoronav train``: train the CM detector on a ``simulate`` data set."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
+
+
+def train_command(
+    data: list[Path] = typer.Option(
+        ...,
+        "--data",
+        help="Data set directory written by `fluoronav simulate` (repeatable, e.g. add a --no-cm set).",
+    ),
+    out: Path = typer.Option(
+        ...,
+        "--out",
+        help="Model file to write (.pt); MODEL.json, MODEL.ckpt and MODEL.log.jsonl are written next to it.",
+    ),
+    epochs: int = typer.Option(10, "--epochs", min=1, help="Number of epochs (total, also with --resume)."),
+    batch_size: int = typer.Option(16, "--batch-size", min=1, help="Samples per optimisation step."),
+    lr: float = typer.Option(1e-3, "--lr", help="Initial Adam learning rate."),
+    lr_step: int = typer.Option(
+        10, "--lr-step", min=1, help="Multiply the learning rate by 0.1 every this many epochs."
+    ),
+    workers: int = typer.Option(0, "--workers", min=0, help="Data loader worker processes."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from the checkpoint MODEL.ckpt."),
+    seed: int = SEED_OPTION,
+    device: str = DEVICE_OPTION,
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
+) -> None:
+    """Train the two-stage detector (segmentation + landmark heatmaps) and write MODEL."""
+    from fluoronav.detection.train import TrainConfig, train
+
+    config = TrainConfig(
+        epochs=epochs,
+        batch_size=batch_size,
+        lr=lr,
+        lr_step_epochs=lr_step,
+        seed=seed,
+        device=device,
+        workers=workers,
+    )
+    metrics = train(data, out, config=config, resume=resume, progress=progress)
+    typer.echo(json.dumps(metrics))
+
+
+def register(app: typer.Typer) -> None:
+    app.command("train")(train_command)

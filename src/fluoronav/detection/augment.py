@@ -1,0 +1,100 @@
+"""X-ray augmentations of a square view with consistent mask and landmark handling.
+
+Geometric: one affine about the view centre combining a flip, a rotation by a multiple of 90° and a
+small rotation; the landmarks keep their identity (A stays A). Photometric (on the normalised image):
+blur, gamma, contrast/brightness and Gaussian noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Augmentation ranges (each drawn uniformly).
+
+    Attributes:
+        p_flip: probability of a left-right flip.
+        p_rot90: probability of a rotation by 90°, 180° or 270°.
+        max_angle_deg: extra small rotation in [−max_angle_deg, max_angle_deg].
+        gamma: range of the gamma exponent applied to |x| (sign kept).
+        contrast: range of the gain.
+        brightness: range ± of the offset (normalised units).
+        noise_std: upper bound of the Gaussian noise std (normalised units).
+        blur_sigma_px: upper bound of the Gaussian blur σ (pixels), applied with probability p_blur.
+    """
+
+    p_flip: float = 0.5
+    p_rot90: float = 0.75
+    max_angle_deg: float = 15.0
+    gamma: tuple[float, float] = (0.7, 1.4)
+    contrast: tuple[float, float] = (0.8, 1.25)
+    brightness: float = 0.1
+    noise_std: float = 0.05
+    blur_sigma_px: float = 1.0
+    p_blur: float = 0.3
+
+
+def view_affine(size: int, *, flip: bool, angle_deg: float) -> np.ndarray:
+    """Forward 2×3 affine (pixel-centre coordinates) of a flip then a rotation about the view centre."""
+    c = (size - 1) / 2.0
+    a = np.deg2rad(angle_deg)
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    F = np.diag([-1.0, 1.0]) if flip else np.eye(2)
+    A = R @ F
+    t = np.array([c, c]) - A @ np.array([c, c])
+    return np.concatenate([A, t[:, None]], axis=1)
+
+
+def apply_affine(
+    affine: np.ndarray,
+    image: np.ndarray,
+    mask: np.ndarray,
+    landmarks_uv: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Warp a square view (image, soft mask) and its landmarks (2, 2) (or None) by a forward affine."""
+    size = image.shape[1], image.shape[0]
+    img = cv2.warpAffine(image, affine, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    msk = cv2.warpAffine(
+        mask, affine, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0
+    )
+    lm = None
+    if landmarks_uv is not None:
+        lm = np.asarray(landmarks_uv, dtype=np.float64) @ affine[:, :2].T + affine[:, 2]
+    return img, msk, lm
+
+
+def augment_geometric(
+    rng: np.random.Generator,
+    image: np.ndarray,
+    mask: np.ndarray,
+    landmarks_uv: np.ndarray | None,
+    config: AugmentConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Random flip / 90° rotation / small rotation of a square view (rows == cols)."""
+    if image.shape[0] != image.shape[1]:
+        raise ValueError(f"views are square, got {image.shape}")
+    flip = bool(rng.random() < config.p_flip)
+    k = int(rng.integers(1, 4)) if rng.random() < config.p_rot90 else 0
+    angle = 90.0 * k + float(rng.uniform(-config.max_angle_deg, config.max_angle_deg))
+    return apply_affine(view_affine(image.shape[0], flip=flip, angle_deg=angle), image, mask, landmarks_uv)
+
+
+def augment_photometric(rng: np.random.Generator, image: np.ndarray, config: AugmentConfig) -> np.ndarray:
+    """Random blur, gamma, contrast/brightness and noise of a normalised image (values ≈ [0, 1])."""
+    img: np.ndarray = np.asarray(image, dtype=np.float32)
+    if config.blur_sigma_px > 0 and rng.random() < config.p_blur:
+        img = cv2.GaussianBlur(img, (0, 0), float(rng.uniform(0.3, config.blur_sigma_px)))
+    gamma = float(rng.uniform(*config.gamma))
+    img = np.sign(img) * np.abs(img) ** gamma
+    img = img * float(rng.uniform(*config.contrast)) + float(
+        rng.uniform(-config.brightness, config.brightness)
+    )
+    noise = float(rng.uniform(0.0, config.noise_std))
+    if noise > 0:
+        img = img + rng.normal(0.0, noise, size=img.shape)
+    return img.astype(np.float32)

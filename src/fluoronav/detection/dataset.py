@@ -1,0 +1,232 @@
+"""Torch data set over a ``fluoronav simulate`` directory (``manifest.jsonl`` + ``.npz`` samples).
+
+Each item holds the two training views of one sample: the whole image at the coarse working
+resolution and a region of interest around the CM at the fine resolution (see
+:mod:`fluoronav.detection.model`), each with its soft mask target and landmarks in view pixels
+(``u' = (u − x0 + 0.5)/s − 0.5``). Negatives (no CM: empty mask or no landmarks) have NaN landmarks,
+which give all-zero heatmap targets, and a random ROI. The train/val split is a deterministic function
+of each sample's id (SHA-1), so it does not depend on the order or size of the manifest.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from fluoronav.detection.augment import AugmentConfig, augment_geometric, augment_photometric
+from fluoronav.detection.model import DetectorConfig
+from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
+from fluoronav.errors import InputError
+
+logger = logging.getLogger(__name__)
+
+#: in-memory image cache budget (bytes); larger data sets are read from disk every time
+CACHE_BUDGET_BYTES = 4 * 1024**3
+
+
+def read_manifest(root: str | Path) -> list[dict]:
+    """The sample records of a data set directory, in file order (last record wins per id)."""
+    root = Path(root)
+    path = root / "manifest.jsonl"
+    if not path.is_file():
+        raise InputError(root, "not a data set directory (no manifest.jsonl)")
+    records: dict[str, dict] = {}
+    with open(path) as fh:
+        for lineno, line in enumerate(fh, 1):
+            if not line.strip():
+                continue
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                # a crash while writing leaves at most a truncated last line
+                logger.warning("%s:%d: skipping a line that is not JSON", path, lineno)
+                continue
+            if "id" not in rec or "file" not in rec:
+                raise InputError(path, f"line {lineno} lacks 'id' or 'file'")
+            records[str(rec["id"])] = rec
+    if not records:
+        raise InputError(path, "no samples")
+    return list(records.values())
+
+
+def split_of(sample_id: str, val_fraction: float) -> str:
+    """``"val"`` for a deterministic ``val_fraction`` of ids (by SHA-1), else ``"train"``."""
+    h = int.from_bytes(hashlib.sha1(str(sample_id).encode()).digest()[:8], "big") / 2.0**64
+    return "val" if h < val_fraction else "train"
+
+
+def pixel_spacing_of(record: dict) -> float | None:
+    """Detector pixel spacing (mm) of a manifest record (mean of a pair), or None."""
+    ps = record.get("pixel_spacing_mm")
+    if ps is None:
+        return None
+    return float(np.mean(np.asarray(ps, dtype=np.float64)))
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One stored sample: image (rows, cols) float32, mask (rows, cols) bool, landmarks (2, 2) or None."""
+
+    id: str
+    image: np.ndarray
+    mask: np.ndarray
+    landmarks_px: np.ndarray | None
+    pixel_spacing_mm: float | None
+
+
+def load_sample(root: str | Path, record: dict) -> Sample:
+    """Read one sample's ``.npz``; landmarks from the file, else from the manifest record."""
+    path = Path(root) / record["file"]
+    try:
+        with np.load(path) as npz:
+            image = np.asarray(npz["image"], dtype=np.float32)
+            mask = np.asarray(npz["mask"]) > 0 if "mask" in npz.files else np.zeros(image.shape, bool)
+            lm = np.asarray(npz["landmarks_px"], dtype=np.float64) if "landmarks_px" in npz.files else None
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(path, f"unreadable sample ({exc})") from exc
+    if image.ndim != 2 or mask.shape != image.shape:
+        raise InputError(path, f"image {image.shape} and mask {mask.shape} must be equal 2-D shapes")
+    if lm is None and record.get("landmarks_px") is not None:
+        lm = np.asarray(record["landmarks_px"], dtype=np.float64)
+    if lm is not None and (lm.shape != (2, 2) or not np.all(np.isfinite(lm))):
+        lm = None
+    if lm is None or not mask.any():  # a negative: no CM visible
+        lm = None
+    return Sample(str(record["id"]), image, mask, lm, pixel_spacing_of(record))
+
+
+def fine_view_for(
+    sample: Sample,
+    config: DetectorConfig,
+    rng: np.random.Generator | None,
+) -> View:
+    """The ROI of a sample: around its mask and landmarks (jittered when ``rng`` is given);
+    a random window for negatives."""
+    rows, cols = sample.image.shape
+    if sample.landmarks_px is None:
+        r = rng if rng is not None else np.random.default_rng(0)
+        side = float(r.uniform(0.1, 0.5)) * max(rows, cols)
+        centre = r.uniform([0, 0], [cols, rows])
+        return roi_view(centre[None], config.roi_size, margin_frac=0.0, min_side_px=max(side, 2.0))
+    vv, uu = np.nonzero(sample.mask)
+    pts = np.concatenate(
+        [
+            np.array([[uu.min(), vv.min()], [uu.max(), vv.max()]], dtype=np.float64),
+            sample.landmarks_px,
+        ]
+    )
+    if rng is None:
+        return roi_view(
+            pts, config.roi_size, margin_frac=config.roi_margin_frac, min_side_px=config.roi_min_side_px
+        )
+    return roi_view(
+        pts,
+        config.roi_size,
+        margin_frac=config.roi_margin_frac,
+        min_side_px=config.roi_min_side_px,
+        # log-uniform ×0.8–2: the first fine pass at inference may get a loose ROI from the coarse stage
+        scale_factor=float(np.exp(rng.uniform(np.log(0.8), np.log(2.0)))),
+        shift_frac=tuple(rng.uniform(-0.1, 0.1, size=2)),
+    )
+
+
+def make_view(
+    sample: Sample,
+    view: View,
+    config: DetectorConfig,
+    *,
+    rng: np.random.Generator | None = None,
+    augment: AugmentConfig | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normalised image (S, S), soft mask (S, S) and landmarks (2, 2) (NaN if absent) in view pixels."""
+    image = normalize_intensity(
+        resample(sample.image, view), low_pct=config.low_pct, high_pct=config.high_pct
+    )
+    mask = resample(sample.mask.astype(np.float32), view)
+    lm = None if sample.landmarks_px is None else view.from_input(sample.landmarks_px)
+    if augment is not None and rng is not None:
+        image, mask, lm = augment_geometric(rng, image, mask, lm, augment)
+        image = augment_photometric(rng, image, augment)
+    lm_out = np.full((2, 2), np.nan) if lm is None else lm
+    return image.astype(np.float32), np.clip(mask, 0.0, 1.0).astype(np.float32), lm_out.astype(np.float32)
+
+
+class CMDetectionDataset(Dataset):
+    """Training/validation items of a simulate data set.
+
+    Args:
+        root: data set directory.
+        config: detector configuration (working resolutions, ROI margin).
+        split: ``"train"``, ``"val"`` or ``"all"``.
+        val_fraction: fraction of ids in the validation split.
+        augment: augmentation ranges, or None for none (validation).
+        seed: base seed; item i of epoch e uses ``Generator([seed, e, i])``.
+        cache: keep decoded samples in memory (default: when they fit in ``CACHE_BUDGET_BYTES``).
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        *,
+        config: DetectorConfig,
+        split: str = "train",
+        val_fraction: float = 1 / 11,
+        augment: AugmentConfig | None = None,
+        seed: int = 0,
+        cache: bool | None = None,
+    ) -> None:
+        if split not in ("train", "val", "all"):
+            raise ValueError(f"unknown split {split!r}")
+        self.root = Path(root)
+        self.config = config
+        self.augment = augment
+        self.seed = int(seed)
+        self.epoch = 0
+        records = read_manifest(self.root)
+        self.records = [r for r in records if split == "all" or split_of(str(r["id"]), val_fraction) == split]
+        if cache is None:
+            pixels = sum(int(r.get("rows", 0)) * int(r.get("cols", 0)) for r in self.records)
+            cache = 0 < pixels * 5 <= CACHE_BUDGET_BYTES
+        self._cache: dict[int, Sample] | None = {} if cache else None
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def set_epoch(self, epoch: int) -> None:
+        """Select the augmentation draws of an epoch (deterministic per epoch and item)."""
+        self.epoch = int(epoch)
+
+    def sample(self, index: int) -> Sample:
+        if self._cache is not None and index in self._cache:
+            return self._cache[index]
+        s = load_sample(self.root, self.records[index])
+        if self._cache is not None:
+            self._cache[index] = s
+        return s
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        s = self.sample(index)
+        rng = np.random.default_rng([self.seed, self.epoch, index]) if self.augment is not None else None
+        cv = full_view(s.image.shape, self.config.input_size)
+        fv = fine_view_for(s, self.config, rng)
+        ci, cm, cl = make_view(s, cv, self.config, rng=rng, augment=self.augment)
+        fi, fm, fl = make_view(s, fv, self.config, rng=rng, augment=self.augment)
+        return {
+            "coarse_image": torch.from_numpy(ci)[None],
+            "coarse_mask": torch.from_numpy(cm)[None],
+            "coarse_landmarks": torch.from_numpy(cl),
+            "fine_image": torch.from_numpy(fi)[None],
+            "fine_mask": torch.from_numpy(fm)[None],
+            "fine_landmarks": torch.from_numpy(fl),
+            "coarse_scale": torch.tensor(cv.scale, dtype=torch.float64),
+            "fine_view": torch.tensor([fv.x0, fv.y0, fv.side, fv.size], dtype=torch.float64),
+            "positive": torch.tensor(s.landmarks_px is not None),
+            "index": torch.tensor(index),
+        }

@@ -1,0 +1,341 @@
+"""Inference API of the learned CM detector, image loaders and the ``detect`` output files.
+
+``Detector.load()`` reads the shipped weights (``fluoronav/data/detector.pt``) or a model file written
+by ``fluoronav train``; ``Detector.detect(image)`` runs the coarse stage on the whole image, the fine
+stage on a region of interest around the coarse detection, and extracts the centreline
+(:func:`fluoronav.detection.centerline.extract_centerline`) from the final mask between the landmarks.
+
+Input images are detector images after the log transform, bone and metal bright (as ``simulate``
+writes them). :func:`load_image` converts other files to that form:
+
+- ``.npz`` (key ``image``) and ``.npy``: taken as-is.
+- 8/16-bit PNG/TIFF/JPEG: raw intensities where dark = attenuating; converted with
+  ``−ln((I + 1) / (I_max + 1))``, I_max the type's full scale (255 or 65535). Colour is averaged to
+  grey. The constant offset of that rule does not matter: the detector normalises each image.
+- float TIFF: taken as-is (already a log image).
+- DICOM (read with SimpleITK): values after the modality rescale; MONOCHROME2 is taken as-is (bright =
+  attenuating, as radiographs are presented), MONOCHROME1 is inverted (max − value). The pixel spacing
+  is Imager Pixel Spacing (0018,1164), else Pixel Spacing (0028,0030), when present.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from fluoronav.detection.centerline import extract_centerline
+from fluoronav.detection.heatmaps import decode_heatmaps
+from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet
+from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
+from fluoronav.device import resolve_device
+from fluoronav.errors import FluoronavError, InputError
+
+logger = logging.getLogger(__name__)
+
+SHIPPED_MODEL_NAME = "detector.pt"
+IMAGE_SUFFIXES = (".npz", ".npy", ".png", ".tif", ".tiff", ".jpg", ".jpeg", ".dcm", ".dicom")
+
+
+def shipped_model_path() -> Path:
+    """Where the shipped weights live inside the installed package."""
+    return Path(str(resources.files("fluoronav") / "data" / SHIPPED_MODEL_NAME))
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Result of one image.
+
+    Attributes:
+        found: whether a CM was detected; if False there are no landmarks and no centreline.
+        landmarks_px: (2, 2) [[uA, vA], [uB, vB]] in the input image's pixels, or None.
+        landmark_confidence: (2,) heatmap peak values in [0, 1] (0 where nothing was found).
+        mask: (rows, cols) bool segmentation at the input size.
+        centerline_px: (P, 2) ordered A → B, or None.
+        pixel_spacing_mm: detector pixel spacing of the input when known (passed through).
+    """
+
+    found: bool
+    landmarks_px: np.ndarray | None
+    landmark_confidence: np.ndarray
+    mask: np.ndarray
+    centerline_px: np.ndarray | None
+    pixel_spacing_mm: float | None = None
+
+
+def _largest_component(mask: np.ndarray) -> np.ndarray:
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if n <= 2:
+        return mask.astype(bool)
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return labels == best
+
+
+def _component_at(mask: np.ndarray, seeds_uv: np.ndarray) -> np.ndarray:
+    """The connected components of ``mask`` within 2 px of any seed (N, 2) (u, v); the largest if none."""
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if n <= 2:
+        return mask.astype(bool)
+    keep: set[int] = set()
+    rows, cols = mask.shape
+    for u, v in np.asarray(seeds_uv, dtype=np.float64).reshape(-1, 2):
+        r0, r1 = int(max(round(v) - 2, 0)), int(min(round(v) + 3, rows))
+        c0, c1 = int(max(round(u) - 2, 0)), int(min(round(u) + 3, cols))
+        keep.update(int(x) for x in np.unique(labels[r0:r1, c0:c1]) if x > 0)
+    if not keep:
+        return labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return np.isin(labels, sorted(keep))
+
+
+def _check_image(image: np.ndarray, source: str) -> np.ndarray:
+    arr = np.asarray(image)
+    if arr.ndim == 3 and 1 in (arr.shape[0], arr.shape[-1]):
+        arr = arr.reshape(arr.shape[1:] if arr.shape[0] == 1 else arr.shape[:-1])
+    if arr.ndim != 2 or min(arr.shape) < 8:
+        raise InputError(source, f"expected a 2-D image of at least 8×8 pixels, got shape {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.number):
+        raise InputError(source, f"image values must be numeric, got {arr.dtype}")
+    arr = arr.astype(np.float32)
+    if not np.all(np.isfinite(arr)):
+        raise InputError(source, "image contains NaN or infinite values")
+    return arr
+
+
+class Detector:
+    """The two-stage CM detector on one torch device."""
+
+    def __init__(
+        self, net: DetectorNet, *, device: str | torch.device = "auto", source: str = "<memory>"
+    ) -> None:
+        self.device = resolve_device(device)
+        self.net = net.to(self.device).eval()
+        self.config: DetectorConfig = net.config
+        self.source = source
+
+    @classmethod
+    def load(cls, path: str | Path | None = None, device: str | torch.device = "auto") -> Detector:
+        """Load a model file written by ``fluoronav train`` (None: the shipped weights)."""
+        if path is None:
+            path = shipped_model_path()
+            if not path.is_file():
+                raise FluoronavError(
+                    f"no shipped detector weights at {path}; train a model with "
+                    "`fluoronav simulate --n 2000 --out DATA` then "
+                    "`fluoronav train --data DATA --out MODEL.pt` and pass it with --model MODEL.pt"
+                )
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(path, "model file not found")
+        try:
+            blob = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # torch raises many types for damaged files
+            raise InputError(path, f"unreadable model file ({exc.__class__.__name__})") from exc
+        if not isinstance(blob, dict) or "state_dict" not in blob or "config" not in blob:
+            raise InputError(path, "not a fluoronav detector model (no state_dict/config)")
+        if int(blob.get("format_version", 0)) > MODEL_FORMAT_VERSION:
+            raise InputError(path, f"model format {blob.get('format_version')} is newer than this fluoronav")
+        try:
+            net = DetectorNet(DetectorConfig.from_dict(blob["config"]))
+            net.load_state_dict(blob["state_dict"])
+        except (RuntimeError, TypeError, ValueError) as exc:
+            raise InputError(
+                path, f"weights do not match the model configuration ({exc.__class__.__name__})"
+            ) from exc
+        return cls(net, device=device, source=str(path))
+
+    @torch.no_grad()
+    def _run(self, net: torch.nn.Module, view_image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(S, S) normalised image → seg logit (S, S), landmarks (2, 2) view px, confidences (2,)."""
+        x = torch.from_numpy(view_image)[None, None].to(self.device)
+        out = net(x)[0].float()
+        pts, conf = decode_heatmaps(out[None, 1:])
+        return out[0].cpu().numpy(), pts[0].cpu().numpy().astype(np.float64), conf[0].cpu().numpy()
+
+    def _view_input(self, image: np.ndarray, view: View) -> np.ndarray:
+        cfg = self.config
+        return normalize_intensity(resample(image, view), low_pct=cfg.low_pct, high_pct=cfg.high_pct)
+
+    def coarse(self, image: np.ndarray) -> tuple[View, np.ndarray, np.ndarray, np.ndarray]:
+        """Coarse stage: view, seg logit (S, S), landmarks (2, 2) in input px, confidences (2,)."""
+        cv = full_view(image.shape, self.config.input_size)
+        logit, pts, conf = self._run(self.net.coarse, self._view_input(image, cv))
+        return cv, logit, cv.to_input(pts), conf
+
+    def fine(self, image: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Fine stage on a ROI: seg logit (R, R), landmarks (2, 2) in input px, confidences (2,)."""
+        logit, pts, conf = self._run(self.net.fine, self._view_input(image, view))
+        return logit, view.to_input(pts), conf
+
+    def detect(self, image: np.ndarray, *, pixel_spacing_mm: float | None = None) -> Detection:
+        """Detect the CM in a (rows, cols) log image (bright = attenuating).
+
+        Returns a :class:`Detection` in the input's pixels; ``found`` is False when the coarse mask is
+        smaller than ``min_mask_px`` or a landmark confidence is below ``min_confidence``.
+        """
+        img = _check_image(image, "image")
+        cfg = self.config
+        shape = img.shape
+        thr_logit = float(np.log(cfg.mask_threshold / (1.0 - cfg.mask_threshold)))
+        empty = Detection(False, None, np.zeros(2), np.zeros(shape, bool), None, pixel_spacing_mm)
+        cv, c_logit, c_pts, c_conf = self.coarse(img)
+        c_mask = c_logit > thr_logit
+        if int(c_mask.sum()) < cfg.min_mask_px:
+            return empty
+        confident = c_conf >= cfg.min_confidence
+        c_mask = _component_at(c_mask, cv.from_input(c_pts[confident]))
+        fv = self._roi(cv, c_mask, c_pts[confident])
+        for k in range(max(cfg.fine_passes, 1)):
+            f_logit, f_pts, f_conf = self.fine(img, fv)
+            roi_mask = f_logit > thr_logit
+            if k + 1 < cfg.fine_passes and roi_mask.any():
+                # again on a ROI fitted to this pass's result: its scale matches training more closely
+                sure = f_pts[f_conf >= cfg.min_confidence]
+                fv = self._roi(fv, _component_at(roi_mask, fv.from_input(sure)), sure)
+        mask = self._mask_at_input(f_logit, fv, shape, thr_logit)
+        if not mask.any() or float(f_conf.min()) < cfg.min_confidence:
+            return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
+        centerline = extract_centerline(mask, f_pts[0], f_pts[1])
+        return Detection(True, f_pts, f_conf.astype(np.float64), mask, centerline, pixel_spacing_mm)
+
+    def _roi(self, view: View, view_mask: np.ndarray, landmarks_input: np.ndarray) -> View:
+        """Fine-stage ROI around a mask in ``view`` pixels and landmarks (N, 2) in input pixels."""
+        vv, uu = np.nonzero(view_mask)
+        corners = view.to_input(
+            np.array([[uu.min() - 0.5, vv.min() - 0.5], [uu.max() + 0.5, vv.max() + 0.5]])
+        )
+        cfg = self.config
+        return roi_view(
+            np.concatenate([corners, np.asarray(landmarks_input).reshape(-1, 2)]),
+            cfg.roi_size,
+            margin_frac=cfg.roi_margin_frac,
+            min_side_px=cfg.roi_min_side_px,
+        )
+
+    @staticmethod
+    def _mask_at_input(logit: np.ndarray, view: View, shape: tuple[int, int], thr_logit: float) -> np.ndarray:
+        """Threshold the ROI logits bilinearly mapped to the input grid; keep the largest component."""
+        rows, cols = shape
+        out = np.zeros(shape, dtype=bool)
+        cx0, cy0 = max(view.x0, 0), max(view.y0, 0)
+        cx1, cy1 = min(view.x0 + view.side, cols), min(view.y0 + view.side, rows)
+        if cx1 <= cx0 or cy1 <= cy0:
+            return out
+        vals = (
+            logit
+            if view.side == view.size
+            else cv2.resize(logit, (view.side, view.side), interpolation=cv2.INTER_LINEAR)
+        )
+        sub = vals[cy0 - view.y0 : cy1 - view.y0, cx0 - view.x0 : cx1 - view.x0] > thr_logit
+        if sub.any():
+            out[cy0:cy1, cx0:cx1] = _largest_component(sub)
+        return out
+
+
+def load_image(path: str | Path) -> tuple[np.ndarray, float | None]:
+    """Read an image file as a float32 log image (bright = attenuating) and its pixel spacing (mm).
+
+    See the module docstring for the conversion rules. Raises InputError for unreadable files.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    suffix = path.suffix.lower()
+    spacing: float | None = None
+    if suffix == ".npz":
+        try:
+            with np.load(path) as npz:
+                if "image" not in npz.files:
+                    raise InputError(path, f"no 'image' array (has {', '.join(npz.files) or 'nothing'})")
+                arr = np.asarray(npz["image"])
+                if "pixel_spacing_mm" in npz.files:
+                    spacing = float(np.mean(npz["pixel_spacing_mm"]))
+        except (OSError, ValueError) as exc:
+            raise InputError(path, f"unreadable .npz ({exc.__class__.__name__})") from exc
+    elif suffix == ".npy":
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError(path, f"unreadable .npy ({exc.__class__.__name__})") from exc
+    elif suffix in (".png", ".tif", ".tiff", ".jpg", ".jpeg"):
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise InputError(path, "unreadable image file")
+        if raw.ndim == 3:
+            raw = (
+                raw[..., :3].astype(np.float64).mean(axis=2).astype(raw.dtype)
+                if raw.shape[2] >= 3
+                else raw[..., 0]
+            )
+        if np.issubdtype(raw.dtype, np.integer):
+            full = float(np.iinfo(raw.dtype).max)
+            arr = -np.log((raw.astype(np.float64) + 1.0) / (full + 1.0))
+        else:
+            arr = raw
+    else:
+        arr, spacing = _load_dicom(path)
+    return _check_image(arr, str(path)), spacing
+
+
+def _load_dicom(path: Path) -> tuple[np.ndarray, float | None]:
+    import SimpleITK as sitk  # noqa: N813
+
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    try:
+        reader.ReadImageInformation()
+        img = reader.Execute()
+    except RuntimeError as exc:
+        raise InputError(path, "unreadable image (not a DICOM or other format SimpleITK reads)") from exc
+    arr = sitk.GetArrayFromImage(img).astype(np.float64)
+    if arr.ndim == 3:
+        if arr.shape[0] != 1:
+            raise InputError(path, f"multi-frame image ({arr.shape[0]} frames); give one frame")
+        arr = arr[0]
+
+    def tag(key: str) -> str | None:
+        return reader.GetMetaData(key).strip() if reader.HasMetaDataKey(key) else None
+
+    if (tag("0028|0004") or "").upper() == "MONOCHROME1":
+        arr = arr.max() - arr
+    spacing = None
+    for key in ("0018|1164", "0028|0030"):
+        value = tag(key)
+        if value:
+            try:
+                spacing = float(np.mean([float(x) for x in value.split("\\")]))
+                break
+            except ValueError:
+                continue
+    return arr, spacing
+
+
+def detection_to_dict(det: Detection, mask_file: str) -> dict:
+    """The contract JSON of a detection (see CONTRACTS.md, "Detection output")."""
+    return {
+        "found": bool(det.found),
+        "landmarks_px": None if det.landmarks_px is None else np.asarray(det.landmarks_px).tolist(),
+        "landmark_confidence": [float(c) for c in det.landmark_confidence],
+        "centerline_px": None if det.centerline_px is None else np.asarray(det.centerline_px).tolist(),
+        "mask": mask_file,
+        "rows": int(det.mask.shape[0]),
+        "cols": int(det.mask.shape[1]),
+        "pixel_spacing_mm": det.pixel_spacing_mm,
+    }
+
+
+def write_detection(det: Detection, out_dir: str | Path, stem: str) -> Path:
+    """Write ``out_dir/<stem>.json`` and ``out_dir/<stem>_mask.png`` (0/255); returns the JSON path."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    mask_name = f"{stem}_mask.png"
+    if not cv2.imwrite(str(out_dir / mask_name), det.mask.astype(np.uint8) * 255):
+        raise InputError(out_dir / mask_name, "could not write the mask PNG")
+    json_path = out_dir / f"{stem}.json"
+    json_path.write_text(json.dumps(detection_to_dict(det, mask_name), indent=1) + "\n")
+    return json_path

@@ -1,0 +1,105 @@
+"""Landmark heatmap targets and sub-pixel decoding.
+
+Heatmaps are unnormalised Gaussians with peak 1 at the landmark, so the decoded peak value doubles as
+a confidence in [0, 1]. Pixel coordinates follow the package convention (u, v) = (col, row), origin
+at the centre of the top-left pixel.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch.nn import functional as tnf
+
+
+def gaussian_heatmaps(
+    points_uv: torch.Tensor,
+    size: tuple[int, int],
+    *,
+    sigma_px: float,
+    valid: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Gaussian targets exp(−r²/2σ²) at sub-pixel positions.
+
+    Args:
+        points_uv: (B, K, 2) landmark positions (u, v) in pixels; NaN rows are treated as absent.
+        size: (rows, cols) of the heatmaps.
+        sigma_px: Gaussian standard deviation in pixels.
+        valid: optional (B, K) bool; False gives an all-zero heatmap (no landmark, e.g. negatives).
+
+    Returns:
+        (B, K, rows, cols) heatmaps with peak 1 at each valid landmark.
+    """
+    rows, cols = size
+    pts = points_uv.to(torch.float32)
+    ok = torch.isfinite(pts).all(dim=-1)
+    if valid is not None:
+        ok = ok & valid.to(torch.bool)
+    pts = torch.where(ok[..., None], pts, torch.zeros_like(pts))
+    u = torch.arange(cols, device=pts.device, dtype=pts.dtype)
+    v = torch.arange(rows, device=pts.device, dtype=pts.dtype)
+    gu = torch.exp(-((u[None, None, :] - pts[..., 0:1]) ** 2) / (2.0 * sigma_px**2))  # (B, K, cols)
+    gv = torch.exp(-((v[None, None, :] - pts[..., 1:2]) ** 2) / (2.0 * sigma_px**2))  # (B, K, rows)
+    return gv[..., :, None] * gu[..., None, :] * ok[..., None, None].to(pts.dtype)
+
+
+def decode_heatmaps(
+    heatmaps: torch.Tensor,
+    *,
+    method: str = "gaussian",
+    window: int = 3,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sub-pixel peak positions and confidences of heatmaps.
+
+    ``method="gaussian"`` fits a parabola to the log-heatmap through the argmax and its two neighbours
+    along each axis (exact for a noise-free Gaussian); where the log profile is not concave it falls
+    back to the integer argmax. ``method="softargmax"`` takes the centroid of the positive values in a
+    (2·window+1)² window around the argmax.
+
+    Args:
+        heatmaps: (B, K, rows, cols).
+        method: ``"gaussian"`` or ``"softargmax"``.
+        window: half-width in pixels of the soft-argmax window.
+
+    Returns:
+        points (B, K, 2) (u, v) in pixels, and confidences (B, K): the peak value clipped to [0, 1].
+    """
+    if heatmaps.ndim != 4:
+        raise ValueError(f"heatmaps must be (B, K, rows, cols), got {tuple(heatmaps.shape)}")
+    B, K, rows, cols = heatmaps.shape
+    h = heatmaps.reshape(B * K, rows, cols).to(torch.float32)
+    flat = h.reshape(B * K, -1)
+    peak, idx = flat.max(dim=1)
+    iv, iu = idx // cols, idx % cols
+    if method == "gaussian":
+        logh = torch.log(h.clamp_min(1e-8))
+        rng = torch.arange(B * K, device=h.device)
+
+        def at(dv: int, du: int) -> torch.Tensor:
+            return logh[rng, (iv + dv).clamp(0, rows - 1), (iu + du).clamp(0, cols - 1)]
+
+        c = at(0, 0)
+        offsets = []
+        for lo, hi, i, n in ((at(0, -1), at(0, 1), iu, cols), (at(-1, 0), at(1, 0), iv, rows)):
+            den = lo - 2.0 * c + hi
+            inside = (i > 0) & (i < n - 1) & (den < -1e-12)
+            off = torch.where(
+                inside,
+                0.5 * (lo - hi) / torch.where(inside, den, -torch.ones_like(den)),
+                torch.zeros_like(den),
+            )
+            offsets.append(off.clamp(-0.5, 0.5))
+        pts = torch.stack([iu.to(torch.float32) + offsets[0], iv.to(torch.float32) + offsets[1]], dim=-1)
+    elif method == "softargmax":
+        padded = tnf.pad(h[:, None], (window, window, window, window), value=0.0)[:, 0]
+        du = torch.arange(-window, window + 1, device=h.device)
+        rows_idx = iv[:, None] + window + du[None, :]  # (N, k) in padded coordinates
+        cols_idx = iu[:, None] + window + du[None, :]
+        nk = torch.arange(B * K, device=h.device)[:, None, None]
+        patch = padded[nk, rows_idx[:, :, None], cols_idx[:, None, :]].clamp_min(0.0)  # (N, k, k)
+        w = patch / patch.sum(dim=(1, 2), keepdim=True).clamp_min(1e-12)
+        off_u = (w.sum(dim=1) * du[None, :].to(w.dtype)).sum(dim=1)
+        off_v = (w.sum(dim=2) * du[None, :].to(w.dtype)).sum(dim=1)
+        pts = torch.stack([iu.to(torch.float32) + off_u, iv.to(torch.float32) + off_v], dim=-1)
+    else:
+        raise ValueError(f"unknown decoding method {method!r}")
+    return pts.reshape(B, K, 2), peak.clamp(0.0, 1.0).reshape(B, K)

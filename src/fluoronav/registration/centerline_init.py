@@ -1,0 +1,607 @@
+"""Centreline-based initialisation of the CM pose (Gao et al. 2022, sec. II-B; FACTS.md).
+
+Two detected 2D landmarks (A = CM base origin, B = centre of the distal plane of the last notch) fix 4
+of the 6 DoF of ``camera_from_cm``. The other two are searched:
+
+- ``depth_mm`` (d_A): the camera-frame z of A (the "depth" of :meth:`Camera.backproject`), so
+  ``A3D = d_A · K⁻¹ [u_A, v_A, 1]ᵀ``.
+- ``theta_deg`` (θ): the roll of the CM about the chord A→B.
+
+For a (d_A, θ), B3D is the point of B's ray at the model chord length ``L = |AB|`` (from the CM
+kinematics with the FBG control points) from A3D. ``|t·r_B − A3D| = L`` is a quadratic in ``t`` with
+up to two roots, the ``near`` and ``far`` branches; both are searched (a discrete third variable).
+The rotation maps the chord direction of the model onto ``(B3D − A3D)/L`` and θ turns the CM's x axis
+(the normal of its bending plane) about the chord, starting from ``θ = 0`` where that axis is the
+unit vector along ``r_A × (B3D − A3D)`` (perpendicular to A's ray and to the chord).
+
+A real root exists iff the distance of A3D from B's ray is at most L; that distance is linear in d_A,
+so the feasible depths are ``(0, d_max]`` with ``d_max = L / |K⁻¹[u_A, v_A, 1] × r_B|`` in closed
+form. The search range (``depth_range_mm``, by default 0.3–0.7 × the source-to-detector distance) is
+clipped to the feasible interval before sampling; an empty intersection raises
+:class:`~fluoronav.errors.RegistrationFailure`. Candidates that are still infeasible (the near
+root behind the source, the model behind the source) get cost ``inf``.
+
+Search: ``n_samples`` (d_A, θ) samples, one uniform random sample (seeded) in each cell of a
+stratified ``n_depth × n_theta`` grid (≈ 25 × 40 for 1,000), each evaluated on both branches, all
+candidates in one batched evaluation. Optional refinement: the best grid local minima (up to
+``n_starts``) are refined together (batched) by a compass search in (d_A, θ) on their branch: the
+3 × 3 stencil of ± one step around each start, moving to its best point or halving the step.
+
+Cost (pixels): the model centreline (``CMKinematics.centerline_cm``) is projected with each candidate
+pose; the cost is the mean of two directed terms, model points → extracted polyline and extracted
+points (resampled by arc length) → projected model polyline, each the *trimmed* mean (the largest
+``trim_fraction`` of the point-to-segment distances dropped) so spurs and gaps of a centreline
+extracted from a segmentation do not dominate. Both endpoints coincide with the landmarks by
+construction, so the symmetric term penalises a projected model that is too short or too long.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch.nn import functional as nnf
+
+from fluoronav.detection.centerline import resample_polyline
+from fluoronav.errors import InputError, RegistrationFailure
+from fluoronav.geometry.camera import Camera, project_points
+from fluoronav.geometry.rotations import matrix_to_quat
+from fluoronav.geometry.transforms import make_transform
+from fluoronav.manipulator import CMConfig, CMKinematics
+
+__all__ = [
+    "CenterlineInitResult",
+    "CenterlineScene",
+    "centerline_cost",
+    "centerline_initialize",
+    "evaluate_centerline_init",
+    "polyline_distance_cost",
+    "poses_from_depth_theta",
+    "roll_about_axis_deg",
+    "synthetic_centerline_scene",
+]
+
+logger = logging.getLogger(__name__)
+
+_BRANCHES = ("near", "far")
+
+
+@dataclass(frozen=True)
+class CenterlineInitResult:
+    """Result of :func:`centerline_initialize`.
+
+    Attributes:
+        camera_from_cm: (4, 4) float64 pose of the CM base frame in the camera (source) frame, mm.
+        depth_mm: d_A, camera-frame z of landmark A.
+        theta_deg: roll θ about the chord A→B in [0, 360) (see the module docstring for θ = 0).
+        branch: ``"near"`` or ``"far"`` root for B on its ray.
+        cost_px: centreline cost of the returned pose (pixels).
+        grid_cost_px: best cost of the sampled grid, before refinement (pixels).
+        n_evaluated: number of feasible candidates whose cost was evaluated (grid + refinement).
+        depth_range_mm: the searched depth interval (the requested range clipped to feasibility).
+        candidate_costs: (n_depth, n_theta, 2) grid costs (inf = infeasible), if requested.
+        candidate_depth_mm, candidate_theta_deg: (n_depth, n_theta) grid samples, if requested.
+    """
+
+    camera_from_cm: np.ndarray
+    depth_mm: float
+    theta_deg: float
+    branch: str
+    cost_px: float
+    grid_cost_px: float
+    n_evaluated: int
+    depth_range_mm: tuple[float, float]
+    candidate_costs: np.ndarray | None = None
+    candidate_depth_mm: np.ndarray | None = None
+    candidate_theta_deg: np.ndarray | None = None
+
+    def world_from_cm(self, camera: Camera) -> np.ndarray:
+        """(4, 4) pose in the camera's world frame."""
+        return camera.world_from_camera @ self.camera_from_cm
+
+
+# ----- geometry ---------------------------------------------------------------------------------
+def _normalize(v: torch.Tensor) -> torch.Tensor:
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+
+
+def _cm_basis(chord_cm: torch.Tensor) -> torch.Tensor:
+    """(3,) chord A→B in the CM frame → (3, 3) orthonormal columns [chord, x', chord × x']."""
+    u = _normalize(chord_cm)
+    x = torch.tensor([1.0, 0.0, 0.0], dtype=u.dtype, device=u.device)
+    if float(torch.linalg.cross(u, x).norm()) < 1e-6:  # a chord along x cannot happen for a planar CM
+        x = torch.tensor([0.0, 1.0, 0.0], dtype=u.dtype, device=u.device)
+    n = _normalize(x - (x @ u) * u)
+    return torch.stack([u, n, torch.linalg.cross(u, n)], dim=-1)
+
+
+def poses_from_depth_theta(
+    ray_a: torch.Tensor,
+    ray_b: torch.Tensor,
+    landmarks_cm: torch.Tensor,
+    depth_mm: torch.Tensor,
+    theta_deg: torch.Tensor,
+    branch: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Candidate poses from (d_A, θ, branch), batched.
+
+    Args:
+        ray_a: (3,) ``K⁻¹ [u_A, v_A, 1]`` (camera frame, z = 1).
+        ray_b: (3,) ``K⁻¹ [u_B, v_B, 1]`` (any positive scale).
+        landmarks_cm: (2, 3) model landmarks A, B in the CM frame, mm.
+        depth_mm: (N,) camera-frame z of A.
+        theta_deg: (N,) roll about the chord.
+        branch: (N,) 0 = near root, 1 = far root for B on its ray.
+
+    Returns:
+        ``camera_from_cm`` (N, 4, 4) and ``feasible`` (N,) bool (real root in front of the source).
+        Infeasible rows hold a valid rigid transform built from the clamped root; ignore them.
+    """
+    a_cm, b_cm = landmarks_cm[0], landmarks_cm[1]
+    length = (b_cm - a_cm).norm()
+    rb = _normalize(ray_b)
+    A = depth_mm.unsqueeze(-1) * ray_a  # (N, 3)
+    proj = A @ rb  # (N,)
+    disc = length**2 - ((A * A).sum(-1) - proj**2)
+    sign = torch.where(branch > 0, 1.0, -1.0).to(A.dtype)
+    t = proj + sign * disc.clamp_min(0.0).sqrt()
+    feasible = (disc >= 0.0) & (t > 0.0)
+    B = t.unsqueeze(-1) * rb
+    u = _normalize(B - A)
+    ref = torch.linalg.cross(ray_a.expand_as(u), u)
+    ref = _normalize(ref)
+    th = torch.deg2rad(theta_deg).unsqueeze(-1)
+    e2 = torch.cos(th) * ref + torch.sin(th) * torch.linalg.cross(u, ref)
+    cam_basis = torch.stack([u, e2, torch.linalg.cross(u, e2)], dim=-1)  # (N, 3, 3)
+    R = cam_basis @ _cm_basis(b_cm - a_cm).T
+    trans = A - (R @ a_cm.unsqueeze(-1)).squeeze(-1)
+    return make_transform(R, trans), feasible
+
+
+# ----- cost -------------------------------------------------------------------------------------
+def _trimmed_mean(d: torch.Tensor, trim_fraction: float) -> torch.Tensor:
+    """Mean over the last dim after dropping the largest ``trim_fraction`` of the values."""
+    n = d.shape[-1]
+    keep = max(1, n - math.floor(trim_fraction * n))
+    if keep == n:
+        return d.mean(-1)
+    return torch.topk(d, keep, dim=-1, largest=False).values.mean(-1)
+
+
+def _point_to_fixed_polyline(q: torch.Tensor, poly: torch.Tensor) -> torch.Tensor:
+    """Distance of points q (N, M, 2) to one polyline (S+1, 2) → (N, M)."""
+    p0, dvec = poly[:-1], poly[1:] - poly[:-1]
+    dd = (dvec * dvec).sum(-1).clamp_min(1e-12)  # (S,)
+    qd = q @ dvec.T  # (N, M, S)
+    w = qd - (p0 * dvec).sum(-1)
+    qq = (q * q).sum(-1, keepdim=True)
+    d2 = qq - 2.0 * (q @ p0.T) + (p0 * p0).sum(-1)
+    t = (w / dd).clamp(0.0, 1.0)
+    return (d2 - 2.0 * t * w + t * t * dd).clamp_min(0.0).min(-1).values.sqrt()
+
+
+def _fixed_points_to_polylines(q: torch.Tensor, poly: torch.Tensor) -> torch.Tensor:
+    """Distance of fixed points q (Q, 2) to each polyline (N, S+1, 2) → (N, Q)."""
+    p0, dvec = poly[:, :-1], poly[:, 1:] - poly[:, :-1]  # (N, S, 2)
+    dd = (dvec * dvec).sum(-1).clamp_min(1e-12)  # (N, S)
+    w = torch.einsum("qc,nsc->nqs", q, dvec) - (p0 * dvec).sum(-1).unsqueeze(1)
+    d2 = (q * q).sum(-1)[None, :, None] - 2.0 * torch.einsum("qc,nsc->nqs", q, p0)
+    d2 = d2 + (p0 * p0).sum(-1).unsqueeze(1)
+    t = (w / dd.unsqueeze(1)).clamp(0.0, 1.0)
+    return (d2 - 2.0 * t * w + t * t * dd.unsqueeze(1)).clamp_min(0.0).min(-1).values.sqrt()
+
+
+def polyline_distance_cost(
+    projected_px: torch.Tensor, extracted_px: torch.Tensor, *, trim_fraction: float = 0.1
+) -> torch.Tensor:
+    """Symmetric trimmed mean point-to-polyline distance between 2D curves, batched.
+
+    Args:
+        projected_px: (N, M, 2) projected model centrelines (ordered polylines), pixels.
+        extracted_px: (Q, 2) the extracted centreline (ordered polyline), pixels.
+        trim_fraction: fraction of the largest distances dropped in each direction.
+
+    Returns:
+        (N,) cost in pixels: ½ (model → extracted + extracted → model).
+    """
+    # squared distances are expanded into matrix products (no (N, M, S, 2) temporaries); centring the
+    # coordinates keeps their cancellation error near 1e-6 px instead of 1e-5 px at image scale
+    centre = extracted_px.mean(0)
+    projected_px, extracted_px = projected_px - centre, extracted_px - centre
+    d_model = _point_to_fixed_polyline(projected_px, extracted_px)
+    d_ext = _fixed_points_to_polylines(extracted_px, projected_px)
+    return 0.5 * (_trimmed_mean(d_model, trim_fraction) + _trimmed_mean(d_ext, trim_fraction))
+
+
+def centerline_cost(
+    K: torch.Tensor,
+    camera_from_cm: torch.Tensor,
+    centerline_cm: torch.Tensor,
+    extracted_px: torch.Tensor,
+    *,
+    trim_fraction: float = 0.1,
+    chunk_size: int = 512,
+) -> torch.Tensor:
+    """Centreline cost of candidate poses (pixels).
+
+    Args:
+        K: (3, 3) intrinsics.
+        camera_from_cm: (N, 4, 4) candidate poses.
+        centerline_cm: (M, 3) model centreline in the CM frame, mm.
+        extracted_px: (Q, 2) extracted centreline, pixels.
+        trim_fraction: see :func:`polyline_distance_cost`.
+        chunk_size: candidates per vectorised block (bounds memory at N·M·Q doubles per block).
+
+    Returns:
+        (N,) costs; ``inf`` where a model point is not in front of the source.
+    """
+    out = []
+    for start in range(0, camera_from_cm.shape[0], chunk_size):
+        T = camera_from_cm[start : start + chunk_size]
+        z = centerline_cm @ T[:, 2, :3].T + T[:, None, 2, 3].T  # (M, n) camera-frame depth
+        uv = project_points(K, T, centerline_cm)  # (n, M, 2)
+        cost = polyline_distance_cost(uv, extracted_px, trim_fraction=trim_fraction)
+        out.append(torch.where((z > 1.0).all(0), cost, torch.full_like(cost, math.inf)))
+    return torch.cat(out) if out else K.new_zeros(0)
+
+
+# ----- search -----------------------------------------------------------------------------------
+def _grid_shape(n_samples: int) -> tuple[int, int]:
+    # 1.6 θ cells per depth cell: 25 × 40 for 1,000 (θ is the better determined of the two)
+    n_theta = max(4, round(math.sqrt(1.6 * n_samples)))
+    n_depth = max(2, round(n_samples / n_theta))
+    return n_depth, n_theta
+
+
+def _local_minima(cost: torch.Tensor) -> torch.Tensor:
+    """(B, D, T) grid costs, θ cyclic → bool mask of finite 8-neighbourhood minima (ties kept)."""
+    c = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, 1e300))
+    padded = torch.cat([c[..., -1:], c, c[..., :1]], dim=-1)  # wrap θ
+    padded = nnf.pad(padded.unsqueeze(1), (0, 0, 1, 1), value=1e300)  # depth edges
+    neigh_min = -nnf.max_pool2d(-padded, kernel_size=3, stride=1).squeeze(1)
+    return (c <= neigh_min) & torch.isfinite(cost)
+
+
+def _as_input(x: object, shape: tuple[int, ...] | None, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(name, "is not numeric") from None
+    if shape is not None and arr.shape != shape:
+        raise InputError(name, f"must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(name, "has non-finite values")
+    return arr
+
+
+def centerline_initialize(
+    camera: Camera,
+    landmarks_px: np.ndarray | torch.Tensor,
+    centerline_px: np.ndarray | torch.Tensor,
+    control_points_deg: np.ndarray | torch.Tensor,
+    *,
+    config: CMConfig | None = None,
+    depth_range_mm: tuple[float, float] | None = None,
+    n_samples: int = 1000,
+    refine: bool = True,
+    seed: int = 0,
+    n_model_points: int = 48,
+    n_extracted_points: int = 64,
+    trim_fraction: float = 0.1,
+    n_starts: int = 4,
+    refine_iterations: int = 30,
+    return_candidates: bool = False,
+    device: torch.device | str | None = None,
+) -> CenterlineInitResult:
+    """Initial ``camera_from_cm`` from two landmarks, a 2D centreline and the FBG control points.
+
+    Args:
+        camera: the view (only ``K`` is used; the pose is returned in the camera frame).
+        landmarks_px: (2, 2) detected A and B, (u, v) pixels.
+        centerline_px: (P, 2) extracted centreline, ordered A → B, pixels (P ≥ 2).
+        control_points_deg: (5,) FBG control points, degrees.
+        config: CM geometry (paper defaults).
+        depth_range_mm: (min, max) camera-frame z of A to search; default 0.3–0.7 × the
+            source-to-detector distance (needs ``camera.pixel_spacing_mm``).
+        n_samples: number of (d_A, θ) samples (stratified uniform); each is tried on both branches.
+        refine: refine the best grid local minima by a batched compass search.
+        seed: seed of the sample jitter inside the grid cells.
+        n_model_points: points on the model centreline A → B.
+        n_extracted_points: the extracted centreline is resampled to this many points by arc length.
+        trim_fraction: robust cost, fraction of the largest distances dropped (each direction).
+        n_starts: number of grid local minima refined.
+        refine_iterations: compass-search iterations (3 × 3 stencil, step halved on failure).
+        return_candidates: keep the grid samples and costs in the result.
+        device: torch device of the evaluation (float64 throughout).
+
+    Returns:
+        :class:`CenterlineInitResult`.
+
+    Raises:
+        InputError: malformed inputs.
+        RegistrationFailure: no depth in range lets the model chord span the two landmarks, the
+            landmarks coincide, or no candidate is feasible.
+    """
+    t0 = time.perf_counter()
+    lm = _as_input(landmarks_px, (2, 2), "landmarks_px")
+    cl = _as_input(centerline_px, None, "centerline_px")
+    if cl.ndim != 2 or cl.shape[1] != 2 or cl.shape[0] < 2:
+        raise InputError("centerline_px", f"must have shape (P >= 2, 2), got {cl.shape}")
+    cfg = config or CMConfig()
+    cp = _as_input(control_points_deg, (cfg.n_control_points,), "control_points_deg")
+    if n_samples < 8:
+        raise InputError("n_samples", f"must be at least 8, got {n_samples}")
+    if depth_range_mm is None:
+        if camera.sdd_mm is None:
+            raise InputError("camera", "pixel_spacing_mm is unknown; pass depth_range_mm")
+        depth_range_mm = (0.3 * camera.sdd_mm, 0.7 * camera.sdd_mm)
+    lo, hi = (float(v) for v in depth_range_mm)
+    if not (0.0 < lo < hi):
+        raise InputError("depth_range_mm", f"needs 0 < min < max, got {depth_range_mm}")
+
+    dt = torch.float64
+    kin = CMKinematics(cfg)
+    cp_t = torch.as_tensor(cp, dtype=dt, device=device)
+    landmarks_cm = kin.landmarks_cm(cp_t)  # (2, 3)
+    centerline_cm = kin.centerline_cm(cp_t, n_points=n_model_points)  # (M, 3)
+    length = float((landmarks_cm[1] - landmarks_cm[0]).norm())
+    K = torch.as_tensor(camera.K, dtype=dt, device=device)
+    rays = (
+        torch.cat([torch.as_tensor(lm, dtype=dt, device=device), K.new_ones(2, 1)], 1) @ torch.linalg.inv(K).T
+    )  # (2, 3), z = 1
+    ray_a, ray_b = rays[0], rays[1]
+    sin_ab = float(torch.linalg.cross(ray_a, _normalize(ray_b)).norm())
+    if sin_ab < 1e-12:
+        raise RegistrationFailure("landmarks A and B coincide: the CM chord is along the viewing ray")
+    d_max = length / sin_ab
+    if d_max < lo:
+        raise RegistrationFailure(
+            f"landmarks are too far apart for the CM: a {length:.1f} mm chord spans them only at depths "
+            f"up to {d_max:.0f} mm, below the search range {lo:.0f}-{hi:.0f} mm"
+        )
+    hi = min(hi, d_max * (1.0 - 1e-9))
+    extracted = torch.as_tensor(resample_polyline(cl, n_extracted_points), dtype=dt, device=device)
+
+    def evaluate(depth: torch.Tensor, theta: torch.Tensor, branch: torch.Tensor) -> torch.Tensor:
+        T, ok = poses_from_depth_theta(ray_a, ray_b, landmarks_cm, depth, theta, branch)
+        cost = torch.full_like(depth, math.inf)
+        if bool(ok.any()):
+            cost[ok] = centerline_cost(K, T[ok], centerline_cm, extracted, trim_fraction=trim_fraction)
+        return cost
+
+    # stratified uniform samples: one per cell, both branches
+    n_d, n_t = _grid_shape(n_samples)
+    rng = np.random.default_rng(seed)
+    jitter = torch.as_tensor(rng.random((2, n_d, n_t)), dtype=dt, device=device)
+    step_d, step_t = (hi - lo) / n_d, 360.0 / n_t
+    idx_d = torch.arange(n_d, dtype=dt, device=device)[:, None]
+    idx_t = torch.arange(n_t, dtype=dt, device=device)[None, :]
+    depth = lo + (idx_d + jitter[0]) * step_d  # (D, T)
+    theta = (idx_t + jitter[1]) * step_t
+    depth_b, theta_b = depth.expand(2, n_d, n_t), theta.expand(2, n_d, n_t)
+    branch_b = torch.arange(2, device=device)[:, None, None].expand(2, n_d, n_t)
+    grid_cost = evaluate(depth_b.reshape(-1), theta_b.reshape(-1), branch_b.reshape(-1)).reshape(2, n_d, n_t)
+    n_evaluated = int(torch.isfinite(grid_cost).sum())
+    if n_evaluated == 0:
+        raise RegistrationFailure("no feasible (depth, theta) candidate in the search range")
+    flat = int(torch.argmin(grid_cost))
+    best = (float(depth_b.reshape(-1)[flat]), float(theta_b.reshape(-1)[flat]), flat // (n_d * n_t))
+    grid_best = float(grid_cost.reshape(-1)[flat])
+    best_cost = grid_best
+
+    if refine:
+        minima = _local_minima(grid_cost)
+        cand = torch.nonzero(minima.reshape(-1)).squeeze(-1)
+        order = torch.argsort(grid_cost.reshape(-1)[cand])[:n_starts]
+        starts = cand[order]
+        d_cur = depth_b.reshape(-1)[starts].clone()
+        t_cur = theta_b.reshape(-1)[starts].clone()
+        b_cur = branch_b.reshape(-1)[starts]
+        c_cur = grid_cost.reshape(-1)[starts].clone()
+        # compass search on the 3 × 3 stencil: move to the best neighbour, halve the step on failure
+        offs = torch.tensor([-1.0, 0.0, 1.0], dtype=dt, device=device)
+        od, ot = (g.reshape(-1) for g in torch.meshgrid(offs, offs, indexing="ij"))
+        sd = torch.full_like(d_cur, step_d)
+        st = torch.full_like(t_cur, step_t)
+        rows = torch.arange(d_cur.shape[0], device=device)
+        for _ in range(refine_iterations):
+            dd = (d_cur[:, None] + sd[:, None] * od).clamp(lo, hi)  # (S, 9)
+            tt = torch.remainder(t_cur[:, None] + st[:, None] * ot, 360.0)
+            c = evaluate(dd.reshape(-1), tt.reshape(-1), b_cur[:, None].expand_as(dd).reshape(-1))
+            c = c.reshape(dd.shape)
+            n_evaluated += int(torch.isfinite(c).sum())
+            j = torch.argmin(c, dim=1)
+            better = c[rows, j] < c_cur
+            d_cur = torch.where(better, dd[rows, j], d_cur)
+            t_cur = torch.where(better, tt[rows, j], t_cur)
+            c_cur = torch.where(better, c[rows, j], c_cur)
+            sd = torch.where(better, sd, 0.5 * sd)
+            st = torch.where(better, st, 0.5 * st)
+        k = int(torch.argmin(c_cur))
+        if float(c_cur[k]) < best_cost:
+            best = (float(d_cur[k]), float(t_cur[k]), int(b_cur[k]))
+            best_cost = float(c_cur[k])
+
+    one = torch.ones(1, dtype=dt, device=device)
+    T_best, _ = poses_from_depth_theta(
+        ray_a, ray_b, landmarks_cm, one * best[0], one * best[1], torch.tensor([best[2]], device=device)
+    )
+    logger.debug(
+        "centreline init: d_A %.1f mm, theta %.1f deg, %s, cost %.3f px (grid %.3f), %d evaluations, %.2f s",
+        best[0], best[1], _BRANCHES[best[2]], best_cost, grid_best, n_evaluated, time.perf_counter() - t0,
+    )  # fmt: skip
+    return CenterlineInitResult(
+        camera_from_cm=T_best[0].cpu().numpy(),
+        depth_mm=best[0],
+        theta_deg=best[1] % 360.0,
+        branch=_BRANCHES[best[2]],
+        cost_px=best_cost,
+        grid_cost_px=grid_best,
+        n_evaluated=n_evaluated,
+        depth_range_mm=(lo, hi),
+        candidate_costs=grid_cost.permute(1, 2, 0).cpu().numpy() if return_candidates else None,
+        candidate_depth_mm=depth.cpu().numpy() if return_candidates else None,
+        candidate_theta_deg=theta.cpu().numpy() if return_candidates else None,
+    )
+
+
+# ----- evaluation ---------------------------------------------------------------------------------
+def roll_about_axis_deg(
+    camera_from_cm_est: np.ndarray | torch.Tensor,
+    camera_from_cm_true: np.ndarray | torch.Tensor,
+    axis_cm: np.ndarray | torch.Tensor,
+) -> torch.Tensor:
+    """Roll error (twist of the swing-twist decomposition) about a CM-frame axis, degrees in [0, 180].
+
+    Args:
+        camera_from_cm_est, camera_from_cm_true: (..., 4, 4).
+        axis_cm: (..., 3) axis in the CM frame (the chord A→B).
+
+    Returns:
+        (...) |twist angle| of ``R_trueᵀ R_est`` about the axis.
+    """
+    Te = torch.as_tensor(camera_from_cm_est, dtype=torch.float64)
+    Tt = torch.as_tensor(camera_from_cm_true, dtype=torch.float64, device=Te.device)
+    axis = _normalize(torch.as_tensor(axis_cm, dtype=torch.float64, device=Te.device))
+    rel = Tt[..., :3, :3].transpose(-1, -2) @ Te[..., :3, :3]
+    q = matrix_to_quat(rel)  # (x, y, z, w), w ≥ 0
+    twist = 2.0 * torch.atan2((q[..., :3] * axis).sum(-1), q[..., 3])
+    twist = torch.remainder(torch.rad2deg(twist) + 180.0, 360.0) - 180.0
+    return twist.abs()
+
+
+@dataclass(frozen=True)
+class CenterlineScene:
+    """A synthetic initialisation problem (ground truth and the noisy observations)."""
+
+    camera: Camera
+    camera_from_cm: np.ndarray  # (4, 4) ground truth
+    control_points_deg: np.ndarray  # (5,) ground truth
+    fbg_control_points_deg: np.ndarray  # (5,) with FBG noise
+    landmarks_px: np.ndarray  # (2, 2) with detection noise
+    centerline_px: np.ndarray  # (P, 2)
+
+
+def synthetic_centerline_scene(
+    rng: np.random.Generator,
+    *,
+    config: CMConfig | None = None,
+    source_to_isocenter_mm: tuple[float, float] = (400.0, 500.0),
+    translation_mm: float = 30.0,
+    rotation_deg: float = 30.0,
+    roll_deg: float | None = None,
+    fbg_noise_deg: float = 0.5,
+    landmark_noise_px: float = 3.0,
+    n_centerline_points: int = 100,
+) -> CenterlineScene:
+    """A random AP-view scene made from the model: projected landmarks and centreline plus noise.
+
+    Follows the paper's CM simulation protocol (FACTS.md): AP view (CIOS Fusion) with the isocentre
+    U(``source_to_isocenter_mm``) from the source; the CM nominally lies across the view (its axis in
+    the image plane at a uniform in-plane angle, A at the isocentre; roll ``roll_deg``, uniform when
+    None, 90° = bending plane parallel to the image plane), then is perturbed
+    by a rotation of U(±``rotation_deg``) about a uniformly random axis in the CM base frame and a
+    translation of U(±``translation_mm``) per axis; control points U(range of the config).
+    Noise: U(±fbg_noise_deg) on the control points, U(±landmark_noise_px) per landmark coordinate;
+    the centreline is the true projection from A to B, bent over the first and last 10 % of its arc
+    length to start and end at the noisy landmarks (as a path traced between detected landmarks does).
+    """
+    from fluoronav.geometry.carm import carm_camera
+
+    cfg = config or CMConfig()
+    kin = CMKinematics(cfg)
+    sid = rng.uniform(*source_to_isocenter_mm)
+    camera = carm_camera(source_to_isocenter_mm=sid)
+    phi, roll = rng.uniform(0.0, 2.0 * math.pi, 2)
+    if roll_deg is not None:
+        roll = math.radians(roll_deg)
+    z_axis = np.array([math.cos(phi), math.sin(phi), 0.0])
+    x0 = np.array([-math.sin(phi), math.cos(phi), 0.0])
+    x_axis = math.cos(roll) * x0 + math.sin(roll) * np.cross(z_axis, x0)
+    nominal = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], axis=1)  # camera_from_cm rotation
+    axis = rng.normal(size=3)
+    perturb = _axis_angle(axis / np.linalg.norm(axis), math.radians(rng.uniform(-rotation_deg, rotation_deg)))
+    T = np.eye(4)
+    T[:3, :3] = nominal @ perturb
+    T[:3, 3] = np.array([0.0, 0.0, sid]) + rng.uniform(-translation_mm, translation_mm, 3)
+    lo_cp, hi_cp = cfg.control_point_range_deg
+    cp = rng.uniform(lo_cp, hi_cp, cfg.n_control_points)
+    fbg = cp + rng.uniform(-fbg_noise_deg, fbg_noise_deg, cp.shape)
+    cp_t = torch.as_tensor(cp, dtype=torch.float64)
+    lm_cm = kin.landmarks_cm(cp_t).numpy()
+    cl_cm = kin.centerline_cm(cp_t, n_points=4 * n_centerline_points).numpy()
+    cam_pose = camera.with_pose(T)  # points in the CM frame projected with camera_from_cm
+    lm_true = cam_pose.project(lm_cm)
+    lm_noisy = lm_true + rng.uniform(-landmark_noise_px, landmark_noise_px, (2, 2))
+    cl = cam_pose.project(cl_cm)
+    s = np.linspace(0.0, 1.0, cl.shape[0])[:, None]
+    w_a, w_b = np.clip(1.0 - s / 0.1, 0.0, 1.0), np.clip((s - 0.9) / 0.1, 0.0, 1.0)
+    cl = cl + w_a * (lm_noisy[0] - lm_true[0]) + w_b * (lm_noisy[1] - lm_true[1])
+    return CenterlineScene(
+        camera=camera,
+        camera_from_cm=T,
+        control_points_deg=cp,
+        fbg_control_points_deg=fbg,
+        landmarks_px=lm_noisy,
+        centerline_px=resample_polyline(cl, n_centerline_points),
+    )
+
+
+def _axis_angle(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    Kx = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + math.sin(angle_rad) * Kx + (1.0 - math.cos(angle_rad)) * Kx @ Kx
+
+
+def evaluate_centerline_init(
+    n: int = 20,
+    seed: int = 0,
+    *,
+    fbg_noise_deg: float = 0.5,
+    landmark_noise_px: float = 3.0,
+    refine: bool = True,
+    n_samples: int = 1000,
+    scene_options: dict[str, Any] | None = None,
+    **init_options: Any,
+) -> dict[str, float]:
+    """Run the initialiser on ``n`` random synthetic scenes and summarise its errors.
+
+    ``scene_options`` go to :func:`synthetic_centerline_scene`, ``init_options`` to
+    :func:`centerline_initialize`.
+
+    Returns:
+        mean/std of the depth error (mm, |z_A est − z_A true|) and of the θ error (degrees, roll about
+        the true chord, in [0, 180]), mean final cost (px) and mean run time per initialisation (s).
+    """
+    rng = np.random.default_rng(seed)
+    kin = CMKinematics()
+    depth_err, theta_err, costs, times = [], [], [], []
+    for _ in range(n):
+        sc = synthetic_centerline_scene(
+            rng, fbg_noise_deg=fbg_noise_deg, landmark_noise_px=landmark_noise_px, **(scene_options or {})
+        )
+        t0 = time.perf_counter()
+        res = centerline_initialize(
+            sc.camera, sc.landmarks_px, sc.centerline_px, sc.fbg_control_points_deg,
+            refine=refine, n_samples=n_samples, seed=int(rng.integers(2**31)), **init_options,
+        )  # fmt: skip
+        times.append(time.perf_counter() - t0)
+        chord = kin.landmarks_cm(torch.as_tensor(sc.control_points_deg)).numpy()
+        a_true = sc.camera_from_cm[:3, :3] @ chord[0] + sc.camera_from_cm[:3, 3]
+        depth_err.append(abs(res.depth_mm - a_true[2]))
+        theta_err.append(
+            float(roll_about_axis_deg(res.camera_from_cm, sc.camera_from_cm, chord[1] - chord[0]))
+        )
+        costs.append(res.cost_px)
+    return {
+        "depth_error_mm_mean": float(np.mean(depth_err)),
+        "depth_error_mm_std": float(np.std(depth_err)),
+        "theta_error_deg_mean": float(np.mean(theta_err)),
+        "theta_error_deg_std": float(np.std(theta_err)),
+        "cost_px_mean": float(np.mean(costs)),
+        "seconds_per_init": float(np.mean(times)),
+    }

@@ -1,0 +1,17 @@
+"""The detection benchmark returns its contract keys (timings are not asserted: shared CPU)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from fluoronav.detection import bench
+
+
+@pytest.mark.slow
+def test_bench_quick_returns_contract_keys() -> None:
+    result = bench.run(quick=True)
+    assert set(result) == {"detect_ms", "detect_ms_baseline", "detect_ms_speedup"}
+    assert all(math.isfinite(v) and v > 0 for v in result.values())
+    assert result["detect_ms_speedup"] == pytest.approx(result["detect_ms_baseline"] / result["detect_ms"])

@@ -1,0 +1,171 @@
+"""Detector API: the pipeline's coordinate handling, negatives, model files and image loaders."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import SimpleITK as sitk  # noqa: N813
+import torch
+from torch import nn
+
+import fluoronav.detection.detector as detector_module
+from fluoronav.detection.detector import Detector, load_image, write_detection
+from fluoronav.detection.model import DetectorConfig, DetectorNet
+from fluoronav.detection.train import save_model
+from fluoronav.errors import FluoronavError, InputError
+
+TINY = DetectorConfig(
+    input_size=64, roi_size=64, channels=(4, 8, 16), roi_channels=(4, 8, 16), min_confidence=0.2
+)
+
+
+def empty_net(config: DetectorConfig = TINY) -> DetectorNet:
+    """An untrained net whose last layer is zeroed, with a seg bias of −10: its mask is always empty."""
+    torch.manual_seed(0)
+    net = DetectorNet(config)
+    for stage in (net.coarse, net.fine):
+        last = [m for m in stage.modules() if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d))][-1]
+        assert last.out_channels == 3
+        with torch.no_grad():
+            last.weight.zero_()
+            last.bias.copy_(torch.tensor([-10.0, 0.0, 0.0]))
+    return net
+
+
+class IntensityOracle(nn.Module):
+    """Stands in for a trained stage on a drawn test image: CM where the normalised intensity is > 0.5,
+    heatmap A where it is far above the bar (a bright marker), heatmap B where it is far below 0."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        seg = 40.0 * (x - 0.5)
+        ha = ((x - 1.3) / 3.0).clamp(0.0, 1.0)
+        hb = ((-x - 0.2) / 3.0).clamp(0.0, 1.0)
+        return torch.cat([seg, ha, hb], dim=1)
+
+
+def drawn_cm(rows: int = 200, cols: int = 260) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A bar from A to B (value 1, 12 px thick) with a bright square at A and a dark one at B."""
+    a, b = np.array([60.0, 70.0]), np.array([190.0, 130.0])
+    img = np.zeros((rows, cols), np.float32)
+    cv2.line(img, (60, 70), (190, 130), 1.0, thickness=12)
+    bar = img > 0.5
+    img[68:73, 58:63] = 4.0
+    img[128:133, 188:193] = -3.0
+    return img, bar, np.stack([a, b])
+
+
+def test_pipeline_maps_landmarks_mask_and_centerline_to_input_pixels() -> None:
+    net = DetectorNet(TINY)
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    det = Detector(net, device="cpu").detect(drawn_cm()[0], pixel_spacing_mm=0.2)
+    img, bar, lm = drawn_cm()
+    assert det.found
+    assert det.mask.shape == img.shape and det.mask.dtype == bool
+    np.testing.assert_allclose(det.landmarks_px, lm, atol=2.0)
+    assert np.all((det.landmark_confidence > 0.2) & (det.landmark_confidence <= 1.0))
+    inter = np.logical_and(det.mask, bar).sum()
+    assert 2 * inter / (det.mask.sum() + bar.sum()) > 0.85
+    cl = det.centerline_px
+    (
+        np.testing.assert_allclose(cl[0], det.landmarks_px[0]),
+        np.testing.assert_allclose(cl[-1], det.landmarks_px[1]),
+    )
+    # the centreline runs along the bar's axis
+    d = lm[1] - lm[0]
+    n = np.array([-d[1], d[0]]) / np.linalg.norm(d)
+    assert np.max(np.abs((cl - lm[0]) @ n)) < 2.0
+    assert det.pixel_spacing_mm == 0.2
+
+
+def test_blank_image_gives_no_detection() -> None:
+    det = Detector(empty_net(), device="cpu")
+    for image in (
+        np.zeros((120, 90), np.float32),
+        np.random.default_rng(0).normal(size=(64, 64)).astype(np.float32),
+    ):
+        res = det.detect(image)
+        assert not res.found
+        assert res.landmarks_px is None and res.centerline_px is None
+        assert res.mask.shape == image.shape and not res.mask.any()
+        assert np.all(res.landmark_confidence == 0.0)
+
+
+def test_model_file_roundtrip_and_bad_files(tmp_path: Path) -> None:
+    path = tmp_path / "m.pt"
+    save_model(path, empty_net(), extra={})
+    loaded = Detector.load(path, device="cpu")
+    assert loaded.config == TINY and not loaded.detect(np.zeros((64, 64), np.float32)).found
+    bad = tmp_path / "corrupt.pt"
+    bad.write_bytes(b"not a torch file at all")
+    with pytest.raises(InputError, match=r"corrupt\.pt"):
+        Detector.load(bad)
+    with pytest.raises(InputError, match="not found"):
+        Detector.load(tmp_path / "missing.pt")
+    blob = torch.load(path, weights_only=True)
+    blob["config"]["channels"] = [8, 16, 32]  # weights no longer match the architecture
+    torch.save(blob, tmp_path / "mismatch.pt")
+    with pytest.raises(InputError, match="do not match"):
+        Detector.load(tmp_path / "mismatch.pt")
+
+
+def test_missing_shipped_weights_say_how_to_train(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(detector_module, "shipped_model_path", lambda: tmp_path / "detector.pt")
+    with pytest.raises(FluoronavError, match="fluoronav train"):
+        Detector.load()
+
+
+def test_malformed_images_raise_input_errors(tmp_path: Path) -> None:
+    det = Detector(empty_net(), device="cpu")
+    with pytest.raises(InputError, match="2-D"):
+        det.detect(np.zeros((3, 32, 32), np.float32))
+    with pytest.raises(InputError, match="NaN"):
+        det.detect(np.full((32, 32), np.nan, np.float32))
+    np.savez(tmp_path / "noimg.npz", other=np.zeros((8, 8)))
+    with pytest.raises(InputError, match="no 'image'"):
+        load_image(tmp_path / "noimg.npz")
+    (tmp_path / "junk.png").write_bytes(b"\x89PNG garbage")
+    with pytest.raises(InputError, match=r"junk\.png"):
+        load_image(tmp_path / "junk.png")
+    (tmp_path / "junk.dcm").write_bytes(b"garbage")
+    with pytest.raises(InputError, match=r"junk\.dcm"):
+        load_image(tmp_path / "junk.dcm")
+
+
+def test_image_loaders_orient_intensities(tmp_path: Path) -> None:
+    raw = np.tile(np.linspace(100, 60000, 40), (30, 1)).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "raw.png"), raw)
+    img, spacing = load_image(tmp_path / "raw.png")
+    assert spacing is None and img.shape == (30, 40)
+    np.testing.assert_allclose(img, -np.log((raw + 1.0) / 65536.0), rtol=1e-5)
+    assert np.all(np.diff(img[0]) < 0)  # dark (attenuating) raw pixels become bright
+    flt = np.random.default_rng(0).random((20, 24)).astype(np.float32)
+    cv2.imwrite(str(tmp_path / "log.tiff"), flt)
+    np.testing.assert_array_equal(load_image(tmp_path / "log.tiff")[0], flt)
+    np.savez(tmp_path / "s.npz", image=flt, pixel_spacing_mm=np.float32(0.25))
+    img, spacing = load_image(tmp_path / "s.npz")
+    np.testing.assert_array_equal(img, flt)
+    assert spacing == pytest.approx(0.25)
+    dcm = sitk.GetImageFromArray(raw)
+    dcm.SetMetaData("0018|1164", "0.194\\0.194")
+    sitk.WriteImage(dcm, str(tmp_path / "x.dcm"))
+    img, spacing = load_image(tmp_path / "x.dcm")
+    np.testing.assert_allclose(img, raw.astype(np.float32))  # MONOCHROME2: bright stays bright
+    assert spacing == pytest.approx(0.194)
+
+
+def test_write_detection_files(tmp_path: Path) -> None:
+    net = DetectorNet(TINY)
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    det = Detector(net, device="cpu").detect(drawn_cm()[0])
+    path = write_detection(det, tmp_path / "out", "img")
+    import json
+
+    data = json.loads(path.read_text())
+    assert data["found"] is True and data["mask"] == "img_mask.png"
+    assert np.asarray(data["landmarks_px"]).shape == (2, 2)
+    assert len(data["landmark_confidence"]) == 2 and np.asarray(data["centerline_px"]).shape[1] == 2
+    png = cv2.imread(str(tmp_path / "out" / "img_mask.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(png > 0, det.mask)
