@@ -14,22 +14,42 @@ def register(app: typer.Typer) -> None:
     def simulate(
         n: int = typer.Option(..., "--n", min=1, help="Number of samples in the data set."),
         out: Path = typer.Option(..., "--out", help="Output directory (rerun to resume)."),
-        ct: list[str] = typer.Option(["phantom"], "--ct", help="CT file/DICOM dir, or 'phantom' (repeatable)."),
+        ct: list[str] = typer.Option(
+            ["phantom"], "--ct", help="CT file/DICOM dir, or 'phantom' (repeatable)."
+        ),
         seed: int = SEED_OPTION,
         scheduler: str = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler."),
-        workers: int = typer.Option(None, "--workers", min=0,
-                                    help="Local worker processes (default: up to 2; 0 = in this process)."),
+        workers: int = typer.Option(
+            None, "--workers", min=0, help="Local worker processes (default: up to 2; 0 = in this process)."
+        ),
         no_cm: bool = typer.Option(False, "--no-cm", help="Make the same kind of images without a CM."),
-        size: int = typer.Option(512, "--size", min=32,
-                                 help="Stored image size in pixels (the 1536² detector is binned to it)."),
-        phantoms: int = typer.Option(4, "--phantoms", min=1, help="Phantom anatomies (seeds) to cycle through."),
+        size: int = typer.Option(
+            512, "--size", min=32, help="Stored image size in pixels (the 1536² detector is binned to it)."
+        ),
+        phantoms: int = typer.Option(
+            4, "--phantoms", min=1, help="Phantom anatomies (seeds) to cycle through."
+        ),
         device: str = DEVICE_OPTION,
     ) -> None:
-        """Simulate a data set of X-ray images with labels (manifest.jsonl + samples/*.npz)."""
+        """Simulate a data set of X-ray images with labels (manifest.jsonl + samples/*.npz).
+
+        Scenes follow the paper's sampling (control points U[-7.9, 7.9] deg, source-to-isocentre
+        400-500 mm, LAO/RAO 0-360 deg, CRAN/CAUD 75-105 deg, +-20 mm translation), the CM in and
+        around a femur (or the bone nearest the centre of an unlabelled CT). Images are stored at
+        --size (the 1536 px detector binned; landmarks, camera and pixel spacing in the manifest
+        refer to the stored pixels). Samples are written as they finish; rerun to resume. The same
+        --seed gives the same samples for any number of workers.
+        """
         from fluoronav.device import resolve_device
         from fluoronav.simulation.dataset import DatasetSpec, simulate_dataset
 
-        spec = DatasetSpec(cts=tuple(ct), n_phantoms=phantoms, with_cm=not no_cm, image_size=size, seed=seed,
-                           device=str(resolve_device(device)))
+        spec = DatasetSpec(
+            cts=tuple(ct),
+            n_phantoms=phantoms,
+            with_cm=not no_cm,
+            image_size=size,
+            seed=seed,
+            device=str(resolve_device(device)),
+        )
         rows = simulate_dataset(out, n, spec, scheduler=scheduler, workers=workers)
         typer.echo(f"{len(rows)} new samples; data set in {out}/ (manifest.jsonl, contact_sheet.png)")

@@ -14,6 +14,7 @@ import functools
 import json
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,13 +23,20 @@ import numpy as np
 from fluoronav import __version__
 from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import InputError
-from fluoronav.studies.runner import JsonlLog, run_tasks
 from fluoronav.simulation.scene import SceneSampling, sample_scene
 from fluoronav.simulation.xray import SimulatedImage, SimulationConfig, XraySimulator
+from fluoronav.studies.runner import JsonlLog, run_tasks
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DatasetSpec", "contact_sheet", "simulate_dataset", "write_sample"]
+__all__ = [
+    "MANIFEST_KEYS",
+    "DatasetSpec",
+    "check_dataset",
+    "contact_sheet",
+    "simulate_dataset",
+    "write_sample",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,6 +50,7 @@ class DatasetSpec:
         image_size: stored rows = cols.
         seed: run seed.
         device: torch device name for rendering.
+        phantom_spacing_mm: voxel size of the procedural phantoms (1 mm; coarser only for fast tests).
     """
 
     cts: tuple[str, ...] = ("phantom",)
@@ -50,6 +59,7 @@ class DatasetSpec:
     image_size: int = 512
     seed: int = 0
     device: str = "cpu"
+    phantom_spacing_mm: float = 1.0
 
     def anatomies(self) -> list[tuple[str, int]]:
         """(ct spec, phantom seed) pairs; the phantom seeds come from the run seed."""
@@ -63,10 +73,17 @@ class DatasetSpec:
 
 
 @functools.lru_cache(maxsize=4)
-def _simulator(ct: str, phantom_seed: int, image_size: int, device: str) -> XraySimulator:
+def _simulator(
+    ct: str, phantom_seed: int, image_size: int, device: str, phantom_spacing_mm: float = 1.0
+) -> XraySimulator:
+    """One simulator per anatomy and worker process (building one costs seconds; kept for reuse)."""
     from fluoronav.anatomy.io import resolve_ct
+    from fluoronav.anatomy.phantom import hip_phantom
 
-    volume = resolve_ct(ct, seed=phantom_seed)
+    if ct == "phantom":
+        volume = hip_phantom(seed=phantom_seed, spacing_mm=phantom_spacing_mm)
+    else:
+        volume = resolve_ct(ct, seed=phantom_seed)
     return XraySimulator(volume, config=SimulationConfig(image_size=image_size), device=device)
 
 
@@ -74,7 +91,9 @@ def _volume_name(volume: Volume, ct: str) -> str:
     return volume.name if ct == "phantom" else Path(ct).name
 
 
-def write_sample(out_dir: Path, sample_id: int, sim: SimulatedImage, *, seed: int, ct_name: str) -> dict[str, Any]:
+def write_sample(
+    out_dir: Path, sample_id: int, sim: SimulatedImage, *, seed: int, ct_name: str
+) -> dict[str, Any]:
     """Write one sample's npz and return its manifest row."""
     rel = f"samples/{sample_id:06d}.npz"
     path = out_dir / rel
@@ -82,8 +101,12 @@ def write_sample(out_dir: Path, sample_id: int, sim: SimulatedImage, *, seed: in
     lm = sim.landmarks_px
     lm_arr = np.full((2, 2), np.nan) if lm is None else lm
     tmp = path.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, image=sim.image.astype(np.float32), mask=sim.mask.astype(np.uint8),
-                        landmarks_px=lm_arr.astype(np.float64))
+    np.savez_compressed(
+        tmp,
+        image=sim.image.astype(np.float32),
+        mask=sim.mask.astype(np.uint8),
+        landmarks_px=lm_arr.astype(np.float64),
+    )
     os.replace(tmp, path)  # a crash never leaves a half-written sample under its final name
     scene = sim.scene
     return {
@@ -99,6 +122,9 @@ def write_sample(out_dir: Path, sample_id: int, sim: SimulatedImage, *, seed: in
         "world_from_cm": np.asarray(scene.world_from_cm).tolist(),
         "ct": ct_name,
         "femur_side": scene.side,
+        "lao_rao_deg": scene.lao_rao_deg,
+        "cran_caud_deg": scene.cran_caud_deg,
+        "source_to_isocenter_mm": scene.source_to_isocenter_mm,
         "seed": seed,
     }
 
@@ -107,36 +133,81 @@ def _make_sample(sample_id: int, seed: int, *, spec: DatasetSpec, out_dir: str) 
     rng = np.random.default_rng(seed)
     anatomies = spec.anatomies()
     ct, phantom_seed = anatomies[int(rng.integers(len(anatomies)))]
-    sim = _simulator(ct, phantom_seed, spec.image_size, spec.device)
+    sim = _simulator(ct, phantom_seed, spec.image_size, spec.device, spec.phantom_spacing_mm)
     scene = sample_scene(sim.volume, rng, sampling=SceneSampling(), with_cm=spec.with_cm)
     image = sim.simulate(scene, seed=int(rng.integers(2**62)))
     return write_sample(Path(out_dir), sample_id, image, seed=seed, ct_name=_volume_name(sim.volume, ct))
 
 
-def simulate_dataset(out_dir: Path, n: int, spec: DatasetSpec, *, scheduler: str | None = None,
-                     workers: int | None = None) -> list[dict[str, Any]]:
-    """Simulate ``n`` samples into ``out_dir`` (resuming), then write the contact sheet."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    meta_path = out_dir / "dataset.json"
-    meta = {"version": __version__, "n": n, "spec": dataclasses.asdict(spec),
-            "simulation": repr(SimulationConfig(image_size=spec.image_size))}
-    if meta_path.exists():
-        old = json.loads(meta_path.read_text())
-        if old.get("spec") != meta["spec"]:
-            raise InputError(meta_path, "this directory holds a data set made with other settings "
-                                        "(seed, CTs, size or --no-cm); use another --out")
-    meta_path.write_text(json.dumps(meta, indent=2))
-    # validate every CT up front, in this process: a bad file fails before any work starts
+def simulate_dataset(
+    out_dir: Path,
+    n: int,
+    spec: DatasetSpec,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    on_result: Callable[[dict[str, Any]], None] | None = None,
+    contact_sheet_png: bool = True,
+) -> list[dict[str, Any]]:
+    """Simulate samples ``0..n−1`` into ``out_dir`` (resuming), then write the contact sheet.
+
+    Args:
+        out_dir: data set directory (created; an existing one made with other settings is refused).
+        n: number of samples of the whole data set.
+        spec: what to simulate.
+        scheduler: address of an existing Dask scheduler (default: a LocalCluster).
+        workers: LocalCluster worker processes (default up to 2); 0 runs in this process.
+        on_result: called with each new manifest row as it is written.
+        contact_sheet_png: write ``contact_sheet.png`` (the first 16 samples) at the end.
+
+    Returns:
+        The manifest rows written by this call (not those of an earlier, resumed run).
+    """
+    # validate every CT up front, in this process: a bad file fails before anything is written
     from fluoronav.anatomy.io import resolve_ct
 
     for ct in spec.cts:
         if ct != "phantom":
             resolve_ct(ct)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    meta_path = out_dir / "dataset.json"
+    sampling = SceneSampling()
+    meta = {
+        "version": __version__,
+        "n": n,
+        "spec": dataclasses.asdict(spec),
+        "simulation": repr(SimulationConfig(image_size=spec.image_size)),
+        "detector": dataclasses.asdict(sampling.detector),
+        "sdd_mm": sampling.detector.sdd_mm,
+        "storage": {
+            "rows": spec.image_size,
+            "cols": spec.image_size,
+            "binning": sampling.detector.cols / spec.image_size,
+            "pixel_spacing_mm": sampling.detector.pixel_spacing_mm * sampling.detector.cols / spec.image_size,
+        },
+    }
+    if meta_path.exists():
+        old = json.loads(meta_path.read_text())
+        if old.get("spec") != json.loads(json.dumps(meta["spec"])):  # tuples come back as lists
+            raise InputError(
+                meta_path,
+                "this directory holds a data set made with other settings "
+                "(seed, CTs, size or --no-cm); use another --out",
+            )
+    meta_path.write_text(json.dumps(meta, indent=2))
     task = functools.partial(_make_sample, spec=spec, out_dir=str(out_dir))
-    rows = run_tasks(task, n, spec.seed, JsonlLog(out_dir / "manifest.jsonl"), scheduler=scheduler,
-                     workers=workers, description="simulate")
+    rows = run_tasks(
+        task,
+        n,
+        spec.seed,
+        JsonlLog(out_dir / "manifest.jsonl"),
+        scheduler=scheduler,
+        workers=workers,
+        description="simulate",
+        on_result=on_result,
+    )
     all_rows = JsonlLog(out_dir / "manifest.jsonl").read()
-    if all_rows:
+    if all_rows and contact_sheet_png:
         contact_sheet(out_dir, sorted(all_rows, key=lambda r: r["id"])[:16], out_dir / "contact_sheet.png")
     return rows
 
@@ -169,3 +240,73 @@ def contact_sheet(data_dir: Path, rows: list[dict[str, Any]], path: Path) -> Non
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
+
+
+#: manifest keys required by CONTRACTS.md ("Data set format")
+MANIFEST_KEYS = (
+    "id",
+    "file",
+    "rows",
+    "cols",
+    "pixel_spacing_mm",
+    "landmarks_px",
+    "control_points_deg",
+    "camera",
+    "world_from_cm",
+    "ct",
+)
+
+
+def check_dataset(data_dir: Path, *, n: int | None = None) -> list[str]:
+    """Problems of a data set against the contract (empty list = conforms).
+
+    Checks: manifest keys, ids 0..n−1 exactly once, npz keys/dtypes/shapes at (rows, cols), the
+    camera's size and ``fx = sdd / pixel_spacing`` consistent with the row, landmarks inside the
+    image and equal to the npz's, empty mask and no landmarks for negatives.
+    """
+    from fluoronav.geometry.camera import Camera
+
+    data_dir = Path(data_dir)
+    problems: list[str] = []
+    rows_ = JsonlLog(data_dir / "manifest.jsonl").read()
+    ids = sorted(int(r.get("id", -1)) for r in rows_)
+    if n is not None and ids != list(range(n)):
+        problems.append(f"manifest ids are not 0..{n - 1} exactly once")
+    sdd = None
+    meta = data_dir / "dataset.json"
+    if meta.exists():
+        sdd = json.loads(meta.read_text()).get("sdd_mm")
+    for r in rows_:
+        tag = f"sample {r.get('id')}"
+        missing = [k for k in MANIFEST_KEYS if k not in r]
+        if missing:
+            problems.append(f"{tag}: missing {missing}")
+            continue
+        cam = Camera.from_dict(r["camera"])
+        h, w = int(r["rows"]), int(r["cols"])
+        if (cam.rows, cam.cols) != (h, w):
+            problems.append(f"{tag}: camera size differs from rows/cols")
+        if sdd is not None and not np.isclose(cam.K[0, 0], sdd / r["pixel_spacing_mm"], rtol=1e-6):
+            problems.append(f"{tag}: fx != sdd / pixel_spacing_mm")
+        with np.load(data_dir / r["file"]) as z:
+            keys = set(z.files)
+            if not {"image", "mask", "landmarks_px"} <= keys:
+                problems.append(f"{tag}: npz lacks image/mask/landmarks_px")
+                continue
+            img, mask, lm = z["image"], z["mask"], z["landmarks_px"]
+        if img.dtype != np.float32 or img.shape != (h, w) or not np.all(np.isfinite(img)):
+            problems.append(f"{tag}: image must be finite float32 ({h}, {w})")
+        if mask.dtype != np.uint8 or mask.shape != (h, w) or not set(np.unique(mask)) <= {0, 1}:
+            problems.append(f"{tag}: mask must be uint8 0/1 ({h}, {w})")
+        if r["landmarks_px"] is None:
+            if mask.any() or not np.all(np.isnan(lm)):
+                problems.append(f"{tag}: a negative has mask pixels or landmarks")
+            continue
+        lm_row = np.asarray(r["landmarks_px"], dtype=np.float64)
+        if lm_row.shape != (2, 2) or not np.allclose(lm_row, lm):
+            problems.append(f"{tag}: landmarks_px differ between manifest and npz")
+        elif not np.all((lm_row >= -0.5) & (lm_row <= np.array([w, h]) - 0.5)):
+            problems.append(f"{tag}: landmarks outside the image")
+        if not mask.any():
+            problems.append(f"{tag}: a positive has an empty mask")
+    return problems

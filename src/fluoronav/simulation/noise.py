@@ -9,6 +9,7 @@ in the Fourier domain on an edge-replicated padding, with analytic transfer func
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -19,6 +20,31 @@ def _frequency_radius(h: int, w: int, *, device: torch.device, dtype: torch.dtyp
     fy = torch.fft.fftfreq(h, device=device, dtype=dtype)
     fx = torch.fft.rfftfreq(w, device=device, dtype=dtype)
     return torch.sqrt(fy[:, None] ** 2 + fx[None, :] ** 2)
+
+
+def _fast_length(n: int) -> int:
+    """Smallest 2·3·5-smooth integer ≥ n (FFT sizes with large prime factors are several times slower)."""
+    m = n
+    while True:
+        k = m
+        for p in (2, 3, 5):
+            while k % p == 0:
+                k //= p
+        if k == 1:
+            return m
+        m += 1
+
+
+@functools.lru_cache(maxsize=16)
+def _transfer(
+    hp: int, wp: int, sigma: float, fraction: float, gamma: float, device: torch.device, dtype: torch.dtype
+) -> torch.Tensor:
+    """Cached transfer function (the same detector is filtered for every image of a data set)."""
+    f = _frequency_radius(hp, wp, device=device, dtype=dtype)
+    transfer = torch.exp(-2.0 * math.pi**2 * sigma**2 * f**2)
+    if fraction > 0 and gamma > 0:
+        transfer = transfer * ((1.0 - fraction) + fraction * torch.exp(-2.0 * math.pi * gamma * f))
+    return transfer
 
 
 def filter_image(
@@ -50,16 +76,22 @@ def filter_image(
     pad_y, pad_x = min(pad_px, h - 1), min(pad_px, w - 1)
     batch_shape = image.shape[:-2]
     x = image.reshape(-1, 1, h, w)
-    if pad_y > 0 or pad_x > 0:
-        x = nnf.pad(x, (pad_x, pad_x, pad_y, pad_y), mode="replicate")
+    # extra padding at the far ends up to a fast FFT length (it only widens the replicated border)
+    extra_y = _fast_length(h + 2 * pad_y) - (h + 2 * pad_y)
+    extra_x = _fast_length(w + 2 * pad_x) - (w + 2 * pad_x)
+    if pad_y > 0 or pad_x > 0 or extra_y or extra_x:
+        x = nnf.pad(x, (pad_x, pad_x + extra_x, pad_y, pad_y + extra_y), mode="replicate")
     hp, wp = x.shape[-2:]
     real_dtype = image.dtype if image.dtype in (torch.float32, torch.float64) else torch.float32
-    f = _frequency_radius(hp, wp, device=image.device, dtype=real_dtype)
-    transfer = torch.exp(-2.0 * math.pi**2 * gaussian_sigma_px**2 * f**2)
-    if use_lorentz:
-        transfer = transfer * (
-            (1.0 - lorentz_fraction) + lorentz_fraction * torch.exp(-2.0 * math.pi * lorentz_gamma_px * f)
-        )
+    transfer = _transfer(
+        hp,
+        wp,
+        float(gaussian_sigma_px),
+        float(lorentz_fraction) if use_lorentz else 0.0,
+        float(lorentz_gamma_px) if use_lorentz else 0.0,
+        image.device,
+        real_dtype,
+    )
     out = torch.fft.irfft2(torch.fft.rfft2(x.to(real_dtype)) * transfer, s=(hp, wp))
     out = out[..., pad_y : pad_y + h, pad_x : pad_x + w]
     return out.reshape(*batch_shape, h, w).to(image.dtype)
@@ -71,6 +103,7 @@ def scatter_estimate(
     scatter_to_primary: float,
     reference_line_integral: float,
     sigma_px: float,
+    downsample: int = 1,
 ) -> torch.Tensor:
     """Object scatter from the primary, kernel-superposition style (after Ohnesorge et al. 1999).
 
@@ -85,6 +118,9 @@ def scatter_estimate(
         scatter_to_primary: SPR at the reference line integral (≥ 0; 0 disables scatter).
         reference_line_integral: −ln P at which the SPR is ``scatter_to_primary`` (> 0).
         sigma_px: kernel standard deviation in pixels.
+        downsample: compute the (smooth) scatter on ``downsample``× area-binned pixels and
+            upsample it bilinearly; used only where the kernel stays ≥ 2 binned pixels wide and
+            the image size is a multiple (the sum over a uniform object is unchanged).
 
     Returns:
         (…, H, W) scatter in the units of ``primary`` (flat-field relative).
@@ -94,6 +130,13 @@ def scatter_estimate(
     p = primary.clamp_min(torch.finfo(primary.dtype).tiny)
     source = p * (-torch.log(p)).clamp_min(0.0)
     c = scatter_to_primary / reference_line_integral
+    h, w = source.shape[-2:]
+    f = int(downsample)
+    if f > 1 and sigma_px / f >= 2.0 and h % f == 0 and w % f == 0:
+        flat = source.reshape(-1, 1, h, w)
+        small = filter_image(nnf.avg_pool2d(flat, f), gaussian_sigma_px=sigma_px / f)
+        up = nnf.interpolate(small, scale_factor=f, mode="bilinear", align_corners=False)
+        return c * up.reshape(source.shape)
     return c * filter_image(source, gaussian_sigma_px=sigma_px)
 
 

@@ -138,6 +138,8 @@ class XrayPhysics:
             ``scatter_reference_line_integral`` (0 disables scatter).
         scatter_reference_line_integral: −ln(P) at which the SPR equals ``scatter_to_primary``.
         scatter_sigma_px: scatter kernel std in pixels.
+        scatter_downsample: compute the scatter on this many times coarser pixels (see
+            :func:`~fluoronav.simulation.noise.scatter_estimate`; 1 = full resolution).
         gain: multiplies the log image.
         offset: added to the log image.
         energy_bin_keV: width of the energy bins summed over (the table has 1 keV bins; wider bins
@@ -160,10 +162,11 @@ class XrayPhysics:
     scatter_to_primary: float = 0.2
     scatter_reference_line_integral: float = 4.0
     scatter_sigma_px: float = 40.0
+    scatter_downsample: int = 1
     gain: float = 1.0
     offset: float = 0.0
     custom_spectrum: Spectrum | None = None
-    energy_bin_keV: float = 1.0
+    energy_bin_keV: float = 1.0  # noqa: N815 (unit suffix)
 
     def __post_init__(self) -> None:
         if self.photons_per_pixel is not None and self.photons_per_pixel <= 0:
@@ -228,6 +231,7 @@ class XrayPhysics:
             scatter_to_primary=self.scatter_to_primary,
             reference_line_integral=self.scatter_reference_line_integral,
             sigma_px=self.scatter_sigma_px,
+            downsample=self.scatter_downsample,
         )
         noisy = self.photons_per_pixel is not None
         if noisy and generator is None:

@@ -54,6 +54,9 @@ class Scene:
         has_cm: False for negatives (no CM in the image).
         volume_name: the CT's name.
         side: which femur the CM is in ("left", "right" or "" when unlabelled).
+        cm_config: the CM's geometry.
+        lao_rao_deg, cran_caud_deg, source_to_isocenter_mm: the sampled C-arm angles and distance.
+        isocenter_world: (3,) the C-arm isocentre, mm.
     """
 
     camera: Camera
@@ -63,6 +66,10 @@ class Scene:
     volume_name: str = "volume"
     side: str = ""
     cm_config: CMConfig = field(default_factory=CMConfig)
+    lao_rao_deg: float = float("nan")
+    cran_caud_deg: float = float("nan")
+    source_to_isocenter_mm: float = float("nan")
+    isocenter_world: np.ndarray | None = None
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -93,10 +100,15 @@ def cm_pose_along(origin_world: np.ndarray, axis_world: np.ndarray, roll_rad: fl
     return T
 
 
-def place_cm_in_bone(volume: Volume, rng: np.random.Generator, sampling: SceneSampling) -> tuple[np.ndarray, str]:
+def place_cm_in_bone(
+    volume: Volume, rng: np.random.Generator, sampling: SceneSampling
+) -> tuple[np.ndarray, str]:
     """A CM base pose inside a femur (labelled phantom/CT) or in the bone nearest the volume centre."""
-    sides = [s for s in ("left", "right") if f"entry_{s}" in volume.landmarks_world
-             and f"femoral_head_{s}" in volume.landmarks_world]
+    sides = [
+        s
+        for s in ("left", "right")
+        if f"entry_{s}" in volume.landmarks_world and f"femoral_head_{s}" in volume.landmarks_world
+    ]
     if sides:
         side = sides[int(rng.integers(len(sides)))]
         entry = np.asarray(volume.landmarks_world[f"entry_{side}"], dtype=np.float64)
@@ -135,12 +147,23 @@ def sample_scene(
     # isocentre: the middle of the CM (so it is in the field of view), shifted like the volume
     mid_cm = np.array([0.0, 0.0, 0.5 * cm_config.tip_z_mm, 1.0])
     iso = (world_from_cm @ mid_cm)[:3] - rng.uniform(-sampling.translation_mm, sampling.translation_mm, 3)
+    alpha = float(rng.uniform(*sampling.lao_rao_deg))
+    beta = float(rng.uniform(*sampling.cran_caud_deg))
+    sid = float(rng.uniform(*sampling.source_to_isocenter_mm))
     T = carm_camera_from_world(
-        lao_rao_deg=rng.uniform(*sampling.lao_rao_deg),
-        cran_caud_deg=rng.uniform(*sampling.cran_caud_deg),
-        source_to_isocenter_mm=rng.uniform(*sampling.source_to_isocenter_mm),
-        isocenter_world=iso,
+        lao_rao_deg=alpha, cran_caud_deg=beta, source_to_isocenter_mm=sid, isocenter_world=iso
     )
     camera = Camera.from_detector(sampling.detector, T)
-    return Scene(camera=camera, world_from_cm=world_from_cm, control_points_deg=cp, has_cm=with_cm,
-                 volume_name=volume.name, side=side, cm_config=cm_config)
+    return Scene(
+        camera=camera,
+        world_from_cm=world_from_cm,
+        control_points_deg=cp,
+        has_cm=with_cm,
+        volume_name=volume.name,
+        side=side,
+        cm_config=cm_config,
+        lao_rao_deg=alpha,
+        cran_caud_deg=beta,
+        source_to_isocenter_mm=sid,
+        isocenter_world=iso,
+    )

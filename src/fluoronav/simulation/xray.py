@@ -5,11 +5,11 @@ For each scene the simulator
 1. integrates the CT's per-material partial densities (:func:`~fluoronav.simulation.materials.
    decompose_hu`) along every detector ray with the CT renderer (g/cm³·mm → g/cm²);
 2. removes the CT inside the CM's envelope (the drilled path: a solid cylinder of the CM's outer
-   radius along its bent axis), by integrating the removed densities on the CT grid around the CM
-   and subtracting them;
+   radius along its bent axis): the CT sampled on a ``drill_voxel_mm`` grid of the envelope is
+   integrated over the pixels of its projected box and subtracted;
 3. voxelises the bent CM at high resolution (``cm_voxel_mm``, partial volumes) as nitinol (or as
-   the authors' 2000 HU material) and integrates it at the full detector resolution inside the CM's
-   projected box, then bins it to the stored resolution (the detector integrates over its pixels);
+   the authors' 2000 HU material) and integrates it at ``cm_oversample``× the stored resolution
+   inside the CM's projected box, then area-bins it (the detector integrates over its pixels);
 4. forms the detector image with :class:`~fluoronav.simulation.physics.XrayPhysics` (polychromatic
    spectrum, scatter, Poisson noise, blur, electronic noise, log transform).
 
@@ -31,7 +31,6 @@ from fluoronav.device import resolve_device
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.geometry import voxelize_cm
-from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.rendering.cm import CMRenderer
 from fluoronav.rendering.ct import CTRenderer, render_line_integrals
 from fluoronav.simulation.materials import MM_PER_CM, decompose_hu, get_material
@@ -65,7 +64,9 @@ class SimulationConfig:
         drill_voxel_mm: voxel size of the envelope used to remove the CT, mm.
     """
 
-    physics: XrayPhysics = field(default_factory=lambda: XrayPhysics(energy_bin_keV=3.0))
+    physics: XrayPhysics = field(
+        default_factory=lambda: XrayPhysics(energy_bin_keV=3.0, scatter_downsample=4)
+    )
     image_size: int = 512
     cm_oversample: int = 3
     cm_voxel_mm: float = 0.1
@@ -91,6 +92,23 @@ class SimulatedImage:
     landmarks_px: np.ndarray | None
     camera: Camera
     scene: Scene
+
+
+def _projected_box(
+    camera: Camera, world_from_index: np.ndarray, shape_zyx: tuple[int, ...]
+) -> tuple[int, int, int, int] | None:
+    """(row0, col0, row1, col1) pixel box (clipped to the image) covering a voxel grid's projection."""
+    nz, ny, nx = shape_zyx
+    corners = np.array([[i, j, k, 1.0] for i in (0, nx) for j in (0, ny) for k in (0, nz)])
+    corners[:, :3] -= 0.5
+    uv = camera.project((corners @ np.asarray(world_from_index).T)[:, :3])
+    c0, r0 = np.floor(uv.min(0)).astype(int) - 1
+    c1, r1 = np.ceil(uv.max(0)).astype(int) + 2
+    c0, r0 = max(int(c0), 0), max(int(r0), 0)
+    c1, r1 = min(int(c1), camera.cols), min(int(r1), camera.rows)
+    if c1 <= c0 or r1 <= r0:
+        return None
+    return r0, c0, r1, c1
 
 
 class XraySimulator:
@@ -138,8 +156,12 @@ class XraySimulator:
         """
         from scipy.ndimage import map_coordinates
 
-        env = voxelize_cm(envelope_config(scene.cm_config), np.asarray(scene.control_points_deg, np.float64),
-                          spacing_mm=self.config.drill_voxel_mm, supersample=2)
+        env = voxelize_cm(
+            envelope_config(scene.cm_config),
+            np.asarray(scene.control_points_deg, np.float64),
+            spacing_mm=self.config.drill_voxel_mm,
+            supersample=2,
+        )
         occ = env.occupancy
         nz_idx = np.nonzero(occ)
         if len(nz_idx[0]) == 0:
@@ -147,19 +169,34 @@ class XraySimulator:
         world_from_index = scene.world_from_cm @ env.world_from_index
         ijk = np.stack([nz_idx[2], nz_idx[1], nz_idx[0], np.ones(len(nz_idx[0]))], axis=1).astype(np.float64)
         ct_index = (ijk @ world_from_index.T) @ self.volume.index_from_world.T  # (n, 4) as (i, j, k, 1)
-        hu = map_coordinates(self._hu, [ct_index[:, 2], ct_index[:, 1], ct_index[:, 0]], order=1,
-                             mode="constant", cval=-1000.0)
+        hu = map_coordinates(
+            self._hu, [ct_index[:, 2], ct_index[:, 1], ct_index[:, 0]], order=1, mode="constant", cval=-1000.0
+        )
         parts = decompose_hu(hu.astype(np.float32))
-        K = torch.as_tensor(camera.K)[None]
-        T = torch.as_tensor(camera.camera_from_world)[None]
-        out = {}
+        out: dict[str, torch.Tensor] = {}
+        box = _projected_box(camera, world_from_index, occ.shape)
+        if box is None:
+            return out
+        r0, c0, r1, c1 = box  # only rays through the envelope's box are integrated
+        crop = camera.crop(row0=r0, col0=c0, rows=r1 - r0, cols=c1 - c0)
+        K = torch.as_tensor(crop.K)[None]
+        T = torch.as_tensor(crop.camera_from_world)[None]
         for m in RENDERED_CT_MATERIALS:
             if not np.any(parts[m] > 0):
                 continue
             data = np.zeros_like(occ)
             data[nz_idx] = parts[m] * occ[nz_idx]
-            out[m] = render_line_integrals(torch.as_tensor(data, device=self.device), world_from_index, K, T,
-                                           camera.rows, camera.cols, mipmap=False)[0]
+            full = torch.zeros(camera.rows, camera.cols, dtype=torch.float32, device=self.device)
+            full[r0:r1, c0:c1] = render_line_integrals(
+                torch.as_tensor(data, device=self.device),
+                world_from_index,
+                K,
+                T,
+                crop.rows,
+                crop.cols,
+                mipmap=False,
+            )[0]
+            out[m] = full
         return out
 
     def _cm_integral(self, scene: Scene, camera: Camera) -> torch.Tensor:
@@ -174,22 +211,11 @@ class XraySimulator:
         f = self.config.cm_oversample
         fine = scene.camera.scaled_to(camera.rows * f, camera.cols * f)
         world_from_index = scene.world_from_cm @ vox.world_from_index
-        # projected box of the CM's voxel grid, in stored pixels
-        nz, ny, nx = vox.occupancy.shape
-        corners = np.array([[i, j, k, 1.0] for i in (0, nx) for j in (0, ny) for k in (0, nz)]) - [
-            0.5,
-            0.5,
-            0.5,
-            0,
-        ]
-        uv = camera.project((corners @ world_from_index.T)[:, :3])
-        c0, r0 = np.floor(uv.min(0)).astype(int) - 1
-        c1, r1 = np.ceil(uv.max(0)).astype(int) + 2
-        c0, r0 = max(c0, 0), max(r0, 0)
-        c1, r1 = min(c1, camera.cols), min(r1, camera.rows)
         out = torch.zeros(camera.rows, camera.cols, dtype=torch.float32, device=self.device)
-        if c1 <= c0 or r1 <= r0:
+        box = _projected_box(camera, world_from_index, vox.occupancy.shape)
+        if box is None:
             return out
+        r0, c0, r1, c1 = box
         crop = fine.crop(row0=r0 * f, col0=c0 * f, rows=(r1 - r0) * f, cols=(c1 - c0) * f)
         occ = torch.as_tensor(vox.occupancy, device=self.device)
         img = render_line_integrals(
@@ -205,11 +231,15 @@ class XraySimulator:
         out[r0:r1, c0:c1] = binned
         return out
 
+    def _ct_densities(self, camera: Camera) -> dict[str, torch.Tensor]:
+        """CT material line integrals (g/cm³·mm) at ``camera``."""
+        return {m: r.render([camera])[0] for m, r in self._renderers.items()}
+
     # ----- images --------------------------------------------------------------------------
     def areal_densities(self, scene: Scene, camera: Camera | None = None) -> dict[str, torch.Tensor]:
         """Per-material areal densities (g/cm²) at the stored resolution."""
         camera = camera or self.stored_camera(scene)
-        dens = {m: r.render([camera])[0] for m, r in self._renderers.items()}
+        dens = self._ct_densities(camera)
         if scene.has_cm:
             if self.config.drill:
                 for m, removed in self._drilled_densities(scene, camera).items():

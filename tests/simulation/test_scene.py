@@ -1,0 +1,83 @@
+"""Scene sampling: the paper's ranges, the CM in and around the femur, unlabelled CTs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fluoronav.anatomy.phantom import hip_phantom
+from fluoronav.anatomy.volume import Volume
+from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.simulation.scene import BONE_HU, SceneSampling, sample_scene
+
+
+@pytest.fixture(scope="module")
+def phantom() -> Volume:
+    return hip_phantom(seed=0, spacing_mm=2.0)
+
+
+def test_sampled_ranges_follow_the_paper(phantom: Volume) -> None:
+    rng = np.random.default_rng(0)
+    sampling = SceneSampling()
+    scenes = [sample_scene(phantom, rng) for _ in range(60)]
+    cp = np.array([s.control_points_deg for s in scenes])
+    assert cp.min() >= -7.9 and cp.max() <= 7.9 and cp.max() - cp.min() > 12  # spans the range
+    sid = np.array([s.source_to_isocenter_mm for s in scenes])
+    assert sid.min() >= 400 and sid.max() <= 500
+    alpha = np.array([s.lao_rao_deg for s in scenes])
+    beta = np.array([s.cran_caud_deg for s in scenes])
+    assert alpha.min() >= 0 and alpha.max() <= 360 and alpha.max() - alpha.min() > 250
+    assert beta.min() >= 75 and beta.max() <= 105
+    for s in scenes:
+        # the camera's source sits at the sampled distance from the isocentre
+        source = -s.camera.camera_from_world[:3, :3].T @ s.camera.camera_from_world[:3, 3]
+        assert np.linalg.norm(source - s.isocenter_world) == pytest.approx(s.source_to_isocenter_mm, abs=1e-6)
+        # the isocentre is the CM's middle shifted by at most the translation range per axis
+        mid = (s.world_from_cm @ np.array([0, 0, 0.5 * s.cm_config.tip_z_mm, 1.0]))[:3]
+        assert np.all(np.abs(mid - s.isocenter_world) <= sampling.translation_mm + 1e-9)
+        assert s.side in ("left", "right")
+
+
+def test_cm_overlaps_the_femur(phantom: Volume) -> None:
+    rng = np.random.default_rng(1)
+    femur = {k for k, v in phantom.label_names.items() if v.startswith("femur")}
+    fractions = []
+    for _ in range(20):
+        s = sample_scene(phantom, rng)
+        cp = torch.as_tensor(np.asarray(s.control_points_deg, np.float64))
+        pts = CMKinematics(s.cm_config).centerline_cm(cp, n_points=30).numpy()
+        world = np.c_[pts, np.ones(len(pts))] @ s.world_from_cm.T
+        ijk = np.round(world @ phantom.index_from_world.T)[:, :3].astype(int)
+        inside = np.all((ijk >= 0) & (ijk < phantom.data.shape[::-1]), axis=1)
+        labels = np.zeros(len(pts), int)
+        labels[inside] = phantom.labels[ijk[inside, 2], ijk[inside, 1], ijk[inside, 0]]
+        fractions.append(np.isin(labels, list(femur)).mean())
+    fractions = np.array(fractions)
+    assert np.median(fractions) > 0.5  # mostly inside the femur ("in")
+    assert fractions.min() > 0.2  # and never outside it ("around": the base may stick out)
+
+
+def test_same_rng_state_same_scene(phantom: Volume) -> None:
+    a = sample_scene(phantom, np.random.default_rng(5))
+    b = sample_scene(phantom, np.random.default_rng(5))
+    np.testing.assert_array_equal(a.camera.camera_from_world, b.camera.camera_from_world)
+    np.testing.assert_array_equal(a.world_from_cm, b.world_from_cm)
+    assert not sample_scene(phantom, np.random.default_rng(5), with_cm=False).has_cm
+
+
+def test_unlabelled_ct_gets_the_cm_in_the_bone_nearest_the_centre() -> None:
+    # a water cylinder with two bone rods; the one nearer the volume centre must be chosen
+    shape = (40, 50, 60)
+    hu = np.zeros(shape, np.float32)
+    _, j, i = np.indices(shape)
+    hu[(j - 25) ** 2 + (i - 35) ** 2 < 9] = 1200.0  # near the centre (i = 29.5)
+    hu[(j - 25) ** 2 + (i - 8) ** 2 < 9] = 1200.0  # far
+    vol = Volume(data=hu, spacing_mm=(1.5, 1.5, 2.0), origin_mm=(-40.0, 10.0, 5.0), name="ct")
+    for seed in range(5):
+        s = sample_scene(vol, np.random.default_rng(seed))
+        assert s.side == ""
+        a = (vol.index_from_world @ s.world_from_cm[:, 3])[:3]
+        ii, jj, kk = np.round(a).astype(int)
+        assert hu[kk, jj, ii] > BONE_HU
+        assert abs(a[0] - 35) < 4
