@@ -20,17 +20,27 @@ from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import load_cm_config
 from fluoronav.navigation.planning import load_plan
 
-SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+SETTINGS = settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 
 json_values = st.recursive(
-    st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats(allow_nan=True) | st.text(max_size=8),
-    lambda children: st.lists(children, max_size=5) | st.dictionaries(st.text(max_size=8), children, max_size=5),
+    st.none()
+    | st.booleans()
+    | st.integers(-(10**6), 10**6)
+    | st.floats(allow_nan=True)
+    | st.text(max_size=8),
+    lambda children: (
+        st.lists(children, max_size=5) | st.dictionaries(st.text(max_size=8), children, max_size=5)
+    ),
     max_leaves=20,
 )
 
 
 def _camera_like() -> st.SearchStrategy[dict]:
-    num = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-5, 5000), st.text(max_size=3))
+    num = st.one_of(
+        st.floats(allow_nan=True, allow_infinity=True), st.integers(-5, 5000), st.text(max_size=3)
+    )
     mat = st.lists(st.lists(num, min_size=0, max_size=5), min_size=0, max_size=5)
     return st.fixed_dictionaries(
         {},
@@ -45,8 +55,13 @@ def _check_one_line(exc: InputError, path: Path) -> None:
 
 
 @SETTINGS
-@given(content=st.one_of(st.binary(max_size=200), json_values.map(lambda v: json.dumps(v).encode()),
-                         _camera_like().map(lambda v: json.dumps(v).encode())))
+@given(
+    content=st.one_of(
+        st.binary(max_size=200),
+        json_values.map(lambda v: json.dumps(v).encode()),
+        _camera_like().map(lambda v: json.dumps(v).encode()),
+    )
+)
 def test_camera_reader(tmp_path: Path, content: bytes) -> None:
     f = tmp_path / "camera.json"
     f.write_bytes(content)

@@ -39,13 +39,18 @@ def test_cm_errors_translation_only() -> None:
     est = true.copy()
     est[:3, 3] += [0.0, 0.0, 3.0]
     cp = np.array([1.0, 2.0, 3.0, 2.0, 1.0])
-    e = cm_errors(carm_from_cm_est=est, carm_from_cm_true=true, control_points_est_deg=cp,
-                  control_points_true_deg=cp)
+    e = cm_errors(
+        carm_from_cm_est=est, carm_from_cm_true=true, control_points_est_deg=cp, control_points_true_deg=cp
+    )
     assert e["tip_mm"] == pytest.approx(3.0, abs=1e-9)
     assert e["base_depth_mm"] == pytest.approx(3.0, abs=1e-9)
     assert e["notch_rotation_deg"] == 0.0
-    e2 = cm_errors(carm_from_cm_est=true, carm_from_cm_true=true, control_points_est_deg=cp + 0.5,
-                   control_points_true_deg=cp)
+    e2 = cm_errors(
+        carm_from_cm_est=true,
+        carm_from_cm_true=true,
+        control_points_est_deg=cp + 0.5,
+        control_points_true_deg=cp,
+    )
     assert e2["notch_rotation_deg"] == pytest.approx(0.5, abs=1e-9)  # the spline is linear: +0.5 everywhere
     assert e2["tip_mm"] > 0.1
 
@@ -53,14 +58,28 @@ def test_cm_errors_translation_only() -> None:
 def test_relative_error() -> None:
     assert relative_error_mm(np.array([1.0, 0, 0]), np.zeros(3), np.zeros(3), np.zeros(3)) == 1.0
     # a common offset cancels
-    assert relative_error_mm(np.array([5.0, 1, 1]), np.array([4.0, 1, 1]), np.array([1.0, 0, 0]),
-                             np.zeros(3)) == pytest.approx(0.0)
+    assert relative_error_mm(
+        np.array([5.0, 1, 1]), np.array([4.0, 1, 1]), np.array([1.0, 0, 0]), np.zeros(3)
+    ) == pytest.approx(0.0)
 
 
 def test_summary_counts_failures_and_figures(tmp_path) -> None:
-    rows = [{"trial": i, "status": "ok", "tip_mm": 1.0 + i, "base_depth_mm": 0.5 * i, "seconds": 2.0,
-             "base_tx_mm": 0.1, "base_ty_mm": 0.2, "base_tz_mm": 0.3, "base_rx_deg": 0.1,
-             "base_ry_deg": 0.2, "base_rz_deg": 0.0} for i in range(5)]
+    rows = [
+        {
+            "trial": i,
+            "status": "ok",
+            "tip_mm": 1.0 + i,
+            "base_depth_mm": 0.5 * i,
+            "seconds": 2.0,
+            "base_tx_mm": 0.1,
+            "base_ty_mm": 0.2,
+            "base_tz_mm": 0.3,
+            "base_rx_deg": 0.1,
+            "base_ry_deg": 0.2,
+            "base_rz_deg": 0.0,
+        }
+        for i in range(5)
+    ]
     rows.append({"trial": 5, "status": "failed", "reason": "not converged", "tip_mm": "", "seconds": 9.0})
     s = summarize("single-view", rows, ["tip_mm"], trials=6, device="cpu")
     assert s["completed"] == 6 and s["failed"] == 1

@@ -66,6 +66,10 @@ def register(app: typer.Typer) -> None:
                 continue
             base = figures.get(f"{key}_baseline")
             spd = figures.get(f"{key}_speedup")
-            table.add_row(key, f"{value:.4g}", "" if base is None else f"{base:.4g}",
-                          "" if spd is None else f"{spd:.1f}×")
+            table.add_row(
+                key,
+                f"{value:.4g}",
+                "" if base is None else f"{base:.4g}",
+                "" if spd is None else f"{spd:.1f}×",
+            )
         Console().print(table)

@@ -57,8 +57,9 @@ def point_error_mm(p_est: np.ndarray, p_true: np.ndarray) -> float:
     return float(np.linalg.norm(np.asarray(p_est, float) - np.asarray(p_true, float)))
 
 
-def relative_error_mm(entry_est: np.ndarray, tip_est: np.ndarray, entry_true: np.ndarray,
-                      tip_true: np.ndarray) -> float:
+def relative_error_mm(
+    entry_est: np.ndarray, tip_est: np.ndarray, entry_true: np.ndarray, tip_true: np.ndarray
+) -> float:
     """Eq. 11: ||(entry_gt − tip_gt) − (entry_est − tip_est)||."""
     return float(np.linalg.norm((np.asarray(entry_true) - tip_true) - (np.asarray(entry_est) - tip_est)))
 

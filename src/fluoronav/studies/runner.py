@@ -112,8 +112,9 @@ class CsvLog(ResultLog):
         _fsync_append(self.path, buf.getvalue())
 
 
-def _iter_local(fn: Callable[[int, int], dict[str, Any]], todo: list[tuple[int, int]]
-                ) -> Iterator[dict[str, Any]]:
+def _iter_local(
+    fn: Callable[[int, int], dict[str, Any]], todo: list[tuple[int, int]]
+) -> Iterator[dict[str, Any]]:
     for tid, s in todo:
         yield fn(tid, s)
 
@@ -130,8 +131,16 @@ def _client(scheduler: str | None, workers: int | None) -> Iterator[Any]:
             client.close()
         return
     n = workers if workers else max(1, min(2, os.cpu_count() or 1))
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+    with (
+        LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=logging.ERROR,
+        ) as cluster,
+        Client(cluster) as client,
+    ):
         yield client
 
 
@@ -171,8 +180,9 @@ def run_tasks(
     if done:
         log.info("%s: %d of %d already done, resuming", description, len(done & set(range(n))), n)
     written: list[dict[str, Any]] = []
-    bar = tqdm(total=n, initial=n - len(todo), desc=description, unit="task", dynamic_ncols=True,
-               disable=None)
+    bar = tqdm(
+        total=n, initial=n - len(todo), desc=description, unit="task", dynamic_ncols=True, disable=None
+    )
 
     def _handle(row: dict[str, Any]) -> None:
         result_log.append(row)
@@ -191,8 +201,10 @@ def run_tasks(
         from dask.distributed import as_completed
 
         with _client(scheduler, workers) as client:
-            futures = [client.submit(fn, tid, s, pure=False, retries=retries, key=f"{description}-{tid}-{s}")
-                       for tid, s in todo]
+            futures = [
+                client.submit(fn, tid, s, pure=False, retries=retries, key=f"{description}-{tid}-{s}")
+                for tid, s in todo
+            ]
             for fut in as_completed(futures):
                 _handle(fut.result())
         return written

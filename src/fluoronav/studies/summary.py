@@ -16,8 +16,13 @@ __all__ = ["summarize", "write_summary"]
 
 def _stats(values: list[float]) -> dict[str, float]:
     a = np.asarray(values, dtype=np.float64)
-    return {"mean": float(a.mean()), "std": float(a.std(ddof=1)) if len(a) > 1 else 0.0,
-            "median": float(np.median(a)), "p95": float(np.percentile(a, 95)), "n": int(len(a))}
+    return {
+        "mean": float(a.mean()),
+        "std": float(a.std(ddof=1)) if len(a) > 1 else 0.0,
+        "median": float(np.median(a)),
+        "p95": float(np.percentile(a, 95)),
+        "n": len(a),
+    }
 
 
 def _float(v: Any) -> float | None:
@@ -28,8 +33,15 @@ def _float(v: Any) -> float | None:
     return f if math.isfinite(f) else None
 
 
-def summarize(workflow: str, rows: list[dict[str, Any]], metric_names: list[str], *, trials: int,
-              device: str, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+def summarize(
+    workflow: str,
+    rows: list[dict[str, Any]],
+    metric_names: list[str],
+    *,
+    trials: int,
+    device: str,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """Summary per CONTRACTS: counts, per-metric mean/std/median/p95 over converged trials, timing.
 
     Failed trials (``status != "ok"``) are counted, never dropped; their metrics are left out of the
@@ -55,8 +67,10 @@ def summarize(workflow: str, rows: list[dict[str, Any]], metric_names: list[str]
         "failure_rate": len(failed) / len(rows) if rows else 0.0,
         "failure_reasons": reasons,
         "metrics": metrics,
-        "seconds_per_trial": {"median": float(np.median(secs)) if secs else None,
-                              "p95": float(np.percentile(secs, 95)) if secs else None},
+        "seconds_per_trial": {
+            "median": float(np.median(secs)) if secs else None,
+            "p95": float(np.percentile(secs, 95)) if secs else None,
+        },
         "device": device,
         "version": __version__,
     }

@@ -1,0 +1,52 @@
+"""``fluoronav report DIR...``: the paper's Table I (Markdown and HTML) from study outputs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("report")
+    def report(
+        dirs: list[Path] = typer.Argument(..., help="Study output directories (each with summary.json)."),
+        out: Path = typer.Option(
+            Path("report"), "--out", help="Output directory for table_i.md and report.html."
+        ),
+    ) -> None:
+        """Combine studies into the paper's Table I beside the paper's numbers, with their figures."""
+        from fluoronav.errors import InputError
+        from fluoronav.studies.report import Section, html_page, table_i, table_markdown
+
+        for d in dirs:
+            s = d / "summary.json"
+            if not s.is_file():
+                raise InputError(d, "not a study directory (no summary.json)")
+            try:
+                json.loads(s.read_text())
+            except json.JSONDecodeError as exc:
+                raise InputError(s, f"summary.json does not parse ({exc.msg})") from None
+        header, rows = table_i(dirs)
+        out.mkdir(parents=True, exist_ok=True)
+        note = (
+            "Mean ± std (median). Columns follow FACTS.md's reading of the paper's Table I: tip, "
+            "relative (entry − tip), CM base translation and rotation, mean notch rotation."
+        )
+        (out / "table_i.md").write_text(f"# Table I\n\n{note}\n\n{table_markdown(header, rows)}\n")
+        sections = [Section("Table I", paragraphs=[note], tables=[(header, rows)])]
+        for d in dirs:
+            summ = json.loads((d / "summary.json").read_text())
+            figs = [
+                (f"{summ['workflow']}: {p.stem.replace('_', ' ')}", p.read_bytes())
+                for p in sorted((d / "figures").glob("*.png"))
+            ]
+            info = (
+                f"{summ['completed']} of {summ['trials']} trials completed, {summ['failed']} failed; "
+                f"median {summ['seconds_per_trial'].get('median') or float('nan'):.1f} s per trial; "
+                f"device {summ.get('device')}; fluoronav {summ.get('version')}."
+            )
+            sections.append(Section(f"{summ['workflow']} ({d})", paragraphs=[info], figures=figs))
+        (out / "report.html").write_text(html_page("fluoronav simulation studies", sections))
+        typer.echo(f"wrote {out / 'table_i.md'} and {out / 'report.html'}")

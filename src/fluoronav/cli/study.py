@@ -1,0 +1,75 @@
+"""``fluoronav study WORKFLOW``: the paper's simulation study for one workflow."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from fluoronav.cli.common import DEVICE_OPTION
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("study")
+    def study(
+        workflow: str = typer.Argument(
+            ..., help="centerline, single-view, multi-view, multi-cm, hand-eye or navigation."
+        ),
+        trials: int = typer.Option(..., "--trials", min=1, help="Number of trials."),
+        seed: int = typer.Option(..., "--seed", help="Run seed; each trial's seed derives from it."),
+        out: Path = typer.Option(..., "--out", help="Output directory (rerun to resume)."),
+        ct: str = typer.Option("phantom", "--ct", help="CT file/DICOM dir, or 'phantom'."),
+        scheduler: str = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler."),
+        workers: int = typer.Option(
+            None, "--workers", min=0, help="Local worker processes (default: up to 2; 0 = in this process)."
+        ),
+        oracle_landmarks: bool = typer.Option(
+            False,
+            "--oracle-landmarks",
+            help="Use the true landmarks + U(−3, 3) px noise (the authors' code) instead of the detector.",
+        ),
+        image_size: int = typer.Option(
+            768, "--image-size", min=128, help="Simulated image size (the 1536² detector is binned to it)."
+        ),
+        phantoms: int = typer.Option(1, "--phantoms", min=1, help="Phantom anatomies to draw trials from."),
+        device: str = DEVICE_OPTION,
+    ) -> None:
+        """Run (or resume) a simulation study; writes trials.csv, summary.json and figures/."""
+        from fluoronav.device import resolve_device
+        from fluoronav.errors import InputError
+
+        if workflow in ("hand-eye", "navigation"):
+            from fluoronav.studies.handeye_study import run_handeye_or_navigation_study
+
+            summary = run_handeye_or_navigation_study(
+                workflow,
+                trials=trials,
+                seed=seed,
+                out=out,
+                ct=ct,
+                scheduler=scheduler,
+                workers=workers,
+                device=str(resolve_device(device)),
+            )
+        else:
+            from fluoronav.studies.pipeline import STUDY_WORKFLOWS, StudyConfig, run_study
+
+            if workflow not in STUDY_WORKFLOWS:
+                raise InputError("WORKFLOW", f"unknown workflow {workflow!r}")
+            cfg = StudyConfig(
+                workflow=workflow,
+                trials=trials,
+                seed=seed,
+                ct=ct,
+                oracle_landmarks=oracle_landmarks,
+                image_size=image_size,
+                device=str(resolve_device(device)),
+                n_phantoms=phantoms,
+            )
+            summary = run_study(cfg, out, scheduler=scheduler, workers=workers)
+        m = summary.get("metrics", {})
+        parts = [f"{k} {v['mean']:.3g}±{v['std']:.2g}" for k, v in m.items()]
+        typer.echo(
+            f"{workflow}: {summary['completed']}/{summary['trials']} trials, {summary['failed']} failed; "
+            + ", ".join(parts)
+        )

@@ -1,0 +1,426 @@
+"""The paper's simulation studies, one trial at a time (``fluoronav study``).
+
+A trial (§III-B; :mod:`fluoronav.studies.protocol`) samples the ground truth, simulates the X-ray
+images with the physics simulator (moving pelvis and femur, voxelised CM; never the registration's
+renderer), finds the CM landmarks (the shipped detector, or ``--oracle-landmarks``: the truth plus
+U(−3, 3) px as the authors' code), registers pelvis and femur, initialises the CM from its centreline
+and registers it (single-view, multi-view or multiple-CM), and records the paper's metrics.
+
+Frames: single-view and multiple-CM work in the world frame of the (known) C-arm view. Multi-view
+relates the views through the pelvis (§II-C): each view's pelvis registration gives
+``camera_k_from_ct``, and femur and CM are registered in the CT frame with those cameras. Errors are
+computed in the C-arm frame of the first view.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import logging
+import math
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from fluoronav.anatomy.volume import Volume
+from fluoronav.errors import FluoronavError, InputError
+from fluoronav.studies.metrics import cm_errors, point_error_mm, relative_error_mm
+from fluoronav.studies.runner import CsvLog, run_tasks
+
+log = logging.getLogger(__name__)
+
+__all__ = ["METRICS", "STUDY_WORKFLOWS", "StudyConfig", "run_study", "run_trial"]
+
+STUDY_WORKFLOWS = ("centerline", "single-view", "multi-view", "multi-cm")
+BASE_METRICS = (
+    "tip_mm",
+    "entry_mm",
+    "relative_mm",
+    "base_translation_mm",
+    "base_rotation_deg",
+    "notch_rotation_deg",
+)
+AXIS_METRICS = (
+    "base_tx_mm",
+    "base_ty_mm",
+    "base_tz_mm",
+    "base_rx_deg",
+    "base_ry_deg",
+    "base_rz_deg",
+    "base_depth_mm",
+)
+METRICS = {
+    "centerline": ("depth_mm", "theta_deg", *BASE_METRICS),
+    "single-view": BASE_METRICS,
+    "multi-view": BASE_METRICS,
+    "multi-cm": BASE_METRICS,
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyConfig:
+    """Settings of a study run (recorded in ``DIR/config.json``)."""
+
+    workflow: str
+    trials: int
+    seed: int
+    ct: str = "phantom"
+    oracle_landmarks: bool = False
+    image_size: int = 768
+    device: str = "cpu"
+    n_phantoms: int = 1
+    register_bones: bool = True
+
+
+# ----- per-process caches ---------------------------------------------------------------------------
+@functools.lru_cache(maxsize=2)
+def _anatomy(ct: str, phantom_seed: int, image_size: int, device: str) -> tuple[Volume, Any]:
+    from fluoronav.anatomy.io import resolve_ct
+    from fluoronav.simulation.articulated import ArticulatedSimulator
+    from fluoronav.simulation.xray import SimulationConfig
+
+    volume = resolve_ct(ct, seed=phantom_seed)
+    side = "left"  # the protocol works on the left femur (labels femur_left, landmarks *_left)
+    sim = ArticulatedSimulator(
+        volume, femur_side=side, config=SimulationConfig(image_size=image_size), device=device
+    )
+    return volume, sim
+
+
+@functools.lru_cache(maxsize=1)
+def _detector(device: str) -> Any:
+    from fluoronav.detection.detector import Detector
+
+    return Detector.load(None, device=device)
+
+
+def _has_labels(volume: Volume) -> bool:
+    return (
+        volume.label_value("pelvis") is not None
+        and volume.label_value("femur_left") is not None
+        and "entry_left" in volume.landmarks_world
+    )
+
+
+def _full_to_image_px(uv_full: np.ndarray, binning: int) -> np.ndarray:
+    """Full-detector pixel (centre convention) → binned image pixel."""
+    return (np.asarray(uv_full, np.float64) + 0.5) / binning - 0.5
+
+
+def _landmarks_and_centerline(
+    images: list[Any], trial: Any, cfg: StudyConfig, binning: int
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    from fluoronav.detection.centerline import extract_centerline
+
+    lms, cls = [], []
+    for i, sim in enumerate(images):
+        if cfg.oracle_landmarks:
+            lm = _full_to_image_px(trial.oracle_landmarks_px[i], binning)
+            mask = sim.mask.astype(bool)
+        else:
+            det = _detector(cfg.device).detect(sim.image, pixel_spacing_mm=sim.camera.pixel_spacing_mm)
+            if not det.found or det.landmarks_px is None:
+                raise _TrialFailure(f"detector found no CM in image {i}")
+            lm, mask = det.landmarks_px, det.mask
+            if det.centerline_px is not None:
+                lms.append(lm)
+                cls.append(det.centerline_px)
+                continue
+        lms.append(lm)
+        cls.append(extract_centerline(mask, lm[0], lm[1]))
+    return lms, cls
+
+
+class _TrialFailure(FluoronavError):
+    pass
+
+
+def _register_bones(
+    images: list[Any], trial: Any, volume: Volume, cfg: StudyConfig, seed: int
+) -> dict[str, Any]:
+    """Pelvis (per view, and the view geometry), then femur. Returns cameras and the entry estimate."""
+    from fluoronav.registration.bone import BoneView, register_femur, register_pelvis_per_view
+
+    views = [BoneView(s.image, s.camera) for s in images]
+    if cfg.workflow == "multi-cm":
+        views = views[:1]  # one static C-arm view; every image shows the same anatomy
+    pelvis = register_pelvis_per_view(
+        views, volume, initial_world_from_patient=trial.initial_world_from_patient, seed=seed
+    )
+    out: dict[str, Any] = {
+        "pelvis_seconds": sum(p.seconds for p in pelvis),
+        "pelvis_converged": all(p.converged for p in pelvis),
+    }
+    if cfg.workflow == "multi-view":
+        # work in the CT frame: camera_k_from_ct estimated by each view's pelvis registration
+        cams = [v.camera.with_pose(p.camera_from_bone[0]) for v, p in zip(views, pelvis, strict=True)]
+        world_from_patient = np.eye(4)
+        femur_views = [BoneView(v.image, c) for v, c in zip(views, cams, strict=True)]
+    else:
+        cams = [s.camera for s in images]
+        world_from_patient = pelvis[0].world_from_bone
+        femur_views = views
+    femur = register_femur(
+        femur_views, volume, side=trial.side, world_from_patient=world_from_patient, seed=seed + 1
+    )
+    entry_ct = np.append(trial.entry_ct, 1.0)
+    entry_world_est = (femur.world_from_bone @ entry_ct)[:3]
+    out.update(
+        cameras=cams,
+        entry_world_est=entry_world_est,
+        femur_seconds=femur.seconds,
+        femur_converged=femur.converged,
+    )
+    return out
+
+
+def mirror_about_chord(world_from_cm: np.ndarray, control_points_deg: np.ndarray, config: Any) -> np.ndarray:
+    """The CM pose turned 180° about its A→B chord: A and B stay put, the bending plane flips.
+
+    A centreline seen in one view hardly tells these two apart (the paper's θ ambiguity).
+    """
+    from scipy.spatial.transform import Rotation
+
+    from fluoronav.manipulator.kinematics import CMKinematics
+
+    ab = CMKinematics(config).landmarks_cm(torch.as_tensor(control_points_deg, dtype=torch.float64)).numpy()
+    axis = ab[1] - ab[0]
+    flip = np.eye(4)
+    flip[:3, :3] = Rotation.from_rotvec(np.pi * axis / np.linalg.norm(axis)).as_matrix()
+    flip[:3, 3] = ab[0] - flip[:3, :3] @ ab[0]
+    return world_from_cm @ flip
+
+
+def _register_cm_two_starts(
+    views: list[Any],
+    world_from_cm0: np.ndarray,
+    trial: Any,
+    base_from_cm: np.ndarray | None,
+    cfg: StudyConfig,
+    *,
+    seed: int,
+) -> Any:
+    """Coarse level from the centreline pose and from its mirror; the full registration from the better."""
+    from fluoronav.registration.cm import CMRegistrationConfig, register_cm
+
+    full = CMRegistrationConfig(device=cfg.device)
+    coarse = full.with_(levels=full.levels[:1])
+    cp0 = trial.initial_control_points_deg
+    starts = [world_from_cm0, mirror_about_chord(world_from_cm0, cp0, trial.cm_config)]
+    trials = [
+        register_cm(
+            views,
+            initial_control_points_deg=cp0,
+            initial_world_from_cm=w,
+            base_from_cm=base_from_cm,
+            config=coarse,
+            seed=seed,
+        )
+        for w in starts
+    ]
+    best = min(trials, key=lambda r: r.cost if math.isfinite(r.cost) else math.inf)
+    res = register_cm(
+        views,
+        initial_control_points_deg=best.control_points_deg,
+        initial_world_from_cm=best.world_from_cm[0],
+        base_from_cm=base_from_cm,
+        config=full,
+        seed=seed + 1,
+    )
+    coarse_s = sum(r.seconds for r in trials)
+    return dataclasses.replace(res, seconds=res.seconds + coarse_s)
+
+
+def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
+    """One trial → one ``trials.csv`` row (status ``ok`` or ``failed`` with its reason)."""
+    from fluoronav.registration.centerline_init import centerline_initialize
+    from fluoronav.registration.cm import CMView
+    from fluoronav.studies.protocol import sample_trial, simulate_trial_images
+
+    t0 = time.perf_counter()
+    torch.set_num_threads(1)  # one trial per worker process; numba kernels keep their own threads
+    rng = np.random.default_rng(seed)
+    row: dict[str, Any] = {
+        "trial": trial_id,
+        "seed": seed,
+        "workflow": cfg.workflow,
+        "status": "ok",
+        "reason": "",
+    }
+    try:
+        phantom_seed = 1000 * cfg.seed + int(rng.integers(cfg.n_phantoms))
+        volume, simulator = _anatomy(cfg.ct, phantom_seed, cfg.image_size, cfg.device)
+        protocol_wf = "single-view" if cfg.workflow == "centerline" else cfg.workflow
+        trial = sample_trial(protocol_wf, volume, rng)
+        images = simulate_trial_images(
+            trial, simulator, seed=int(rng.integers(2**31)), image_size=cfg.image_size
+        )
+        binning = max(1, round(trial.cameras[0].cols / images[0].camera.cols))
+        lms, cls = _landmarks_and_centerline(images, trial, cfg, binning)
+        row["true_control_points_deg"] = np.round(trial.control_points_deg, 4).tolist()
+        row["true_world_from_cm"] = np.round(trial.world_from_cm[0], 5).tolist()
+        labelled = _has_labels(volume) and cfg.register_bones and cfg.workflow != "centerline"
+        bones = (
+            _register_bones(images, trial, volume, cfg, seed=int(rng.integers(2**31))) if labelled else None
+        )
+        cams = bones["cameras"] if bones is not None else [s.camera for s in images]
+        if cfg.workflow == "multi-view":
+            # the CM is registered in the CT frame of the pelvis-estimated views
+            world_est_from_world = (
+                np.linalg.inv(cams[0].camera_from_world) @ images[0].camera.camera_from_world
+            )
+        else:
+            world_est_from_world = np.eye(4)
+        # centreline initialisation in the first (AP) view
+        init = centerline_initialize(
+            cams[0], lms[0], cls[0], trial.initial_control_points_deg, seed=int(rng.integers(2**31))
+        )
+        carm0_true = images[0].camera.camera_from_world @ trial.world_from_cm[0]
+        if cfg.workflow == "centerline":
+            carm_from_cm_est = init.camera_from_cm
+            cp_est = trial.initial_control_points_deg
+            true_depth = carm0_true[2, 3]
+            row["depth_mm"] = abs(init.depth_mm - true_depth)
+            from fluoronav.manipulator.kinematics import CMKinematics
+            from fluoronav.registration.centerline_init import roll_about_axis_deg
+
+            # θ: the roll about the true A→B chord between the estimated and the true pose
+            ab = (
+                CMKinematics(trial.cm_config)
+                .landmarks_cm(torch.as_tensor(trial.control_points_deg, dtype=torch.float64))
+                .numpy()
+            )
+            row["theta_deg"] = float(roll_about_axis_deg(init.camera_from_cm, carm0_true, ab[1] - ab[0]))
+            row["seconds_registration"] = time.perf_counter() - t0
+        else:
+            views = [
+                CMView(s.image, c, landmarks_px=lm, name=f"view{i}")
+                for i, (s, c, lm) in enumerate(zip(images, cams, lms, strict=True))
+            ]
+            base_from_cm = trial.world_from_cm if cfg.workflow == "multi-cm" else None
+            world_from_cm0 = np.linalg.inv(cams[0].camera_from_world) @ init.camera_from_cm
+            res = _register_cm_two_starts(
+                views, world_from_cm0, trial, base_from_cm, cfg, seed=int(rng.integers(2**31))
+            )
+            row["seconds_registration"] = res.seconds
+            if not res.success:
+                row["status"] = "failed"
+                row["reason"] = res.reason
+            # C-arm frame of view 0 (true camera), mapping the estimate through the estimated frames
+            carm_from_cm_est = (
+                images[0].camera.camera_from_world
+                @ np.linalg.inv(world_est_from_world)
+                @ res.world_from_cm[0]
+            )
+            cp_est = res.control_points_deg
+            row["est_control_points_deg"] = np.round(cp_est, 4).tolist()
+        errs = cm_errors(
+            carm_from_cm_est=carm_from_cm_est,
+            carm_from_cm_true=carm0_true,
+            control_points_est_deg=cp_est,
+            control_points_true_deg=trial.control_points_deg,
+            config=trial.cm_config,
+        )
+        row.update(errs)
+        # the estimate in the true world frame (view 0's true camera maps it there)
+        row["est_world_from_cm"] = np.round(
+            np.linalg.inv(images[0].camera.camera_from_world) @ carm_from_cm_est, 5
+        ).tolist()
+        if bones is not None:
+            cam0 = images[0].camera.camera_from_world
+            entry_true_c = (cam0 @ np.append(trial.entry_world, 1.0))[:3]
+            entry_est_c = (
+                cam0 @ np.linalg.inv(world_est_from_world) @ np.append(bones["entry_world_est"], 1.0)
+            )[:3]
+            from fluoronav.manipulator.kinematics import CMKinematics
+
+            kin = CMKinematics(trial.cm_config)
+            cps = torch.as_tensor(np.stack([cp_est, trial.control_points_deg]), dtype=torch.float64)
+            tips = kin.tip_cm(cps).numpy()
+            tip_est = (carm_from_cm_est @ np.append(tips[0], 1.0))[:3]
+            tip_true = (carm0_true @ np.append(tips[1], 1.0))[:3]
+            row["entry_mm"] = point_error_mm(entry_est_c, entry_true_c)
+            row["relative_mm"] = relative_error_mm(entry_est_c, tip_est, entry_true_c, tip_true)
+            row["seconds_bones"] = bones["pelvis_seconds"] + bones["femur_seconds"]
+    except Exception as exc:  # a failed trial is recorded with its reason, never dropped
+        row["status"] = "failed"
+        row["reason"] = f"{type(exc).__name__}: {exc}"[:300]
+        log.debug("trial %d failed:\n%s", trial_id, traceback.format_exc())
+    row["seconds"] = time.perf_counter() - t0
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+
+
+def _columns(workflow: str) -> list[str]:
+    return [
+        "trial",
+        "seed",
+        "workflow",
+        "status",
+        "reason",
+        *METRICS[workflow],
+        *AXIS_METRICS,
+        "seconds",
+        "seconds_registration",
+        "seconds_bones",
+        "true_control_points_deg",
+        "est_control_points_deg",
+        "true_world_from_cm",
+        "est_world_from_cm",
+    ]
+
+
+def run_study(
+    cfg: StudyConfig, out: Path, *, scheduler: str | None = None, workers: int | None = None
+) -> dict[str, Any]:
+    """Run (or resume) a study into ``out``: trials.csv, summary.json, config.json, figures/."""
+    from fluoronav import __version__
+    from fluoronav.studies.figures import study_figures
+    from fluoronav.studies.summary import summarize, write_summary
+
+    if cfg.workflow not in STUDY_WORKFLOWS:
+        raise InputError(
+            "WORKFLOW", f"unknown workflow {cfg.workflow!r}; use one of {', '.join(STUDY_WORKFLOWS)}"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    cfg_path = out / "config.json"
+    cfg_dict = {**dataclasses.asdict(cfg), "version": __version__}
+    if cfg_path.exists():
+        old = json.loads(cfg_path.read_text())
+        keep = ("workflow", "seed", "ct", "oracle_landmarks", "image_size", "n_phantoms", "register_bones")
+        if any(old.get(k) != cfg_dict.get(k) for k in keep):
+            raise InputError(cfg_path, "this directory holds a study with other settings; use another --out")
+    if cfg.ct != "phantom":
+        from fluoronav.anatomy.io import resolve_ct
+
+        resolve_ct(cfg.ct)  # fail early, in this process, on a bad CT
+    if not cfg.oracle_landmarks:
+        _detector(cfg.device)  # fail early when no detector model is available
+    cfg_path.write_text(json.dumps(cfg_dict, indent=2))
+    csv_log = CsvLog(out / "trials.csv", _columns(cfg.workflow))
+    task = functools.partial(run_trial, cfg=cfg)
+    run_tasks(
+        task,
+        cfg.trials,
+        cfg.seed,
+        csv_log,
+        scheduler=scheduler,
+        workers=workers,
+        description=f"study {cfg.workflow}",
+    )
+    rows = sorted(csv_log.read(), key=lambda r: int(r["trial"]))
+    summary = summarize(
+        cfg.workflow,
+        rows,
+        list(METRICS[cfg.workflow]),
+        trials=cfg.trials,
+        device=cfg.device,
+        extra={"oracle_landmarks": cfg.oracle_landmarks, "seed": cfg.seed, "ct": cfg.ct},
+    )
+    write_summary(out / "summary.json", summary)
+    study_figures(rows, out / "figures", workflow=cfg.workflow)
+    return summary
