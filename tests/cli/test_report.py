@@ -25,7 +25,8 @@ def _summary(d: Path, workflow: str, tip: float) -> None:
                 "device": "cpu",
                 "version": "0.1.0",
             }
-        )
+        ),
+        encoding="utf-8",
     )
 
 
@@ -33,11 +34,11 @@ def test_report_writes_table_with_paper_rows(tmp_path: Path) -> None:
     _summary(tmp_path / "sv", "single-view", 0.8)
     _summary(tmp_path / "mv", "multi-view", 0.3)
     main(["report", str(tmp_path / "sv"), str(tmp_path / "mv"), "--out", str(tmp_path / "r")])
-    md = (tmp_path / "r" / "table_i.md").read_text()
+    md = (tmp_path / "r" / "table_i.md").read_text(encoding="utf-8")
     assert "0.80 ± 0.10 (0.80)" in md
     assert "1.65 ± 1.13 (1.33)" in md  # the paper's single-view tip row
     assert "Gao et al. 2022" in md
-    assert "<table>" in (tmp_path / "r" / "report.html").read_text()
+    assert "<table>" in (tmp_path / "r" / "report.html").read_text(encoding="utf-8")
 
 
 def test_report_rejects_non_study_dir(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

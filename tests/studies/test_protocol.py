@@ -122,3 +122,16 @@ def test_simulated_images_match_the_trial(volume):
         # stored-pixel landmarks = full-detector landmarks, resampled (pixel-area aligned)
         np.testing.assert_allclose(im.landmarks_px, (lm + 0.5) * s - 0.5, atol=1e-6)
         assert im.mask.sum() > 0
+
+
+@pytest.mark.slow
+def test_bone_registration_errors_on_a_trial():
+    from fluoronav.studies.protocol import bone_registration_errors
+
+    vol = hip_phantom(seed=0, spacing_mm=2.0)
+    sim = ArticulatedSimulator(vol, config=SimulationConfig())
+    tr = sample_trial("single-view", vol, np.random.default_rng(1001))
+    err = bone_registration_errors(tr, simulate_trial_images(tr, sim, seed=1, image_size=384), vol, seed=2)
+    assert err["pelvis_mm"] < 2.0 and err["pelvis_deg"] < 1.0
+    assert err["pelvis_depth_mm"] <= err["pelvis_mm"] + 1e-9
+    assert err["femur_deg"] < 3.0 and err["entry_mm"] < 3.0

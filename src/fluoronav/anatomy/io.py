@@ -347,7 +347,9 @@ def save_volume(volume: Volume, path: str | Path, *, compress: bool = True) -> l
         written.append(labels_file)
         names_file = path.parent / f"{stem}.labels.json"
         names: Mapping[int, str] = volume.label_names
-        names_file.write_text(json.dumps({str(k): v for k, v in sorted(names.items())}, indent=2) + "\n")
+        names_file.write_text(
+            json.dumps({str(k): v for k, v in sorted(names.items())}, indent=2) + "\n", encoding="utf-8"
+        )
         written.append(names_file)
     if volume.landmarks_world:
         written.append(write_landmarks_json(path.parent / f"{stem}_landmarks.json", volume.landmarks_world))

@@ -113,7 +113,7 @@ def run_render_demo(out: Path, *, seed: int, device: str) -> dict[str, object]:
         "timings": timings,
         "views": list(views),
     }
-    (out / "scene.json").write_text(json.dumps(summary, indent=2))
+    (out / "scene.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
     return summary
 
 

@@ -29,7 +29,7 @@ def evaluate_command(
     text = json.dumps(summary, indent=1)
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(text + "\n")
+        out.write_text(text + "\n", encoding="utf-8")
     typer.echo(text)
 
 

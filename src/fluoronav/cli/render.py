@@ -76,7 +76,7 @@ def load_ct_spec(spec: str, seed: int) -> Volume:
 def load_cm_pose(path: Path, n_control_points: int = 5) -> tuple[np.ndarray, np.ndarray]:
     """Read CM.json: ``world_from_cm`` (4, 4) rigid and ``control_points_deg`` (n,)."""
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, f"cannot read CM file ({exc.__class__.__name__})") from None
     try:

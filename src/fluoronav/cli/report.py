@@ -25,7 +25,7 @@ def register(app: typer.Typer) -> None:
             if not s.is_file():
                 raise InputError(d, "not a study directory (no summary.json)")
             try:
-                json.loads(s.read_text())
+                json.loads(s.read_text(encoding="utf-8"))
             except json.JSONDecodeError as exc:
                 raise InputError(s, f"summary.json does not parse ({exc.msg})") from None
         header, rows = table_i(dirs)
@@ -34,10 +34,12 @@ def register(app: typer.Typer) -> None:
             "Mean ± std (median). Columns follow FACTS.md's reading of the paper's Table I: tip, "
             "relative (entry − tip), CM base translation and rotation, mean notch rotation."
         )
-        (out / "table_i.md").write_text(f"# Table I\n\n{note}\n\n{table_markdown(header, rows)}\n")
+        (out / "table_i.md").write_text(
+            f"# Table I\n\n{note}\n\n{table_markdown(header, rows)}\n", encoding="utf-8"
+        )
         sections = [Section("Table I", paragraphs=[note], tables=[(header, rows)])]
         for d in dirs:
-            summ = json.loads((d / "summary.json").read_text())
+            summ = json.loads((d / "summary.json").read_text(encoding="utf-8"))
             figs = [
                 (f"{summ['workflow']}: {p.stem.replace('_', ' ')}", p.read_bytes())
                 for p in sorted((d / "figures").glob("*.png"))
@@ -48,5 +50,7 @@ def register(app: typer.Typer) -> None:
                 f"device {summ.get('device')}; fluoronav {summ.get('version')}."
             )
             sections.append(Section(f"{summ['workflow']} ({d})", paragraphs=[info], figures=figs))
-        (out / "report.html").write_text(html_page("fluoronav simulation studies", sections))
+        (out / "report.html").write_text(
+            html_page("fluoronav simulation studies", sections), encoding="utf-8"
+        )
         typer.echo(f"wrote {out / 'table_i.md'} and {out / 'report.html'}")

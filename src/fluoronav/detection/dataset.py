@@ -38,7 +38,7 @@ def read_manifest(root: str | Path) -> list[dict]:
     if not path.is_file():
         raise InputError(root, "not a data set directory (no manifest.jsonl)")
     records: dict[str, dict] = {}
-    with open(path) as fh:
+    with open(path, encoding="utf-8") as fh:
         for lineno, line in enumerate(fh, 1):
             if not line.strip():
                 continue

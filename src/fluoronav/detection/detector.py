@@ -337,5 +337,5 @@ def write_detection(det: Detection, out_dir: str | Path, stem: str) -> Path:
     if not cv2.imwrite(str(out_dir / mask_name), det.mask.astype(np.uint8) * 255):
         raise InputError(out_dir / mask_name, "could not write the mask PNG")
     json_path = out_dir / f"{stem}.json"
-    json_path.write_text(json.dumps(detection_to_dict(det, mask_name), indent=1) + "\n")
+    json_path.write_text(json.dumps(detection_to_dict(det, mask_name), indent=1) + "\n", encoding="utf-8")
     return json_path

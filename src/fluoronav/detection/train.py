@@ -126,7 +126,7 @@ def save_model(path: Path, net: DetectorNet, *, extra: dict) -> None:
     tmp = path.with_name(path.name + ".tmp")
     torch.save({**meta, "state_dict": state}, tmp)
     tmp.replace(path)
-    sidecar_path(path).write_text(json.dumps(meta, indent=2) + "\n")
+    sidecar_path(path).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
 
 
 @torch.no_grad()
@@ -334,7 +334,7 @@ def train(
             "seconds_per_step": train_seconds / max(count, 1),
             **val,
         }
-        with open(log_file, "a") as fh:
+        with open(log_file, "a", encoding="utf-8") as fh:
             fh.write(json.dumps(metrics) + "\n")
         logger.info("epoch %d: %s", epoch + 1, metrics)
         extra = {

@@ -289,14 +289,14 @@ class Camera:
 
     def save(self, path: str | Path) -> None:
         """Write a camera file (JSON)."""
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2))
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2), encoding="utf-8")
 
     @classmethod
     def load(cls, path: str | Path) -> Camera:
         """Read and validate a camera file (JSON)."""
         p = Path(path)
         try:
-            text = p.read_text()
+            text = p.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as exc:
             raise InputError(p, f"cannot read camera file ({exc.__class__.__name__})") from None
         if not text.strip():

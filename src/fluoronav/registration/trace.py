@@ -69,7 +69,7 @@ class RegistrationTrace:
         """JSON text (strict: NaN/inf written as null); also written to ``path`` when given."""
         text = json.dumps(self.to_dict(), indent=indent, allow_nan=False)
         if path is not None:
-            Path(path).write_text(text)
+            Path(path).write_text(text, encoding="utf-8")
         return text
 
     @classmethod

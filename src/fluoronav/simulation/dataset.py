@@ -187,14 +187,14 @@ def simulate_dataset(
         },
     }
     if meta_path.exists():
-        old = json.loads(meta_path.read_text())
+        old = json.loads(meta_path.read_text(encoding="utf-8"))
         if old.get("spec") != json.loads(json.dumps(meta["spec"])):  # tuples come back as lists
             raise InputError(
                 meta_path,
                 "this directory holds a data set made with other settings "
                 "(seed, CTs, size or --no-cm); use another --out",
             )
-    meta_path.write_text(json.dumps(meta, indent=2))
+    meta_path.write_text(json.dumps(meta, indent=2), encoding="utf-8")
     task = functools.partial(_make_sample, spec=spec, out_dir=str(out_dir))
     rows = run_tasks(
         task,
@@ -275,7 +275,7 @@ def check_dataset(data_dir: Path, *, n: int | None = None) -> list[str]:
     sdd = None
     meta = data_dir / "dataset.json"
     if meta.exists():
-        sdd = json.loads(meta.read_text()).get("sdd_mm")
+        sdd = json.loads(meta.read_text(encoding="utf-8")).get("sdd_mm")
     for r in rows_:
         tag = f"sample {r.get('id')}"
         missing = [k for k in MANIFEST_KEYS if k not in r]

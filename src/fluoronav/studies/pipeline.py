@@ -390,7 +390,7 @@ def run_study(
     cfg_path = out / "config.json"
     cfg_dict = {**dataclasses.asdict(cfg), "version": __version__}
     if cfg_path.exists():
-        old = json.loads(cfg_path.read_text())
+        old = json.loads(cfg_path.read_text(encoding="utf-8"))
         keep = ("workflow", "seed", "ct", "oracle_landmarks", "image_size", "n_phantoms", "register_bones")
         if any(old.get(k) != cfg_dict.get(k) for k in keep):
             raise InputError(cfg_path, "this directory holds a study with other settings; use another --out")
@@ -400,7 +400,7 @@ def run_study(
         resolve_ct(cfg.ct)  # fail early, in this process, on a bad CT
     if not cfg.oracle_landmarks:
         _detector(cfg.device)  # fail early when no detector model is available
-    cfg_path.write_text(json.dumps(cfg_dict, indent=2))
+    cfg_path.write_text(json.dumps(cfg_dict, indent=2), encoding="utf-8")
     csv_log = CsvLog(out / "trials.csv", _columns(cfg.workflow))
     task = functools.partial(run_trial, cfg=cfg)
     run_tasks(

@@ -125,7 +125,7 @@ def table_i(study_dirs: list[Path]) -> tuple[list[str], list[list[Any]]]:
     header = ["workflow", "source", "trials", *TABLE_COLUMNS]
     rows: list[list[Any]] = []
     for d in study_dirs:
-        s = json.loads((Path(d) / "summary.json").read_text())
+        s = json.loads((Path(d) / "summary.json").read_text(encoding="utf-8"))
         wf = s["workflow"]
         rows.append(
             [
