@@ -1,0 +1,415 @@
+"""The paper's simulation protocol (Gao et al. 2022 §III-B; FACTS.md "Simulation protocol").
+
+One :class:`Trial` holds the ground truth of one simulated experiment and the initialisation noise
+of the authors' code. Sampling, in this order (all from the one ``rng``):
+
+1. Pelvis (whole patient): translation of length U(0, 10) mm in a uniformly random direction and a
+   rotation of U(−10, 10)° about a uniformly random unit axis through the pelvis volume centre
+   (landmark ``pelvis_center``, else the CT centre): ``world_from_patient``.
+2. Femur: U(−15, 15)° about a random axis through the femoral head centre, on top of the pelvis
+   motion: ``world_from_femur = world_from_patient @ rotation_about(head)``.
+3. Control points: U(−5, 5)° each (our choice; the paper gives none for this study), constant
+   across the images of a trial.
+4. C-arm: ≈ AP, isocentre at the (moved) femoral head + U(−15, 15) mm per axis, source-to-isocentre
+   U(400, 500) mm, LAO/RAO U(−5, 5)°, CRAN/CAUD 90 + U(−5, 5)°, CIOS Fusion detector. Multi-view
+   adds two views rotated about the C-arm orbit (patient long axis through the isocentre) by
+   N(+20, 3)° and N(−15, 3)° (:func:`~fluoronav.geometry.carm.orbit_camera`).
+5. CM "above the femoral head" (the patient is supine: anterior of it): nominal base origin A at
+   the moved head centre + U(20, 40) mm anterior − U(15, 35) mm along the nominal axis, which is the
+   femoral neck direction (entry → head) in the patient's coronal plane (so that the AP view sees
+   the CM side-on and its tip over the head), random roll of the bending plane; then perturbed in
+   the CM base frame by a translation
+   U(−30, 30) mm per axis and a rotation U(−30, 30)° about a random axis. Samples whose landmarks
+   A, B or tip project closer than ``margin_px`` to a detector edge (in any view) are redrawn, so the
+   CM is always in the field of view.
+6. Multiple-CM / hand-eye: 4 CM poses in the AP view, each the base pose of 5 composed with a
+   translation U(−10, 10) mm per axis and a rotation U(−30, 30)° about a random axis in the CM frame.
+7. Initialisation noise (authors' code): initial ``world_from_patient`` = truth perturbed by a 3°
+   rotation about a random axis through the pelvis centre and a 10 mm translation in a random
+   direction; initial CM bases by 10° / 10 mm likewise (about A); FBG control points = truth +
+   U(−0.5, 0.5)°; oracle 2D landmarks = truth + U(−3, 3) full-resolution pixels per coordinate.
+
+Workflows: ``centerline``, ``single-view`` and ``navigation`` have one image; ``multi-view`` three
+(one CM pose, three cameras); ``multi-cm`` and ``hand-eye`` four (one camera, four CM poses).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from fluoronav.anatomy.volume import Volume
+from fluoronav.geometry.camera import CIOS_FUSION, Camera, DetectorSpec
+from fluoronav.geometry.carm import carm_camera, orbit_camera
+from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.simulation.articulated import ArticulatedSimulator
+from fluoronav.simulation.scene import cm_pose_along
+from fluoronav.simulation.xray import SimulatedImage
+
+__all__ = [
+    "WORKFLOWS",
+    "ProtocolConfig",
+    "Trial",
+    "bone_registration_errors",
+    "perturb_about",
+    "sample_trial",
+    "simulate_trial_images",
+]
+
+WORKFLOWS = ("centerline", "single-view", "multi-view", "multi-cm", "hand-eye", "navigation")
+_N_IMAGES = {
+    "centerline": 1,
+    "single-view": 1,
+    "navigation": 1,
+    "multi-view": 3,
+    "multi-cm": 4,
+    "hand-eye": 4,
+}
+_ANTERIOR = np.array([0.0, -1.0, 0.0])  # LPS: +y is posterior
+
+
+@dataclass(frozen=True)
+class ProtocolConfig:
+    """Ranges of the protocol (defaults: the paper and the authors' code; see the module docstring)."""
+
+    pelvis_translation_mm: float = 10.0
+    pelvis_rotation_deg: float = 10.0
+    femur_rotation_deg: float = 15.0
+    control_point_range_deg: tuple[float, float] = (-5.0, 5.0)
+    source_to_isocenter_mm: tuple[float, float] = (400.0, 500.0)
+    angle_jitter_deg: float = 5.0
+    isocenter_jitter_mm: float = 15.0
+    view_offsets_deg: tuple[tuple[float, float], ...] = ((20.0, 3.0), (-15.0, 3.0))
+    cm_anterior_mm: tuple[float, float] = (20.0, 40.0)
+    cm_setback_mm: tuple[float, float] = (15.0, 35.0)
+    cm_translation_mm: float = 30.0
+    cm_rotation_deg: float = 30.0
+    multi_cm_poses: int = 4
+    multi_cm_translation_mm: float = 10.0
+    multi_cm_rotation_deg: float = 30.0
+    init_ct_rotation_deg: float = 3.0
+    init_ct_translation_mm: float = 10.0
+    init_cm_rotation_deg: float = 10.0
+    init_cm_translation_mm: float = 10.0
+    fbg_noise_deg: float = 0.5
+    landmark_noise_px: float = 3.0
+    margin_px: float = 100.0
+    max_redraws: int = 200
+    detector: DetectorSpec = CIOS_FUSION
+
+
+@dataclass(frozen=True, eq=False)
+class Trial:
+    """Ground truth and initialisation of one simulated experiment (world = CT frame, mm, degrees).
+
+    Attributes:
+        workflow: one of :data:`WORKFLOWS`.
+        side: femur side ("left" / "right").
+        cameras: per image, the full-detector camera (multi-cm: the same camera repeated).
+        world_from_patient: (4, 4) pelvis (whole patient) motion.
+        world_from_femur: (4, 4) total femur motion.
+        world_from_cm: (N, 4, 4) CM base pose per image (multi-view: the same pose repeated).
+        control_points_deg: (5,) true control points.
+        landmarks_px: (N, 2, 2) true projected landmarks A, B per image (full-detector pixels).
+        entry_world: (3,) femur entry point after the motion.
+        femoral_head_world: (3,) femoral head centre after the motion.
+        pelvis_center_world: (3,) pelvis centre after the motion.
+        initial_world_from_patient: (4, 4) perturbed initial CT pose.
+        initial_world_from_cm: (N, 4, 4) perturbed initial CM bases.
+        initial_control_points_deg: (5,) FBG readings (truth + noise).
+        oracle_landmarks_px: (N, 2, 2) noisy 2D landmarks.
+        pelvis_center_ct, femoral_head_ct, entry_ct: (3,) the landmarks in the unmoved CT.
+    """
+
+    workflow: str
+    side: str
+    cameras: tuple[Camera, ...]
+    world_from_patient: np.ndarray
+    world_from_femur: np.ndarray
+    world_from_cm: np.ndarray
+    control_points_deg: np.ndarray
+    landmarks_px: np.ndarray
+    entry_world: np.ndarray
+    femoral_head_world: np.ndarray
+    pelvis_center_world: np.ndarray
+    initial_world_from_patient: np.ndarray
+    initial_world_from_cm: np.ndarray
+    initial_control_points_deg: np.ndarray
+    oracle_landmarks_px: np.ndarray
+    pelvis_center_ct: np.ndarray
+    femoral_head_ct: np.ndarray
+    entry_ct: np.ndarray
+    cm_config: CMConfig = field(default_factory=CMConfig)
+
+    @property
+    def n_images(self) -> int:
+        return len(self.cameras)
+
+
+# ----- sampling helpers ---------------------------------------------------------------------------
+def _unit_vector(rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def _rotation(rng: np.random.Generator, max_angle_deg: float, *, fixed: bool = False) -> np.ndarray:
+    """(3, 3) rotation about a random unit axis by U(−max, max)° (exactly ``max`` when ``fixed``)."""
+    angle = max_angle_deg if fixed else rng.uniform(-max_angle_deg, max_angle_deg)
+    return Rotation.from_rotvec(math.radians(angle) * _unit_vector(rng)).as_matrix()
+
+
+def _about(R: np.ndarray, center: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = center - R @ center + (0.0 if t is None else t)
+    return T
+
+
+def perturb_about(
+    T: np.ndarray,
+    center_world: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    rotation_deg: float,
+    translation_mm: float,
+) -> np.ndarray:
+    """``T`` moved by a rotation of exactly ``rotation_deg`` about a random axis through
+    ``center_world`` and a translation of exactly ``translation_mm`` in a random direction (world)."""
+    D = _about(
+        _rotation(rng, rotation_deg, fixed=True),
+        np.asarray(center_world, np.float64),
+        translation_mm * _unit_vector(rng),
+    )
+    return D @ T
+
+
+def _landmark(volume: Volume, name: str) -> np.ndarray:
+    if name not in volume.landmarks_world:
+        raise ValueError(f"the CT has no landmark {name!r} (has {sorted(volume.landmarks_world)})")
+    return np.asarray(volume.landmarks_world[name], dtype=np.float64)
+
+
+def _cm_points_cm(kin: CMKinematics, cp: np.ndarray) -> np.ndarray:
+    """(3, 3) A, B and the tip in CM coordinates."""
+    cpt = torch.as_tensor(cp, dtype=torch.float64)
+    lm = kin.landmarks_cm(cpt).numpy()
+    return np.concatenate([lm, kin.tip_cm(cpt).numpy()[None]], axis=0)
+
+
+def _in_view(cameras: list[Camera], world_from_cm: np.ndarray, pts_cm: np.ndarray, margin: float) -> bool:
+    for cam in cameras:
+        for T in world_from_cm:
+            pts = pts_cm @ T[:3, :3].T + T[:3, 3]
+            if np.any(cam.to_camera(pts)[:, 2] <= 0):
+                return False
+            uv = cam.project(pts)
+            if (
+                np.any(uv < margin)
+                or np.any(uv[:, 0] > cam.cols - 1 - margin)
+                or np.any(uv[:, 1] > cam.rows - 1 - margin)
+            ):
+                return False
+    return True
+
+
+def _small_motion(rng: np.random.Generator, rotation_deg: float, translation_mm: float) -> np.ndarray:
+    """[R | t] in the moved frame: rotation U(−r, r)° about a random axis, t U(−t, t) per axis."""
+    D = np.eye(4)
+    D[:3, :3] = _rotation(rng, rotation_deg)
+    D[:3, 3] = rng.uniform(-translation_mm, translation_mm, 3)
+    return D
+
+
+# ----- the protocol -------------------------------------------------------------------------------
+def sample_trial(
+    workflow: str,
+    volume: Volume,
+    rng: np.random.Generator,
+    *,
+    side: str = "left",
+    config: ProtocolConfig | None = None,
+    cm_config: CMConfig | None = None,
+) -> Trial:
+    """Sample one trial of ``workflow`` (see the module docstring); deterministic for ``rng``'s state.
+
+    Raises:
+        ValueError: unknown workflow, missing landmarks, or no CM pose in view after
+            ``config.max_redraws`` draws.
+    """
+    if workflow not in WORKFLOWS:
+        raise ValueError(f"unknown workflow {workflow!r}; use one of {', '.join(WORKFLOWS)}")
+    cfg = config or ProtocolConfig()
+    cm_config = cm_config or CMConfig()
+    kin = CMKinematics(cm_config)
+    head_ct = _landmark(volume, f"femoral_head_{side}")
+    entry_ct = _landmark(volume, f"entry_{side}")
+    pelvis_ct = (
+        _landmark(volume, "pelvis_center")
+        if "pelvis_center" in volume.landmarks_world
+        else volume.center_world
+    )
+
+    # 1-2. anatomy
+    t = rng.uniform(0.0, cfg.pelvis_translation_mm) * _unit_vector(rng)
+    world_from_patient = _about(_rotation(rng, cfg.pelvis_rotation_deg), pelvis_ct, t)
+    world_from_femur = world_from_patient @ _about(_rotation(rng, cfg.femur_rotation_deg), head_ct)
+    head_w = (world_from_femur @ np.append(head_ct, 1.0))[:3]
+    entry_w = (world_from_femur @ np.append(entry_ct, 1.0))[:3]
+    pelvis_w = (world_from_patient @ np.append(pelvis_ct, 1.0))[:3]
+
+    # 3. shape
+    cp = rng.uniform(*cfg.control_point_range_deg, size=cm_config.n_control_points)
+    pts_cm = _cm_points_cm(kin, cp)
+
+    # 4. C-arm
+    iso = head_w + rng.uniform(-cfg.isocenter_jitter_mm, cfg.isocenter_jitter_mm, 3)
+    j = cfg.angle_jitter_deg
+    ap = carm_camera(
+        lao_rao_deg=rng.uniform(-j, j),
+        cran_caud_deg=90.0 + rng.uniform(-j, j),
+        source_to_isocenter_mm=rng.uniform(*cfg.source_to_isocenter_mm),
+        isocenter_world=iso,
+        detector=cfg.detector,
+    )
+    views = [ap]
+    if workflow == "multi-view":
+        views += [
+            orbit_camera(ap, angle_deg=rng.normal(m, s), isocenter_world=iso) for m, s in cfg.view_offsets_deg
+        ]
+    n = _N_IMAGES[workflow]
+    multi_cm = workflow in ("multi-cm", "hand-eye")
+
+    # 5-6. CM poses, redrawn until in view. Nominal axis: the femoral neck direction (entry → head)
+    # in the patient's coronal plane, so that the AP view sees the CM side-on
+    anterior = world_from_patient[:3, :3] @ _ANTERIOR
+    neck = head_w - entry_w
+    neck -= neck.dot(anterior) * anterior
+    neck /= np.linalg.norm(neck)
+    for _ in range(cfg.max_redraws):
+        origin = head_w + rng.uniform(*cfg.cm_anterior_mm) * anterior - rng.uniform(*cfg.cm_setback_mm) * neck
+        base = cm_pose_along(origin, neck, rng.uniform(0.0, 2.0 * math.pi))
+        base = base @ _small_motion(rng, cfg.cm_rotation_deg, cfg.cm_translation_mm)
+        if multi_cm:
+            poses = np.stack(
+                [
+                    base @ _small_motion(rng, cfg.multi_cm_rotation_deg, cfg.multi_cm_translation_mm)
+                    for _ in range(cfg.multi_cm_poses)
+                ]
+            )
+        else:
+            poses = np.repeat(base[None], n, axis=0)
+        if _in_view(views, poses, pts_cm, cfg.margin_px):
+            break
+    else:
+        raise ValueError(f"no CM pose in view after {cfg.max_redraws} draws; check the protocol ranges")
+    cameras = tuple(views) if len(views) == n else tuple([ap] * n)
+
+    landmarks = np.stack(
+        [cam.project(pts_cm[:2] @ T[:3, :3].T + T[:3, 3]) for cam, T in zip(cameras, poses, strict=True)]
+    )
+
+    # 7. initialisation noise
+    init_patient = perturb_about(
+        world_from_patient,
+        pelvis_w,
+        rng,
+        rotation_deg=cfg.init_ct_rotation_deg,
+        translation_mm=cfg.init_ct_translation_mm,
+    )
+    init_cm = np.stack(
+        [
+            perturb_about(
+                T,
+                T[:3, 3],
+                rng,
+                rotation_deg=cfg.init_cm_rotation_deg,
+                translation_mm=cfg.init_cm_translation_mm,
+            )
+            for T in poses
+        ]
+    )
+    init_cp = cp + rng.uniform(-cfg.fbg_noise_deg, cfg.fbg_noise_deg, size=cp.shape)
+    oracle = landmarks + rng.uniform(-cfg.landmark_noise_px, cfg.landmark_noise_px, size=landmarks.shape)
+
+    return Trial(
+        workflow=workflow,
+        side=side,
+        cameras=cameras,
+        world_from_patient=world_from_patient,
+        world_from_femur=world_from_femur,
+        world_from_cm=poses,
+        control_points_deg=cp,
+        landmarks_px=landmarks,
+        entry_world=entry_w,
+        femoral_head_world=head_w,
+        pelvis_center_world=pelvis_w,
+        initial_world_from_patient=init_patient,
+        initial_world_from_cm=init_cm,
+        initial_control_points_deg=init_cp,
+        oracle_landmarks_px=oracle,
+        pelvis_center_ct=pelvis_ct,
+        femoral_head_ct=head_ct,
+        entry_ct=entry_ct,
+        cm_config=cm_config,
+    )
+
+
+def simulate_trial_images(
+    trial: Trial, simulator: ArticulatedSimulator, *, seed: int, image_size: int = 768
+) -> list[SimulatedImage]:
+    """The trial's X-ray images (image ``i`` uses noise seed ``seed + i``), at ``image_size``²."""
+    if simulator.femur_side != trial.side:
+        raise ValueError(f"the simulator moves the {simulator.femur_side} femur, the trial the {trial.side}")
+    return [
+        simulator.simulate(
+            cam,
+            world_from_patient=trial.world_from_patient,
+            world_from_femur=trial.world_from_femur,
+            cm=(T, trial.control_points_deg),
+            seed=seed + i,
+            image_size=image_size,
+            cm_config=trial.cm_config,
+        )
+        for i, (cam, T) in enumerate(zip(trial.cameras, trial.world_from_cm, strict=True))
+    ]
+
+
+def bone_registration_errors(
+    trial: Trial, images: list[SimulatedImage], volume: Volume, *, seed: int
+) -> dict[str, float]:
+    """Register the pelvis (from the trial's initial pose) then the femur, jointly over the images;
+    errors w.r.t. the ground truth (mm, degrees) and run times (s, rough).
+
+    Keys: ``pelvis_mm`` (at the pelvis centre), ``pelvis_deg``, ``pelvis_depth_mm`` (along the first
+    view's axis), ``femur_deg``, ``entry_mm`` (‖entry_est − entry_true‖, frame independent),
+    ``pelvis_s``, ``femur_s``.
+    """
+    from fluoronav.registration.bone import register_femur, register_pelvis, views_from_images
+
+    views = views_from_images(images)
+    pelvis = register_pelvis(
+        views, volume, initial_world_from_patient=trial.initial_world_from_patient, seed=seed
+    )
+    femur = register_femur(
+        views, volume, side=trial.side, world_from_patient=pelvis.world_from_bone, seed=seed + 1
+    )
+
+    def rot_deg(A: np.ndarray, B: np.ndarray) -> float:
+        return float(np.degrees(np.linalg.norm(Rotation.from_matrix(A[:3, :3] @ B[:3, :3].T).as_rotvec())))
+
+    c = (pelvis.world_from_bone @ np.append(trial.pelvis_center_ct, 1.0))[:3] - trial.pelvis_center_world
+    entry = (femur.world_from_bone @ np.append(trial.entry_ct, 1.0))[:3]
+    return {
+        "pelvis_mm": float(np.linalg.norm(c)),
+        "pelvis_deg": rot_deg(pelvis.world_from_bone, trial.world_from_patient),
+        "pelvis_depth_mm": float(abs((trial.cameras[0].camera_from_world[:3, :3] @ c)[2])),
+        "femur_deg": rot_deg(femur.world_from_bone, trial.world_from_femur),
+        "entry_mm": float(np.linalg.norm(entry - trial.entry_world)),
+        "pelvis_s": pelvis.seconds,
+        "femur_s": femur.seconds,
+    }

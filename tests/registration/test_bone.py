@@ -1,0 +1,238 @@
+"""Pelvis and femur 2D/3D registration against physics-simulated images (ArticulatedSimulator).
+
+The fixed images are never made with the registration's renderer: they are polychromatic,
+scatter-blurred images of the whole articulated CT (soft tissue, other bones), noise-free.
+Tolerances are at the pelvis centre / femoral head: 1 mm and 0.5° for the pelvis, 1° for the femur.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from fluoronav.anatomy.phantom import hip_phantom
+from fluoronav.geometry.carm import carm_camera, orbit_camera
+from fluoronav.registration.bone import (
+    BoneLevel,
+    BoneRegistrationConfig,
+    BoneRegistrationResult,
+    BoneView,
+    _box_downsample,
+    bone_excess_mu,
+    register_femur,
+    register_pelvis,
+    register_pelvis_per_view,
+    relative_view_poses,
+    views_from_images,
+)
+from fluoronav.registration.levels import LevelConfig
+from fluoronav.registration.trace import RegistrationTrace
+from fluoronav.rendering.ct import render_line_integrals
+from fluoronav.simulation.articulated import ArticulatedSimulator
+from fluoronav.simulation.physics import XrayPhysics
+from fluoronav.simulation.xray import SimulationConfig
+from fluoronav.studies.protocol import sample_trial, simulate_trial_images
+
+#: a lighter pelvis schedule for the unit tests (the defaults are exercised by the slow tests)
+QUICK = BoneRegistrationConfig(
+    levels=(
+        BoneLevel(
+            LevelConfig(sigma=(3, 3, 3, 6, 6, 12), popsize=12, max_iters=40), image_px=64, voxel_mm=4.0
+        ),
+        BoneLevel(
+            LevelConfig(sigma=(1, 1, 1, 2, 2, 4), popsize=10, max_iters=30), image_px=128, voxel_mm=2.0
+        ),
+    )
+)
+
+
+@pytest.fixture(scope="module")
+def volume():
+    return hip_phantom(seed=0, spacing_mm=2.0)
+
+
+@pytest.fixture(scope="module")
+def simulator(volume):
+    cfg = SimulationConfig(physics=XrayPhysics(energy_bin_keV=3.0, photons_per_pixel=None))
+    return ArticulatedSimulator(volume, config=cfg)
+
+
+def _h(p):
+    return np.append(p, 1.0)
+
+
+def _errors(W_est, W_true, center):
+    """(translation mm at ``center``, rotation deg) between two poses."""
+    dt = np.linalg.norm((W_est @ _h(center))[:3] - (W_true @ _h(center))[:3])
+    dr = np.degrees(np.linalg.norm(Rotation.from_matrix(W_est[:3, :3] @ W_true[:3, :3].T).as_rotvec()))
+    return float(dt), float(dr)
+
+
+def _rotation_about(rotvec_deg, center):
+    T = np.eye(4)
+    R = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    T[:3, :3] = R
+    T[:3, 3] = center - R @ center
+    return T
+
+
+# ----- fast pieces ---------------------------------------------------------------------------------
+def test_bone_excess_volume_is_cropped_and_label_masked(volume):
+    mu, w = bone_excess_mu(volume, ["pelvis"])
+    assert mu.min() >= 0.0 and mu.max() > 0.02
+    assert np.prod(mu.shape) < 0.5 * volume.data.size  # cropped to the pelvis
+    # rendering the crop equals rendering the same field on the whole grid
+    full = np.zeros(volume.data.shape, np.float32)
+    lo = np.rint(np.linalg.inv(volume.world_from_index) @ w[:, 3]).astype(int)[:3]
+    full[lo[2] : lo[2] + mu.shape[0], lo[1] : lo[1] + mu.shape[1], lo[0] : lo[0] + mu.shape[2]] = mu
+    cam = carm_camera(isocenter_world=volume.landmarks_world["pelvis_center"]).downsample(32)
+    a = render_line_integrals(
+        torch.from_numpy(mu), w, cam.K, cam.camera_from_world, cam.rows, cam.cols, mipmap=False
+    )
+    b = render_line_integrals(
+        torch.from_numpy(full),
+        volume.world_from_index,
+        cam.K,
+        cam.camera_from_world,
+        cam.rows,
+        cam.cols,
+        mipmap=False,
+    )
+    # (the two grids clip rays differently, so the midpoint samples differ slightly)
+    np.testing.assert_allclose(a.numpy(), b.numpy(), atol=1e-2 * float(b.max()))
+    with pytest.raises(ValueError, match="no label"):
+        bone_excess_mu(volume, ["scapula"])
+
+
+def test_box_downsample_keeps_the_integral_and_the_geometry():
+    mu = torch.rand(9, 10, 11, dtype=torch.float64)
+    w = np.diag([0.5, 0.7, 0.9, 1.0])
+    w[:3, 3] = [3.0, -2.0, 1.0]
+    small, w2 = _box_downsample(mu, w, 2)
+    assert small.shape == (5, 5, 6)
+    assert float(small.sum()) * 8 == pytest.approx(float(mu.sum()))
+    # the first coarse voxel centre is the centre of the first 2×2×2 block
+    np.testing.assert_allclose(w2 @ [0, 0, 0, 1], w @ [0.5, 0.5, 0.5, 1])
+
+
+def test_views_are_validated(volume):
+    cam = carm_camera()
+    with pytest.raises(ValueError, match="does not match"):
+        BoneView(np.zeros((10, 10), np.float32), cam)
+    a = BoneView(np.zeros((cam.rows // 8, cam.cols // 8), np.float32), cam.downsample(8))
+    b = BoneView(np.zeros((cam.rows // 4, cam.cols // 4), np.float32), cam.downsample(4))
+    with pytest.raises(ValueError, match="same image size"):
+        register_pelvis([a, b], volume, initial_world_from_patient=np.eye(4), config=QUICK)
+
+
+def test_relative_view_poses_from_per_view_estimates():
+    rng = np.random.default_rng(0)
+    world_from_patient = _rotation_about(rng.normal(size=3) * 5, np.zeros(3))
+    cams = [orbit_camera(carm_camera(), angle_deg=a, isocenter_world=np.zeros(3)) for a in (0.0, 20.0, -15.0)]
+    results = [
+        BoneRegistrationResult(
+            world_from_bone=world_from_patient,
+            camera_from_bone=(c.camera_from_world @ world_from_patient)[None],
+            params=np.zeros(6),
+            cost=0.0,
+            converged=True,
+            reason="",
+            trace=RegistrationTrace([]),
+            seconds=0.0,
+        )
+        for c in cams
+    ]
+    rel = relative_view_poses(results)
+    for c, r in zip(cams, rel, strict=True):
+        np.testing.assert_allclose(r, c.camera_from_world @ cams[0].world_from_camera, atol=1e-9)
+
+
+# ----- accuracy against physics images -------------------------------------------------------------
+def test_pelvis_single_view_recovers_3deg_10mm(volume, simulator):
+    trial = sample_trial("single-view", volume, np.random.default_rng(1))
+    views = views_from_images(simulate_trial_images(trial, simulator, seed=0, image_size=256))
+    c = trial.pelvis_center_ct
+    assert _errors(trial.initial_world_from_patient, trial.world_from_patient, c) == pytest.approx(
+        (10.0, 3.0)
+    )
+    res = register_pelvis(
+        views, volume, initial_world_from_patient=trial.initial_world_from_patient, config=QUICK
+    )
+    dt, dr = _errors(res.world_from_bone, trial.world_from_patient, c)
+    assert dt < 1.0 and dr < 0.5, (dt, dr)
+    np.testing.assert_allclose(
+        res.camera_from_bone[0], views[0].camera.camera_from_world @ res.world_from_bone
+    )
+    assert np.isfinite(res.cost) and len(res.trace.levels) == 2
+
+
+def test_femur_single_view_recovers_10deg_about_the_head(volume, simulator):
+    head = volume.landmarks_world["femoral_head_left"]
+    entry = volume.landmarks_world["entry_left"]
+    world_from_femur = _rotation_about(
+        10.0 * np.array([0.48, -0.6, 0.64]) / np.linalg.norm([0.48, -0.6, 0.64]), head
+    )
+    cam = carm_camera(isocenter_world=head + np.array([0.0, 0.0, -10.0]), source_to_isocenter_mm=450.0)
+    img = simulator.simulate(
+        cam, world_from_patient=np.eye(4), world_from_femur=world_from_femur, seed=0, image_size=256
+    )
+    res = register_femur(views_from_images([img]), volume, side="left", world_from_patient=np.eye(4), seed=3)
+    _, dr = _errors(res.world_from_bone, world_from_femur, head)
+    entry_err, _ = _errors(res.world_from_bone, world_from_femur, entry)
+    assert dr < 1.0, dr
+    assert entry_err < 1.5, entry_err
+    # the femur turns about its head only
+    np.testing.assert_allclose((res.world_from_bone @ _h(head))[:3], head, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_pelvis_default_schedule_single_view(volume, simulator):
+    trial = sample_trial("single-view", volume, np.random.default_rng(0))
+    views = views_from_images(simulate_trial_images(trial, simulator, seed=0, image_size=384))
+    res = register_pelvis(views, volume, initial_world_from_patient=trial.initial_world_from_patient)
+    dt, dr = _errors(res.world_from_bone, trial.world_from_patient, trial.pelvis_center_ct)
+    assert dt < 1.0 and dr < 0.5, (dt, dr)
+
+
+@pytest.mark.slow
+def test_multi_view_joint_pelvis_not_worse_in_depth(volume, simulator):
+    trial = sample_trial("multi-view", volume, np.random.default_rng(0))
+    views = views_from_images(simulate_trial_images(trial, simulator, seed=0, image_size=256))
+    c = trial.pelvis_center_ct
+    R0 = trial.cameras[0].camera_from_world[:3, :3]
+
+    def depth_error(W):
+        return abs((R0 @ ((W @ _h(c))[:3] - trial.pelvis_center_world))[2])
+
+    init = trial.initial_world_from_patient
+    single = register_pelvis(views[:1], volume, initial_world_from_patient=init, config=QUICK)
+    joint = register_pelvis(views, volume, initial_world_from_patient=init, config=QUICK)
+    assert depth_error(joint.world_from_bone) <= depth_error(single.world_from_bone) + 0.05
+    dt, dr = _errors(joint.world_from_bone, trial.world_from_patient, c)
+    assert dt < 1.0 and dr < 0.5, (dt, dr)
+    # per-view registration gives each view's camera_from_patient, hence the view geometry
+    per_view = register_pelvis_per_view(views, volume, initial_world_from_patient=init, config=QUICK)
+    rel = relative_view_poses(per_view)
+    truth = trial.cameras[1].camera_from_world @ trial.cameras[0].world_from_camera
+    assert (
+        _errors(rel[1], truth, (trial.cameras[0].camera_from_world @ _h(trial.pelvis_center_world))[:3])[1]
+        < 1.0
+    )
+
+
+@pytest.mark.slow
+def test_femur_multi_view_joint(volume, simulator):
+    head = volume.landmarks_world["femoral_head_left"]
+    world_from_femur = _rotation_about([6.0, -5.0, 6.0], head)
+    cam = carm_camera(isocenter_world=head + np.array([0.0, 0.0, -10.0]), source_to_isocenter_mm=450.0)
+    cams = [cam] + [orbit_camera(cam, angle_deg=a, isocenter_world=head) for a in (20.0, -15.0)]
+    imgs = [
+        simulator.simulate(
+            c, world_from_patient=np.eye(4), world_from_femur=world_from_femur, seed=0, image_size=256
+        )
+        for c in cams
+    ]
+    res = register_femur(views_from_images(imgs), volume, side="left", world_from_patient=np.eye(4), seed=3)
+    assert _errors(res.world_from_bone, world_from_femur, head)[1] < 1.0
