@@ -1,0 +1,194 @@
+"""CM registration benchmark (speed) and accuracy study on physics-simulated images.
+
+- :func:`run` (``fluoronav bench``): ``register_single_view_s`` and ``register_multi_view_s``, the
+  median seconds of one registration from the default initialisation (truth perturbed 10°/10 mm,
+  control points ±0.5°) on a fixed simulated scene (768² image = the 1536² CIOS detector binned 2×,
+  5,000 photons per pixel). Baseline, measured in the same run on the same problem and seed (same
+  CMA-ES path): the candidates rendered one CMRenderer call each in a Python loop instead of the
+  whole population × all views in one call.
+- :func:`evaluate_cm_registration`: the accuracy study (tip, base, notch errors, seconds).
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from fluoronav.registration.case import CMCase, simulate_cm_case
+from fluoronav.registration.cm import CMProblem, CMRegistrationConfig, cm_pose_errors
+from fluoronav.registration.levels import LevelConfig
+
+__all__ = ["evaluate_cm_registration", "run", "summarize"]
+
+logger = logging.getLogger(__name__)
+
+
+class _LoopProblem(CMProblem):
+    """Baseline: one renderer call per candidate (the same images, one at a time)."""
+
+    def moving(
+        self, params: torch.Tensor, level: LevelConfig, *, with_background: bool = True
+    ) -> torch.Tensor:
+        return torch.cat(
+            [
+                super(_LoopProblem, self).moving(params[i : i + 1], level, with_background=with_background)
+                for i in range(params.shape[0])
+            ]
+        )
+
+
+def _problem(case: CMCase, cls: type[CMProblem], config: CMRegistrationConfig) -> CMProblem:
+    return cls(
+        case.views,
+        initial_world_from_cm=case.initial_world_from_cm,
+        initial_control_points_deg=case.initial_control_points_deg,
+        base_from_cm=case.base_from_cm,
+        config=config,
+        seed=0,
+    )
+
+
+def _time_registration(
+    case: CMCase, cls: type[CMProblem], config: CMRegistrationConfig, repeats: int
+) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        _problem(case, cls, config).run()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def run(quick: bool = False) -> dict[str, float]:
+    """Median seconds per single-view and multi-view registration, with the per-candidate baseline.
+
+    ``quick`` runs one repeat instead of three; the problems are the same.
+    """
+    n_threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # small batched ops: thread sync costs more than it gains
+    try:
+        size, repeats = 768, (1 if quick else 3)
+        config = CMRegistrationConfig()
+        out: dict[str, float] = {}
+        for key, workflow in (
+            ("register_single_view_s", "single-view"),
+            ("register_multi_view_s", "multi-view"),
+        ):
+            case = simulate_cm_case(workflow, seed=11, image_size=size)  # type: ignore[arg-type]
+            fast = _time_registration(case, CMProblem, config, repeats)
+            slow = _time_registration(case, _LoopProblem, config, 1)
+            out[key] = fast
+            out[f"{key}_baseline"] = slow
+            out[f"{key}_speedup"] = slow / fast
+            logger.info("%s: %.2f s (baseline %.2f s)", key, fast, slow)
+        return out
+    finally:
+        torch.set_num_threads(n_threads)
+
+
+def evaluate_cm_registration(
+    workflow: str,
+    n: int,
+    seed: int,
+    *,
+    config: CMRegistrationConfig | None = None,
+    image_size: int = 768,
+    photons_per_pixel: float | None = 5000.0,
+    init: str = "perturb",
+    background: bool = False,
+) -> list[dict[str, Any]]:
+    """Register ``n`` simulated cases of a workflow and report errors and time per case.
+
+    Args:
+        workflow: "single-view", "multi-view" or "multi-cm".
+        n: number of cases; case i uses seed ``seed + i``.
+        config: registration settings (default :class:`CMRegistrationConfig`).
+        image_size, photons_per_pixel, background: simulation settings (see ``simulate_cm_case``).
+        init: "perturb" (truth perturbed 10°/10 mm, the authors' code) or "centerline" (the
+            centreline initialisation from the true mask's centreline, first view).
+
+    Returns:
+        one row per case: ``seed``, the errors of :func:`cm_pose_errors` (mean over CM poses for
+        multiple-CM), ``initial_tip_error_mm``, ``seconds``, ``converged``, ``reason``, ``n_evals``.
+    """
+    cfg = config or CMRegistrationConfig()
+    rows = []
+    for i in range(n):
+        case = simulate_cm_case(
+            workflow,  # type: ignore[arg-type]
+            seed=seed + i,
+            image_size=image_size,
+            photons_per_pixel=photons_per_pixel,
+            background=background,
+        )
+        if init == "centerline":
+            case = _centerline_init(case)
+        prob = _problem(case, CMProblem, cfg)
+        res = prob.run()
+        assert case.world_from_cm_true is not None and case.control_points_true_deg is not None
+        errs = [
+            cm_pose_errors(W, res.control_points_deg, Wt, case.control_points_true_deg)
+            for W, Wt in zip(res.world_from_cm, case.world_from_cm_true, strict=True)
+        ]
+        e0 = cm_pose_errors(
+            case.initial_world_from_cm,
+            case.initial_control_points_deg,
+            case.world_from_cm_true[0],
+            case.control_points_true_deg,
+        )
+        row: dict[str, Any] = {k: float(np.mean([e[k] for e in errs])) for k in errs[0]}
+        row.update(
+            seed=seed + i,
+            workflow=workflow,
+            initial_tip_error_mm=e0["tip_error_mm"],
+            seconds=res.seconds,
+            converged=res.converged,
+            reason=res.reason,
+            n_evals=res.trace.n_evals,
+        )
+        logger.info("case %d: tip %.2f mm in %.1f s", seed + i, row["tip_error_mm"], res.seconds)
+        rows.append(row)
+    return rows
+
+
+def _centerline_init(case: CMCase) -> CMCase:
+    """Replace the initial pose by the centreline initialisation of the first view (true mask)."""
+    from dataclasses import replace
+
+    from fluoronav.detection.centerline import extract_centerline
+    from fluoronav.registration.centerline_init import centerline_initialize
+    from fluoronav.rendering.cm import CMRenderer
+    from fluoronav.simulation.xray import envelope_config
+
+    v = case.views[0]
+    assert case.world_from_cm_true is not None and v.landmarks_px is not None
+    env = CMRenderer(envelope_config(case.config.cm_config), mu_per_mm=1.0)
+    T = torch.as_tensor(v.camera.camera_from_world @ case.world_from_cm_true[0])[None, None]
+    cp = torch.as_tensor(case.control_points_true_deg)[None]
+    mask = env.mask(T, cp, torch.as_tensor(v.camera.K)[None], v.camera.rows, v.camera.cols)[0, 0].numpy()
+    centerline = extract_centerline(mask, v.landmarks_px[0], v.landmarks_px[1])
+    init = centerline_initialize(v.camera, v.landmarks_px, centerline, case.initial_control_points_deg)
+    return replace(case, initial_world_from_cm=v.camera.world_from_camera @ init.camera_from_cm)
+
+
+def summarize(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """Mean and median of the errors and seconds of :func:`evaluate_cm_registration` rows."""
+    keys = (
+        "tip_error_mm",
+        "base_translation_error_mm",
+        "base_rotation_error_deg",
+        "notch_rotation_error_deg",
+        "seconds",
+    )
+    out: dict[str, float] = {"n": float(len(rows))}
+    for k in keys:
+        vals = np.array([r[k] for r in rows], dtype=np.float64)
+        out[f"{k}_mean"] = float(vals.mean())
+        out[f"{k}_median"] = float(np.median(vals))
+    out["converged_fraction"] = float(np.mean([r["converged"] for r in rows]))
+    return out
