@@ -22,9 +22,10 @@ class InputError(FluoronavError):
     """
 
     def __init__(self, source: str | Path, problem: str) -> None:
-        self.source = str(source)
-        self.problem = problem
-        super().__init__(f"{self.source}: {problem}")
+        # the message is always one line, whatever the input echoed into it (a key, a parser message)
+        self.source = str(source).replace("\r", "\\r").replace("\n", "\\n")
+        self.problem = " ".join(str(problem).split())
+        super().__init__(f"{self.source}: {self.problem}")
 
 
 class RegistrationFailure(FluoronavError):

@@ -217,7 +217,7 @@ def test_multi_cm_poses_keep_their_relative_transforms() -> None:
         CIOS_FUSION, carm_camera_from_world(lao_rao_deg=0, cran_caud_deg=90, source_to_isocenter_mm=450)
     )
     views = [
-        CMView(image=np.zeros((16, 16), np.float32), camera=cam.scaled_to(16, 16), name=f"p{k}")
+        CMView(image=np.zeros((384, 384), np.float32), camera=cam.scaled_to(384, 384), name=f"p{k}")
         for k in range(3)
     ]
     prob = CMProblem(

@@ -20,9 +20,8 @@ from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import load_cm_config
 from fluoronav.navigation.planning import load_plan
 
-SETTINGS = settings(
-    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+# examples and determinism come from the profile in tests/conftest.py
+SETTINGS = settings(suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 json_values = st.recursive(
     st.none()

@@ -270,7 +270,7 @@ class Camera:
             raise InputError(source, f"camera is missing {', '.join(missing)}")
         try:
             rows, cols = int(d["rows"]), int(d["cols"])
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise InputError(source, "rows and cols must be integers") from None
         if rows <= 0 or cols <= 0 or rows != d["rows"] or cols != d["cols"]:
             raise InputError(source, f"rows and cols must be positive integers, got {d['rows']}x{d['cols']}")
