@@ -1,0 +1,103 @@
+"""Hand-eye and navigation studies: scenario sampling, row columns, a whole (slow) trial."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+from fluoronav.calibration import _se3
+from fluoronav.calibration.robot import UR10
+from fluoronav.studies.handeye_study import (
+    HANDEYE_METRICS,
+    NAVIGATION_METRICS,
+    HandEyeStudyConfig,
+    _columns,
+    sample_handeye_scenario,
+)
+
+
+@functools.lru_cache(maxsize=1)
+def _volume():
+    from fluoronav.anatomy.phantom import hip_phantom
+
+    return hip_phantom(seed=0, spacing_mm=3.0)
+
+
+def test_rows_carry_the_contract_metric_names() -> None:
+    he = _columns(HandEyeStudyConfig(workflow="hand-eye", trials=1, seed=0, poses=(4, 8)))
+    for name in (
+        "handeye_translation_mm",
+        "handeye_rotation_deg",
+        "handeye_tip_mm",
+        "tip_mm",
+        "base_translation_mm",
+        "base_rotation_deg",
+        "notch_rotation_deg",
+        "seconds",
+        "handeye_tip_mm_m4",
+        "handeye_tip_mm_m8",
+        "baseline_tip_mm",
+    ):
+        assert name in he
+    nav = _columns(HandEyeStudyConfig(workflow="navigation", trials=1, seed=0))
+    assert "reposition_tip_mm" in nav and "entry_mm" in nav and "seconds" in nav
+    assert set(HANDEYE_METRICS) <= set(he) and set(NAVIGATION_METRICS) <= set(nav)
+
+
+def test_scenario_has_robot_errors_diverse_in_view_poses_and_a_plausible_mount() -> None:
+    sc = sample_handeye_scenario(_volume(), np.random.default_rng(7), n_poses=8)
+    assert sc.q_deg.shape == (8, 6) and sc.world_from_cm.shape == (8, 4, 4)
+    # the calibration data are the nominal FK of the commanded joints; the truth differs by the errors
+    np.testing.assert_allclose(sc.rbase_from_ee_reported, UR10.rbase_from_ee(sc.q_deg))
+    true_ee = sc.true_robot.rbase_from_ee(sc.q_actual_deg)
+    dev = np.linalg.norm(true_ee[:, :3, 3] - sc.rbase_from_ee_reported[:, :3, 3], axis=1)
+    assert np.all(dev > 0.01) and np.all(dev < 3.0)
+    np.testing.assert_allclose(sc.world_from_cm, sc.world_from_rbase @ true_ee @ sc.ee_from_cm, atol=1e-9)
+    assert 150.0 <= sc.ee_from_cm[2, 3] <= 250.0
+    # orientation spread of the CM poses (max pairwise angle) is at least 20°
+    R = sc.world_from_cm[:, :3, :3]
+    ang = [float(_se3.rotation_angle_deg(R[i].T @ R[j])) for i in range(8) for j in range(i + 1, 8)]
+    assert max(ang) >= 20.0
+    # every landmark is inside the detector (100 px margin)
+    lm = sc.landmarks_px
+    assert np.all(lm >= 100) and np.all(lm <= sc.camera.cols - 101)
+
+
+def test_unknown_workflow_is_an_input_error(tmp_path) -> None:
+    from fluoronav.errors import InputError
+    from fluoronav.studies.handeye_study import run_study
+
+    with pytest.raises(InputError):
+        run_study(HandEyeStudyConfig(workflow="hand-eyes", trials=1, seed=0), tmp_path)
+
+
+@pytest.mark.slow
+def test_handeye_study_writes_rows_summary_and_figures(tmp_path) -> None:
+    from fluoronav.studies.handeye_study import run_handeye_or_navigation_study
+
+    s = run_handeye_or_navigation_study(
+        "hand-eye", trials=1, seed=0, out=tmp_path, workers=0, poses=(3, 4), image_size=384
+    )
+    assert s["completed"] == 1
+    import csv
+
+    rows = list(csv.DictReader((tmp_path / "trials.csv").open()))
+    assert rows[0]["status"] == "ok", rows[0]["reason"]
+    for k in ("handeye_tip_mm", "handeye_rotation_deg", "handeye_translation_mm", "handeye_tip_mm_m3"):
+        assert float(rows[0][k]) >= 0.0
+    assert (tmp_path / "figures" / "handeye_error_vs_poses.png").is_file()
+
+
+def test_rotation_error_splits_into_axis_tilt_and_roll() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from fluoronav.studies.handeye_study import _axis_and_roll_deg
+
+    T = _se3.make(Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix(), [1.0, 2.0, 200.0])
+    for order, angles in (("zx", [7.0, 2.0]), ("xz", [2.0, 7.0])):
+        E = _se3.make(Rotation.from_euler(order, angles, degrees=True).as_matrix(), np.zeros(3))
+        d = _axis_and_roll_deg(T @ E, T)
+        assert d["handeye_axis_deg"] == pytest.approx(2.0, abs=1e-9)
+        assert d["handeye_roll_deg"] == pytest.approx(7.0, abs=1e-9)
