@@ -7,7 +7,7 @@ import os
 # Two cores on CI: keep torch from oversubscribing when numba also runs threads.
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
-from hypothesis import settings  # noqa: E402
+from hypothesis import settings
 
 # CI is deterministic (the same examples every run); HYPOTHESIS_PROFILE=deep searches widely.
 settings.register_profile("ci", derandomize=True, deadline=None)
