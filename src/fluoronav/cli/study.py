@@ -32,6 +32,9 @@ def register(app: typer.Typer) -> None:
             768, "--image-size", min=128, help="Simulated image size (the 1536² detector is binned to it)."
         ),
         phantoms: int = typer.Option(1, "--phantoms", min=1, help="Phantom anatomies to draw trials from."),
+        poses: list[int] = typer.Option(
+            [4, 8, 15], "--poses", help="hand-eye: numbers of robot poses M to calibrate with (repeatable)."
+        ),
         device: str = DEVICE_OPTION,
     ) -> None:
         """Run (or resume) a simulation study; writes trials.csv, summary.json and figures/."""
@@ -50,6 +53,8 @@ def register(app: typer.Typer) -> None:
                 scheduler=scheduler,
                 workers=workers,
                 device=str(resolve_device(device)),
+                poses=tuple(poses),
+                image_size=image_size,
             )
         else:
             from fluoronav.studies.pipeline import STUDY_WORKFLOWS, StudyConfig, run_study
