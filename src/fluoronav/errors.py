@@ -7,6 +7,7 @@ problem. The CLI turns it into one line on stderr and a non-zero exit status, wi
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 
 class FluoronavError(Exception):
@@ -30,3 +31,26 @@ class InputError(FluoronavError):
 
 class RegistrationFailure(FluoronavError):
     """A registration or calibration that did not converge; carries the reason."""
+
+
+def read_json_object(path: str | Path, *, what: str) -> dict[str, Any]:
+    """Read a JSON file that must hold an object; every problem is an :class:`InputError`.
+
+    Args:
+        path: the file.
+        what: what the file is, for the messages (e.g. ``"case file"``).
+    """
+    import json
+
+    p = Path(path)
+    try:
+        d = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(p, f"{what} not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(p, f"cannot read {what} ({exc.__class__.__name__})") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(p, f"not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(d, dict):
+        raise InputError(p, f"a {what} must be a JSON object")
+    return d

@@ -38,7 +38,7 @@ import numpy as np
 import typer
 
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
-from fluoronav.errors import InputError
+from fluoronav.errors import InputError, read_json_object
 
 __all__ = ["CalibrationCase", "load_calibration_case", "run_calibration", "write_example_calibration_case"]
 
@@ -139,16 +139,7 @@ def load_calibration_case(path: str | Path) -> CalibrationCase:
 
     p = Path(path)
     src = str(p)
-    try:
-        d = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(src, "case file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(src, f"cannot read case file ({exc.__class__.__name__})") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(src, f"not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    if not isinstance(d, dict):
-        raise InputError(src, "a calibration case must be a JSON object")
+    d = read_json_object(p, what="calibration case")
     root = p.parent
     if "camera" not in d:
         raise InputError(src, "'camera' (the one C-arm camera file) is required")

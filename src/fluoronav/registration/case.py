@@ -25,7 +25,7 @@ from typing import Any, Literal
 import numpy as np
 
 from fluoronav.anatomy.volume import Volume
-from fluoronav.errors import InputError
+from fluoronav.errors import InputError, read_json_object
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.carm import orbit_camera
 from fluoronav.registration.cm import CMRegistrationConfig, CMView
@@ -305,16 +305,7 @@ def load_case(path: str | Path) -> CMCase:
 
     p = Path(path)
     src = str(p)
-    try:
-        d = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(src, "case file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(src, f"cannot read case file ({exc.__class__.__name__})") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(src, f"not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    if not isinstance(d, dict):
-        raise InputError(src, "a case file must be a JSON object")
+    d = read_json_object(p, what="case file")
     workflow = d.get("workflow")
     if workflow not in WORKFLOWS:
         raise InputError(src, f"'workflow' must be one of {', '.join(WORKFLOWS)}, got {workflow!r}")
