@@ -32,6 +32,11 @@ def register(app: typer.Typer) -> None:
             768, "--image-size", min=128, help="Simulated image size (the 1536² detector is binned to it)."
         ),
         phantoms: int = typer.Option(1, "--phantoms", min=1, help="Phantom anatomies to draw trials from."),
+        init: str = typer.Option(
+            "centerline",
+            "--init",
+            help="CM start: centerline (the paper) or perturbed (truth + 10°/10 mm, as the authors' code).",
+        ),
         poses: list[int] = typer.Option(
             [4, 8, 15], "--poses", help="hand-eye: numbers of robot poses M to calibrate with (repeatable)."
         ),
@@ -70,6 +75,7 @@ def register(app: typer.Typer) -> None:
                 image_size=image_size,
                 device=str(resolve_device(device)),
                 n_phantoms=phantoms,
+                init=init,
             )
             summary = run_study(cfg, out, scheduler=scheduler, workers=workers)
         m = summary.get("metrics", {})

@@ -75,6 +75,8 @@ class StudyConfig:
     device: str = "cpu"
     n_phantoms: int = 1
     register_bones: bool = True
+    #: CM start: "centerline" (the paper) or "perturbed" (truth + 10°/10 mm, the authors' code)
+    init: str = "centerline"
 
 
 # ----- per-process caches ---------------------------------------------------------------------------
@@ -303,10 +305,21 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                 for i, (s, c, lm) in enumerate(zip(images, cams, lms, strict=True))
             ]
             base_from_cm = trial.world_from_cm if cfg.workflow == "multi-cm" else None
-            world_from_cm0 = np.linalg.inv(cams[0].camera_from_world) @ init.camera_from_cm
-            res = _register_cm_two_starts(
-                views, world_from_cm0, trial, base_from_cm, cfg, seed=int(rng.integers(2**31))
-            )
+            cm_seed = int(rng.integers(2**31))
+            if cfg.init == "perturbed":
+                from fluoronav.registration.cm import CMRegistrationConfig, register_cm
+
+                res = register_cm(
+                    views,
+                    initial_control_points_deg=trial.initial_control_points_deg,
+                    initial_world_from_cm=world_est_from_world @ trial.initial_world_from_cm[0],
+                    base_from_cm=base_from_cm,
+                    config=CMRegistrationConfig(device=cfg.device),
+                    seed=cm_seed,
+                )
+            else:
+                world_from_cm0 = np.linalg.inv(cams[0].camera_from_world) @ init.camera_from_cm
+                res = _register_cm_two_starts(views, world_from_cm0, trial, base_from_cm, cfg, seed=cm_seed)
             row["seconds_registration"] = res.seconds
             if not res.success:
                 row["status"] = "failed"
@@ -391,7 +404,8 @@ def run_study(
     cfg_dict = {**dataclasses.asdict(cfg), "version": __version__}
     if cfg_path.exists():
         old = json.loads(cfg_path.read_text(encoding="utf-8"))
-        keep = ("workflow", "seed", "ct", "oracle_landmarks", "image_size", "n_phantoms", "register_bones")
+        keep = ["workflow", "seed", "ct", "oracle_landmarks", "image_size", "n_phantoms", "register_bones"]
+        keep.append("init")
         if any(old.get(k) != cfg_dict.get(k) for k in keep):
             raise InputError(cfg_path, "this directory holds a study with other settings; use another --out")
     if cfg.ct != "phantom":
