@@ -66,3 +66,32 @@ def test_dask_local_cluster_gives_the_same_results_as_in_process(tmp_path: Path)
     local = run_tasks(_task, 6, 11, JsonlLog(tmp_path / "a.jsonl"), workers=0)
     dask = run_tasks(_task, 6, 11, JsonlLog(tmp_path / "b.jsonl"), workers=2)
     assert {r["id"]: r["value"] for r in local} == {r["id"]: r["value"] for r in dask}
+
+
+def test_failed_rows_keep_a_one_line_reason_and_empty_non_finite_cells() -> None:
+    import time
+
+    from fluoronav.studies.runner import finish_row, mark_failed
+
+    row = {"trial": 3, "status": "ok", "tip_mm": float("nan"), "n": 2}
+    try:
+        raise ValueError("bad\ninput")
+    except ValueError as exc:
+        mark_failed(row, exc, 3)
+    out = finish_row(row, time.perf_counter() - 1.0)
+    assert out["status"] == "failed"
+    assert out["reason"] == "ValueError: bad input"
+    assert out["tip_mm"] is None and out["n"] == 2
+    assert out["seconds"] >= 1.0
+
+
+def test_a_study_trial_that_cannot_run_is_recorded_as_failed(tmp_path: Path) -> None:
+    from fluoronav.studies.pipeline import StudyConfig, run_trial
+
+    cfg = StudyConfig(
+        workflow="single-view", trials=1, seed=0, ct=str(tmp_path / "missing.nii.gz"), oracle_landmarks=True
+    )
+    row = run_trial(0, 123, cfg=cfg)
+    assert row["status"] == "failed"
+    assert "InputError" in row["reason"] and "missing.nii.gz" in row["reason"]
+    assert row["trial"] == 0 and row["seed"] == 123

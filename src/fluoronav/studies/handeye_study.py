@@ -43,7 +43,6 @@ import json
 import logging
 import math
 import time
-import traceback
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,6 +59,7 @@ from fluoronav.errors import FluoronavError, InputError
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.studies.runner import finish_row, mark_failed
 
 __all__ = [
     "HANDEYE_METRICS",
@@ -517,11 +517,8 @@ def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> d
                 if tip9 is not None:
                     row["eq9_vs_eq10_mm"] = float(np.linalg.norm(tip9[:m] - tip10, axis=1).mean())
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
-        row["status"] = "failed"
-        row["reason"] = f"{type(exc).__name__}: {exc}"[:300]
-        log.debug("trial %d failed:\n%s", trial_id, traceback.format_exc())
-    row["seconds"] = time.perf_counter() - t0
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+        mark_failed(row, exc, trial_id)
+    return finish_row(row, t0)
 
 
 def _register_single(
@@ -685,11 +682,8 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         else:
             row["reposition_reason"] = "reached pose outside the image"
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
-        row["status"] = "failed"
-        row["reason"] = f"{type(exc).__name__}: {exc}"[:300]
-        log.debug("trial %d failed:\n%s", trial_id, traceback.format_exc())
-    row["seconds"] = time.perf_counter() - t0
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+        mark_failed(row, exc, trial_id)
+    return finish_row(row, t0)
 
 
 # ----- study --------------------------------------------------------------------------------------

@@ -20,7 +20,6 @@ import json
 import logging
 import math
 import time
-import traceback
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +29,7 @@ import torch
 from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import FluoronavError, InputError
 from fluoronav.studies.metrics import cm_errors, point_error_mm, relative_error_mm
-from fluoronav.studies.runner import CsvLog, run_tasks
+from fluoronav.studies.runner import CsvLog, finish_row, mark_failed, run_tasks
 
 log = logging.getLogger(__name__)
 
@@ -361,11 +360,8 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
             row["relative_mm"] = relative_error_mm(entry_est_c, tip_est, entry_true_c, tip_true)
             row["seconds_bones"] = bones["pelvis_seconds"] + bones["femur_seconds"]
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
-        row["status"] = "failed"
-        row["reason"] = f"{type(exc).__name__}: {exc}"[:300]
-        log.debug("trial %d failed:\n%s", trial_id, traceback.format_exc())
-    row["seconds"] = time.perf_counter() - t0
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+        mark_failed(row, exc, trial_id)
+    return finish_row(row, t0)
 
 
 def _columns(workflow: str) -> list[str]:

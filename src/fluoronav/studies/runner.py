@@ -25,7 +25,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CsvLog", "JsonlLog", "ResultLog", "run_tasks", "task_seeds"]
+__all__ = ["CsvLog", "JsonlLog", "ResultLog", "finish_row", "mark_failed", "run_tasks", "task_seeds"]
 
 
 def task_seeds(seed: int, n: int) -> list[int]:
@@ -110,6 +110,24 @@ class CsvLog(ResultLog):
         writer = csv.DictWriter(buf, fieldnames=self.columns, extrasaction="ignore", lineterminator="\n")
         writer.writerow({k: json.dumps(v) if isinstance(v, list | dict) else v for k, v in row.items()})
         _fsync_append(self.path, buf.getvalue())
+
+
+def mark_failed(row: dict[str, Any], exc: BaseException, task_id: int) -> None:
+    """Record a failed task in its row (status and a one-line reason); the row is still written."""
+    import traceback
+
+    row["status"] = "failed"
+    row["reason"] = " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
+    log.debug("task %d failed:\n%s", task_id, traceback.format_exc())
+
+
+def finish_row(row: dict[str, Any], t0: float) -> dict[str, Any]:
+    """Add the elapsed ``seconds`` since ``t0`` and replace non-finite floats by None (empty cells)."""
+    import math
+    import time
+
+    row["seconds"] = time.perf_counter() - t0
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
 
 
 def _iter_local(
