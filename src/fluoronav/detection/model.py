@@ -46,7 +46,7 @@ class DetectorConfig:
         low_pct, high_pct: percentiles mapped to 0 and 1 by the intensity normalisation.
     """
 
-    input_size: int = 256
+    input_size: int = 128
     roi_size: int = 128
     channels: tuple[int, ...] = (16, 32, 64, 128, 256)
     roi_channels: tuple[int, ...] = (16, 32, 64, 128, 256)
