@@ -18,7 +18,12 @@ from fluoronav.detection.train import save_model
 from fluoronav.errors import FluoronavError, InputError
 
 TINY = DetectorConfig(
-    input_size=64, roi_size=64, channels=(4, 8, 16), roi_channels=(4, 8, 16), min_confidence=0.2
+    input_size=64,
+    roi_size=64,
+    channels=(4, 8, 16),
+    roi_channels=(4, 8, 16),
+    min_confidence=0.2,
+    heatmap="gaussian",  # the intensity oracle below draws peak-1 heatmaps
 )
 
 

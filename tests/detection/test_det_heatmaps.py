@@ -46,3 +46,38 @@ def test_confidence_is_clipped_and_edges_do_not_break() -> None:
     pts, conf = decode_heatmaps(hm)
     assert conf.item() == 1.0
     assert pts[0, 0].tolist() == [7.0, 0.0]
+
+
+def test_softmax_heatmaps_decode_subpixel_and_confidence() -> None:
+    from fluoronav.detection.heatmaps import decode_logit_heatmaps
+
+    pts = torch.tensor([[[20.3, 11.7], [5.55, 40.2]]], dtype=torch.float64)
+    sigma = 2.0
+    v, u = torch.meshgrid(torch.arange(48.0), torch.arange(40.0), indexing="ij")
+    logits = torch.stack([-((u - p[0]) ** 2 + (v - p[1]) ** 2) / (2 * sigma**2) + 7.0 for p in pts[0]])[None]
+    est, conf = decode_logit_heatmaps(logits, sigma_px=sigma)
+    torch.testing.assert_close(est.double(), pts, atol=1e-3, rtol=0)
+    # mass of a 2-D Gaussian within 2σ of its centre: 1 − exp(−2) (± the pixel grid)
+    assert torch.all((conf - (1 - np.exp(-2.0))).abs() < 0.05)
+    flat, conf_flat = decode_logit_heatmaps(torch.zeros(1, 2, 48, 40), sigma_px=sigma)
+    assert torch.all(conf_flat < 0.05)  # a diffuse prediction is not confident
+
+
+def test_heatmap_cross_entropy_is_minimal_at_the_target_and_skips_absent() -> None:
+    from fluoronav.detection.heatmaps import heatmap_cross_entropy
+
+    pts = torch.tensor([[[10.4, 12.2], [float("nan"), float("nan")]]])
+    logits = torch.zeros(1, 2, 24, 24, requires_grad=True)
+    opt = torch.optim.Adam([logits], lr=0.3)
+    for _ in range(300):
+        opt.zero_grad()
+        loss = heatmap_cross_entropy(logits, pts, sigma_px=1.5)
+        loss.backward()
+        opt.step()
+    assert logits.grad is not None and float(logits.grad[0, 1].abs().max()) == 0.0  # absent: no signal
+    from fluoronav.detection.heatmaps import decode_logit_heatmaps
+
+    est, _ = decode_logit_heatmaps(logits.detach()[:, :1], sigma_px=1.5)
+    assert float((est[0, 0] - pts[0, 0]).abs().max()) < 0.1
+    none = heatmap_cross_entropy(torch.zeros(1, 2, 8, 8), torch.full((1, 2, 2), float("nan")), sigma_px=1.5)
+    assert float(none) == 0.0

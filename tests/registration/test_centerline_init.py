@@ -217,3 +217,44 @@ def test_noisy_scenes_match_paper_accuracy() -> None:
     out = evaluate_centerline_init(20, 0, scene_options={"roll_deg": 90.0})
     assert out["depth_error_mm_mean"] < 40.0
     assert out["theta_error_deg_mean"] < 35.0
+
+
+def test_multiview_init_recovers_pose_and_resolves_the_mirror() -> None:
+    from fluoronav.geometry import orbit_camera
+    from fluoronav.registration.centerline_init import centerline_initialize_multiview, mirror_about_chord
+
+    rng = np.random.default_rng(4)
+    kin = CMKinematics()
+    worst = 0.0
+    for _ in range(4):
+        cp = rng.uniform(-7.9, 7.9, 5)
+        cpt = torch.as_tensor(cp)
+        R = euler_to_matrix("xyz", torch.as_tensor(rng.uniform(-60, 60, 3))).numpy()
+        W = np.eye(4)
+        W[:3, :3], W[:3, 3] = R, rng.uniform(-10, 10, 3)
+        mid = (kin.centerline_cm(cpt).numpy() @ W[:3, :3].T + W[:3, 3]).mean(0)
+        ap = carm_camera(source_to_isocenter_mm=450.0, isocenter_world=mid)
+        cams = [
+            ap,
+            orbit_camera(ap, angle_deg=20.0, isocenter_world=mid),
+            orbit_camera(ap, angle_deg=-15.0, isocenter_world=mid),
+        ]
+        pts = kin.centerline_cm(cpt, n_points=80).numpy() @ W[:3, :3].T + W[:3, 3]
+        ab = kin.landmarks_cm(cpt).numpy() @ W[:3, :3].T + W[:3, 3]
+        lms = np.stack([c.project(ab) for c in cams])
+        cls = [c.project(pts) for c in cams]
+        res = centerline_initialize_multiview(cams, lms, cls, cp)
+        tip_est = res.world_from_cm[:3, :3] @ kin.tip_cm(cpt).numpy() + res.world_from_cm[:3, 3]
+        tip_true = W[:3, :3] @ kin.tip_cm(cpt).numpy() + W[:3, 3]
+        worst = max(worst, float(np.linalg.norm(tip_est - tip_true)))
+        assert res.cost_px < 0.5
+        assert np.min(res.theta_costs_px) == pytest.approx(res.cost_px)
+        # the mirror about the chord (what one view confuses) costs clearly more over three views
+        mirror = mirror_about_chord(res.world_from_cm, cp)
+        roll = np.degrees(
+            np.arccos(np.clip(np.trace(mirror[:3, :3].T @ res.world_from_cm[:3, :3]) / 2 - 0.5, -1, 1))
+        )
+        assert roll > 170.0
+        j = int(np.argmin(np.abs((res.theta_grid_deg - (res.theta_deg + 180.0)) % 360.0)))
+        assert res.theta_costs_px[j] > res.cost_px + 1.0
+    assert worst < 0.6  # 1° roll steps on a ~31 mm CM

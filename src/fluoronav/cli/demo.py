@@ -1,120 +1,104 @@
-"""``fluoronav demo``: the main job on the built-in phantom, no files needed.
+"""``fluoronav demo``: the whole navigation pipeline on the built-in phantom, no files needed.
 
-Current scope (foundations): builds the hip phantom, places the CM in the femur as for core
-decompression, renders three C-arm views (AP and two orbit rotations) of the anatomy with the CM,
-and writes the DRRs (PNG and .npy), the cameras and the scene.
+See :mod:`fluoronav.navigation.demo` for the stages. Writes ``DIR/results.json`` and a self-contained
+``DIR/report.html``; prints a table of errors and timings per stage.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from pathlib import Path
 
-import numpy as np
 import typer
 
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
 
 log = logging.getLogger(__name__)
 
+STAGE_LABELS = {
+    "anatomy": "building the hip phantom and the X-ray simulator",
+    "scene": "placing robot, CM, pelvis, femur and C-arm",
+    "simulate": "simulating three C-arm X-rays (physics)",
+    "detect": "detecting the CM (mask, landmarks, centreline)",
+    "pelvis": "registering the pelvis in each view",
+    "femur": "registering the femur",
+    "cm": "initialising and registering the CM (multi-view)",
+    "plan": "planning the target pose",
+    "robot": "computing the robot command (eqs. 7-8, IK)",
+    "move": "moving the robot",
+    "verify": "verification image and registration",
+    "correct": "corrective move from the verification",
+}
 
-def _to_png(image: np.ndarray, path: Path) -> None:
-    import matplotlib.pyplot as plt
 
-    lo, hi = np.percentile(image, [0.5, 99.8])
-    plt.imsave(path, np.clip((image - lo) / max(hi - lo, 1e-9), 0, 1), cmap="gray", vmin=0, vmax=1)
-
-
-def run_render_demo(out: Path, *, seed: int, device: str) -> dict[str, object]:
-    """Render the phantom with a CM in three views; returns a summary dict (also written as JSON)."""
-    import torch
+def run(out: Path, *, seed: int, device: str, image_size: int, oracle_landmarks: bool) -> int:
+    """Run the demo, print its table, write results.json and report.html; returns the exit code."""
     from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from fluoronav.anatomy.io import resolve_ct
-    from fluoronav.geometry import orbit_camera
-    from fluoronav.manipulator import CMConfig, CMKinematics
-    from fluoronav.rendering.cm import CMRenderer
-    from fluoronav.rendering.ct import CTRenderer
-    from fluoronav.simulation.scene import SceneSampling, place_cm_in_bone
+    from fluoronav.device import resolve_device
+    from fluoronav.navigation.demo import STAGES, DemoConfig, run_demo, write_case, write_results
+    from fluoronav.navigation.demo_report import ERROR_ROWS, write_report
 
-    out.mkdir(parents=True, exist_ok=True)
     console = Console(stderr=True)
-    timings: dict[str, float] = {}
-    rng = np.random.default_rng(seed)
+    cfg = DemoConfig(
+        seed=seed,
+        image_size=image_size,
+        device=str(resolve_device(device)),
+        oracle_landmarks=oracle_landmarks,
+    )
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} stages"),
+        TimeElapsedColumn(),
+        console=console,
+        transient=False,
+    ) as progress:
+        task = progress.add_task("demo", total=len(STAGES))
 
-    t0 = time.perf_counter()
-    volume = resolve_ct("phantom", seed=seed)
-    timings["phantom_s"] = time.perf_counter() - t0
+        started: dict[str, float] = {}
 
-    config = CMConfig()
-    world_from_cm, side = place_cm_in_bone(volume, rng, SceneSampling())
-    cp = rng.uniform(-4.0, 4.0, size=5)
-    kin = CMKinematics(config)
-    mid = (world_from_cm @ np.array([0.0, 0.0, config.tip_z_mm / 2, 1.0]))[:3]
+        def on_stage(name: str, event: str) -> None:
+            if event == "start":
+                started[name] = time.perf_counter()
+                progress.update(task, description=STAGE_LABELS.get(name, name))
+            else:
+                progress.advance(task)
+                if not console.is_terminal:  # a log file gets one line per stage instead of a bar
+                    console.print(f"{name}: done in {time.perf_counter() - started[name]:.1f} s")
 
-    from fluoronav.geometry import carm_camera
+        result = run_demo(cfg, on_stage=on_stage)
+        progress.update(task, description="writing the report")
+        write_results(result, out)
+        case = write_case(result, out)
+        report = write_report(result, out)
 
-    ap = carm_camera(source_to_isocenter_mm=450.0, isocenter_world=mid)
-    views = {
-        "ap": ap,
-        "orbit_p20": orbit_camera(ap, angle_deg=20.0, isocenter_world=mid),
-        "orbit_m15": orbit_camera(ap, angle_deg=-15.0, isocenter_world=mid),
-    }
-    mu_water = 0.02
-    t0 = time.perf_counter()
-    ct = CTRenderer.from_hu(volume, mu_water_per_mm=mu_water, device=device)
-    cm = CMRenderer(config, mu_per_mm=mu_water * (1.0 + config.hu_value / 1000.0), device=device)
-    timings["setup_s"] = time.perf_counter() - t0
-
-    table = Table(title="fluoronav demo: DRRs of the hip phantom with a CM")
-    for col in ("view", "full DRR ms", "ROI DRR ms", "CM ms"):
+    table = Table(title=f"fluoronav demo (seed {seed}): errors against the simulated truth")
+    for col in ("quantity", "value", "unit", "paper"):
         table.add_column(col)
-    cp_t = torch.as_tensor(cp, dtype=torch.float32)[None]
-    for name, cam in views.items():
-        full = cam.scaled_to(384, 384)
-        t0 = time.perf_counter()
-        drr_full = ct.render([full])[0]
-        t_full = (time.perf_counter() - t0) * 1e3
-        # region of interest around the CM at half resolution (0.388 mm pixels)
-        centre_uv = cam.project(mid)
-        roi, _ = cam.crop_around(centre_uv, 600)
-        roi = roi.downsample(2)
-        t0 = time.perf_counter()
-        drr_roi = ct.render([roi])[0]
-        t_roi = (time.perf_counter() - t0) * 1e3
-        K = torch.as_tensor(roi.K, dtype=torch.float32)[None]
-        T = torch.as_tensor(roi.camera_from_world @ world_from_cm, dtype=torch.float32)[None, None]
-        t0 = time.perf_counter()
-        drr_cm = cm.render(T, cp_t, K, roi.rows, roi.cols)[0, 0]
-        t_cm = (time.perf_counter() - t0) * 1e3
-        T_full = torch.as_tensor(full.camera_from_world @ world_from_cm, dtype=torch.float32)[None, None]
-        cm_full = cm.render(
-            T_full, cp_t, torch.as_tensor(full.K, dtype=torch.float32)[None], full.rows, full.cols
-        )[0, 0]
-        img_full = (drr_full + cm_full).cpu().numpy()
-        img_roi = (drr_roi + drr_cm).cpu().numpy()
-        np.save(out / f"{name}_drr.npy", img_full.astype(np.float32))
-        _to_png(img_full, out / f"{name}_drr.png")
-        _to_png(img_roi, out / f"{name}_roi.png")
-        full.save(out / f"{name}_camera.json")
-        table.add_row(name, f"{t_full:.1f}", f"{t_roi:.1f}", f"{t_cm:.1f}")
+    for label, key, unit, paper in ERROR_ROWS:
+        if key in result.errors:
+            table.add_row(label, f"{result.errors[key]:.3g}", unit, paper)
     console.print(table)
-    lm = kin.landmarks_cm(torch.as_tensor(cp)[None].double())[0].numpy()
-    summary = {
-        "seed": seed,
-        "volume": volume.name,
-        "femur_side": side,
-        "world_from_cm": world_from_cm.tolist(),
-        "control_points_deg": cp.tolist(),
-        "landmarks_cm_mm": lm.tolist(),
-        "timings": timings,
-        "views": list(views),
-    }
-    (out / "scene.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
-    return summary
+    times = Table(title="seconds per stage")
+    times.add_column("stage")
+    times.add_column("s", justify="right")
+    for s in STAGES:
+        if s in result.timings_s:
+            times.add_row(s, f"{result.timings_s[s]:.1f}")
+    times.add_row("total", f"{sum(result.timings_s.values()):.1f}")
+    console.print(times)
+    if result.status != "ok":
+        console.print(f"[red]demo failed: {result.reason}[/red]")
+        typer.echo(f"wrote {out / 'results.json'} and {report} (partial)")
+        return 1
+    typer.echo(f"wrote {out / 'results.json'} and {report}")
+    if case is not None:
+        typer.echo(f"the three views as a case file: fluoronav register {case} --out DIR")
+    return 0
 
 
 def register(app: typer.Typer) -> None:
@@ -123,7 +107,14 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("demo_out"), "--out", help="Output directory."),
         seed: int = SEED_OPTION,
         device: str = DEVICE_OPTION,
+        image_size: int = typer.Option(
+            768, "--image-size", min=256, max=1536, help="Simulated image size (the 1536² detector binned)."
+        ),
+        oracle_landmarks: bool = typer.Option(
+            False, "--oracle-landmarks", help="True landmarks + U(-3, 3) px instead of the detector."
+        ),
     ) -> None:
-        """Run the main job on the built-in phantom (no files needed) and write the results to --out."""
-        run_render_demo(out, seed=seed, device=device)
-        typer.echo(f"wrote {out}/")
+        """Simulated navigation on the built-in phantom: X-rays → detection → registration → robot
+        command → move → verification; writes report.html and results.json to --out."""
+        code = run(out, seed=seed, device=device, image_size=image_size, oracle_landmarks=oracle_landmarks)
+        raise typer.Exit(code)

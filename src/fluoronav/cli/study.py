@@ -40,6 +40,12 @@ def register(app: typer.Typer) -> None:
         poses: list[int] = typer.Option(
             [4, 8, 15], "--poses", help="hand-eye: numbers of robot poses M to calibrate with (repeatable)."
         ),
+        corrections: int = typer.Option(
+            1,
+            "--corrections",
+            min=0,
+            help="navigation: corrective moves from a new image after the first move (0 = open loop).",
+        ),
         device: str = DEVICE_OPTION,
     ) -> None:
         """Run (or resume) a simulation study; writes trials.csv, summary.json and figures/."""
@@ -60,6 +66,7 @@ def register(app: typer.Typer) -> None:
                 device=str(resolve_device(device)),
                 poses=tuple(poses),
                 image_size=image_size,
+                corrections=corrections,
             )
         else:
             from fluoronav.studies.pipeline import STUDY_WORKFLOWS, StudyConfig, run_study

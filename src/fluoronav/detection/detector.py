@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from fluoronav.detection.centerline import extract_centerline
-from fluoronav.detection.heatmaps import decode_heatmaps
+from fluoronav.detection.heatmaps import decode_landmarks
 from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet
 from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
 from fluoronav.device import resolve_device
@@ -154,7 +154,7 @@ class Detector:
         """(S, S) normalised image → seg logit (S, S), landmarks (2, 2) view px, confidences (2,)."""
         x = torch.from_numpy(view_image)[None, None].to(self.device)
         out = net(x)[0].float()
-        pts, conf = decode_heatmaps(out[None, 1:])
+        pts, conf = decode_landmarks(out[None, 1:], mode=self.config.heatmap, sigma_px=self.config.sigma_px)
         return out[0].cpu().numpy(), pts[0].cpu().numpy().astype(np.float64), conf[0].cpu().numpy()
 
     def _view_input(self, image: np.ndarray, view: View) -> np.ndarray:

@@ -37,6 +37,10 @@ class DetectorConfig:
         roi_channels: feature channels per level of the fine U-Net.
         num_res_units: residual units per level (MONAI ``UNet``).
         sigma_px: standard deviation of the heatmap Gaussians, in working pixels of each stage.
+        heatmap: ``"softmax"``: the heatmap channels are logits of a spatial softmax trained with
+            cross-entropy against normalised Gaussians (decoded by
+            :func:`~fluoronav.detection.heatmaps.decode_logit_heatmaps`); ``"gaussian"``: peak-1
+            Gaussians regressed with L2 (the paper's loss; model files without this key).
         roi_margin_frac: ROI margin on each side as a fraction of the detected extent.
         roi_min_side_px: smallest ROI side in input pixels.
         fine_passes: fine-stage passes; each pass after the first uses a ROI fitted to the previous one.
@@ -52,6 +56,7 @@ class DetectorConfig:
     roi_channels: tuple[int, ...] = (16, 32, 64, 128, 256)
     num_res_units: int = 0
     sigma_px: float = 2.0
+    heatmap: str = "softmax"
     roi_margin_frac: float = 0.2
     roi_min_side_px: float = 24.0
     fine_passes: int = 2
@@ -70,6 +75,7 @@ class DetectorConfig:
     def from_dict(cls, d: dict) -> DetectorConfig:
         known = {f.name for f in fields(cls)}
         kw = {k: v for k, v in d.items() if k in known}
+        kw.setdefault("heatmap", "gaussian")  # files written before the softmax heatmaps
         for key in ("channels", "roi_channels"):
             if key in kw:
                 kw[key] = tuple(int(c) for c in kw[key])

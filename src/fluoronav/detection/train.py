@@ -33,7 +33,7 @@ from tqdm import tqdm
 from fluoronav import __version__
 from fluoronav.detection.augment import AugmentConfig
 from fluoronav.detection.dataset import CMDetectionDataset
-from fluoronav.detection.heatmaps import decode_heatmaps, gaussian_heatmaps
+from fluoronav.detection.heatmaps import decode_landmarks, gaussian_heatmaps, heatmap_cross_entropy
 from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet, count_parameters
 from fluoronav.device import resolve_device
 from fluoronav.errors import InputError
@@ -100,14 +100,22 @@ def stage_loss(
     dice: DiceLoss,
     fg_weight: float = 0.0,
     bce_weight: float = 0.0,
+    heatmap_mode: str = "softmax",
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Dice + weighted L2 loss of one stage. out (B, 3, S, S), mask (B, 1, S, S), landmarks (B, 2, 2)."""
-    target = gaussian_heatmaps(landmarks, (out.shape[-2], out.shape[-1]), sigma_px=sigma_px)
+    """Segmentation + heatmap loss of one stage. out (B, 3, S, S), mask (B, 1, S, S), landmarks (B, 2, 2).
+
+    Heatmaps: cross-entropy of the spatial softmax (``heatmap_mode="softmax"``) or the weighted L2 of
+    peak-1 Gaussians (``"gaussian"``, the paper's).
+    """
     seg = dice(out[:, :1], mask)
     if bce_weight > 0:
         seg = seg + bce_weight * tnf.binary_cross_entropy_with_logits(out[:, :1], mask)
-    w = 1.0 + fg_weight * target
-    hm = (w * (out[:, 1:] - target) ** 2).sum() / (out.shape[0] * 2 * math.pi * sigma_px**2)
+    if heatmap_mode == "softmax":
+        hm = heatmap_cross_entropy(out[:, 1:], landmarks, sigma_px=sigma_px)
+    else:
+        target = gaussian_heatmaps(landmarks, (out.shape[-2], out.shape[-1]), sigma_px=sigma_px)
+        w = 1.0 + fg_weight * target
+        hm = (w * (out[:, 1:] - target) ** 2).sum() / (out.shape[0] * 2 * math.pi * sigma_px**2)
     return seg + heatmap_weight * hm, {"dice_loss": float(seg.detach()), "heatmap_loss": float(hm.detach())}
 
 
@@ -153,6 +161,7 @@ def validate(
             dice=dice,
             fg_weight=tcfg.heatmap_fg_weight,
             bce_weight=tcfg.bce_weight,
+            heatmap_mode=cfg.heatmap,
         )
         lf, _ = stage_loss(
             fo,
@@ -163,13 +172,14 @@ def validate(
             dice=dice,
             fg_weight=tcfg.heatmap_fg_weight,
             bce_weight=tcfg.bce_weight,
+            heatmap_mode=cfg.heatmap,
         )
         losses.append(float(lc + lf))
         pos = batch["positive"].numpy()
         pred = (torch.sigmoid(fo[:, 0]) > cfg.mask_threshold).cpu().numpy()
         true = batch["fine_mask"][:, 0].numpy() > 0.5
-        fpts, _ = decode_heatmaps(fo[:, 1:].cpu())
-        cpts, _ = decode_heatmaps(co[:, 1:].cpu())
+        fpts, _ = decode_landmarks(fo[:, 1:].cpu(), mode=cfg.heatmap, sigma_px=cfg.sigma_px)
+        cpts, _ = decode_landmarks(co[:, 1:].cpu(), mode=cfg.heatmap, sigma_px=cfg.sigma_px)
         view = batch["fine_view"].numpy()
         for i in np.nonzero(pos)[0]:
             inter = np.logical_and(pred[i], true[i]).sum()
@@ -300,6 +310,7 @@ def train(
                 dice=dice,
                 fg_weight=tcfg.heatmap_fg_weight,
                 bce_weight=tcfg.bce_weight,
+                heatmap_mode=mcfg.heatmap,
             )
             lf, _ = stage_loss(
                 fo,
@@ -310,6 +321,7 @@ def train(
                 dice=dice,
                 fg_weight=tcfg.heatmap_fg_weight,
                 bce_weight=tcfg.bce_weight,
+                heatmap_mode=mcfg.heatmap,
             )
             loss = lc + lf
             opt.zero_grad(set_to_none=True)

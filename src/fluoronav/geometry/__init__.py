@@ -3,7 +3,14 @@
 See docs/conventions.md for the frame conventions used everywhere in fluoronav.
 """
 
-from fluoronav.geometry.camera import CIOS_FUSION, Camera, DetectorSpec, project_points, stack_cameras
+from fluoronav.geometry.camera import (
+    CIOS_FUSION,
+    Camera,
+    DetectorSpec,
+    project_points,
+    stack_cameras,
+    triangulate_points,
+)
 from fluoronav.geometry.carm import carm_camera, carm_camera_from_world, orbit_camera
 
 __all__ = [
@@ -15,4 +22,5 @@ __all__ = [
     "orbit_camera",
     "project_points",
     "stack_cameras",
+    "triangulate_points",
 ]

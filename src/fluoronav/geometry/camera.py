@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ import torch
 
 from fluoronav.errors import InputError
 
-__all__ = ["CIOS_FUSION", "Camera", "DetectorSpec", "project_points", "stack_cameras"]
+__all__ = ["CIOS_FUSION", "Camera", "DetectorSpec", "project_points", "stack_cameras", "triangulate_points"]
 
 
 @dataclass(frozen=True)
@@ -322,6 +323,36 @@ def stack_cameras(
     K = torch.tensor(np.stack([c.K for c in cameras]), dtype=dtype, device=device)
     T = torch.tensor(np.stack([c.camera_from_world for c in cameras]), dtype=dtype, device=device)
     return K, T
+
+
+def triangulate_points(cameras: Sequence[Camera], uv: np.ndarray) -> np.ndarray:
+    """Linear (DLT) triangulation of points seen in several views.
+
+    Args:
+        cameras: V ≥ 2 cameras in one world frame.
+        uv: (V, N, 2) pixel positions (u, v) of N points in each view.
+
+    Returns:
+        (N, 3) world points (mm) minimising the algebraic error of ``u·P₃ − P₁``, ``v·P₃ − P₂``
+        over the views (rows scaled to unit norm so that no view dominates by its focal length).
+
+    Raises:
+        ValueError: fewer than two views or mismatched shapes.
+    """
+    uv = np.asarray(uv, dtype=np.float64)
+    if len(cameras) < 2 or uv.ndim != 3 or uv.shape[0] != len(cameras) or uv.shape[2] != 2:
+        raise ValueError(f"need (V ≥ 2, N, 2) pixels for {len(cameras)} cameras, got {uv.shape}")
+    P = np.stack([c.projection_matrix for c in cameras])  # (V, 3, 4)
+    out = np.empty((uv.shape[1], 3))
+    for n in range(uv.shape[1]):  # N is a handful of landmarks
+        rows = np.concatenate(
+            [uv[:, n, 0:1] * P[:, 2] - P[:, 0], uv[:, n, 1:2] * P[:, 2] - P[:, 1]], axis=0
+        )  # (2V, 4)
+        rows /= np.linalg.norm(rows, axis=1, keepdims=True)
+        _, _, vt = np.linalg.svd(rows)
+        X = vt[-1]
+        out[n] = X[:3] / X[3]
+    return out
 
 
 def project_points(K: torch.Tensor, camera_from_world: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

@@ -321,11 +321,14 @@ def load_case(path: str | Path) -> CMCase:
             raise InputError(src, f"views[{k}] must be an object with 'image' and 'camera'")
         img, _spacing = load_image(root / str(v["image"]))
         cam_entry = v["camera"]
-        camera = (
-            Camera.from_dict(cam_entry, source=f"{src} views[{k}].camera")
-            if isinstance(cam_entry, dict)
-            else Camera.load(root / str(cam_entry))
-        )
+        if isinstance(cam_entry, dict):
+            camera = Camera.from_dict(cam_entry, source=f"{src} views[{k}].camera")
+        elif cam_entry == "dicom":  # the geometry tags of the (DICOM) image itself
+            from fluoronav.geometry.dicom import camera_from_dicom
+
+            camera = camera_from_dicom(root / str(v["image"]))
+        else:
+            camera = Camera.load(root / str(cam_entry))
         if img.shape != (camera.rows, camera.cols):
             raise InputError(
                 src, f"views[{k}]: image {img.shape} does not match camera {camera.rows}x{camera.cols}"

@@ -86,6 +86,10 @@ class CenterlineInitResult:
         depth_range_mm: the searched depth interval (the requested range clipped to feasibility).
         candidate_costs: (n_depth, n_theta, 2) grid costs (inf = infeasible), if requested.
         candidate_depth_mm, candidate_theta_deg: (n_depth, n_theta) grid samples, if requested.
+        alternatives: (S, 4, 4) ``camera_from_cm`` of the refined local minima (up to ``n_starts``),
+            lowest cost first (the first is the returned pose when refinement improved on the grid);
+            starts for a multi-start registration.
+        alternative_costs_px: (S,) their centreline costs.
     """
 
     camera_from_cm: np.ndarray
@@ -99,6 +103,8 @@ class CenterlineInitResult:
     candidate_costs: np.ndarray | None = None
     candidate_depth_mm: np.ndarray | None = None
     candidate_theta_deg: np.ndarray | None = None
+    alternatives: np.ndarray | None = None
+    alternative_costs_px: np.ndarray | None = None
 
     def world_from_cm(self, camera: Camera) -> np.ndarray:
         """(4, 4) pose in the camera's world frame."""
@@ -393,6 +399,8 @@ def centerline_initialize(
     best = (float(depth_b.reshape(-1)[flat]), float(theta_b.reshape(-1)[flat]), flat // (n_d * n_t))
     grid_best = float(grid_cost.reshape(-1)[flat])
     best_cost = grid_best
+    alternatives: np.ndarray | None = None
+    alternative_costs: np.ndarray | None = None
 
     if refine:
         minima = _local_minima(grid_cost)
@@ -422,6 +430,12 @@ def centerline_initialize(
             c_cur = torch.where(better, c[rows, j], c_cur)
             sd = torch.where(better, sd, 0.5 * sd)
             st = torch.where(better, st, 0.5 * st)
+        order_c = torch.argsort(c_cur)
+        T_alt, _ = poses_from_depth_theta(
+            ray_a, ray_b, landmarks_cm, d_cur[order_c], t_cur[order_c], b_cur[order_c]
+        )
+        alternatives = T_alt.cpu().numpy()
+        alternative_costs = c_cur[order_c].cpu().numpy()
         k = int(torch.argmin(c_cur))
         if float(c_cur[k]) < best_cost:
             best = (float(d_cur[k]), float(t_cur[k]), int(b_cur[k]))
@@ -447,7 +461,152 @@ def centerline_initialize(
         candidate_costs=grid_cost.permute(1, 2, 0).cpu().numpy() if return_candidates else None,
         candidate_depth_mm=depth.cpu().numpy() if return_candidates else None,
         candidate_theta_deg=theta.cpu().numpy() if return_candidates else None,
+        alternatives=alternatives,
+        alternative_costs_px=alternative_costs,
     )
+
+
+@dataclass(frozen=True)
+class MultiViewInitResult:
+    """Result of :func:`centerline_initialize_multiview`.
+
+    Attributes:
+        world_from_cm: (4, 4) the best pose (world frame of the cameras).
+        theta_deg: its roll about the chord (θ = 0: the CM x axis along the chord × view 0's axis).
+        cost_px: its centreline cost, mean over the views (pixels).
+        landmarks_world: (2, 3) triangulated A and B.
+        alternatives: (S, 4, 4) poses of the local minima over θ, lowest cost first (the first is the
+            best); alternative_costs_px: (S,) their costs.
+        theta_grid_deg, theta_costs_px: the scanned θ and the cost curve.
+    """
+
+    world_from_cm: np.ndarray
+    theta_deg: float
+    cost_px: float
+    landmarks_world: np.ndarray
+    alternatives: np.ndarray
+    alternative_costs_px: np.ndarray
+    theta_grid_deg: np.ndarray
+    theta_costs_px: np.ndarray
+
+
+def centerline_initialize_multiview(
+    cameras: list[Camera],
+    landmarks_px: np.ndarray,
+    centerlines_px: list[np.ndarray],
+    control_points_deg: np.ndarray,
+    *,
+    config: CMConfig | None = None,
+    n_theta: int = 360,
+    n_model_points: int = 48,
+    trim_fraction: float = 0.1,
+) -> MultiViewInitResult:
+    """Initial CM pose from two or more views: triangulated landmarks, then a scan of the roll.
+
+    With the views' relative geometry known (e.g. from the pelvis registrations, §II-C) the landmarks
+    A and B triangulate (:func:`~fluoronav.geometry.camera.triangulate_points`), which removes the
+    depth ambiguity of a single view; the one remaining DoF, the roll θ about the chord, is scanned
+    on ``n_theta`` values and scored by the centreline cost (:func:`centerline_cost`) averaged over
+    all views, where the mirror ambiguity of one view is resolved by the others. A sits on the
+    triangulated A, the model chord points at the triangulated B.
+
+    Args:
+        cameras: V ≥ 2 cameras in one world frame.
+        landmarks_px: (V, 2, 2) detected A, B per view.
+        centerlines_px: V extracted centrelines (P_k, 2), ordered A → B.
+        control_points_deg: (5,) FBG control points.
+        config: CM geometry.
+        n_theta: roll samples over 360°.
+        n_model_points, trim_fraction: as :func:`centerline_initialize`.
+
+    Raises:
+        InputError: malformed inputs; RegistrationFailure: coincident triangulated landmarks.
+    """
+    from fluoronav.geometry.camera import triangulate_points
+
+    if len(cameras) < 2 or len(centerlines_px) != len(cameras):
+        raise InputError("cameras", f"need ≥ 2 views with one centreline each, got {len(cameras)}")
+    lm = _as_input(landmarks_px, (len(cameras), 2, 2), "landmarks_px")
+    cls = [_as_input(c, None, f"centerlines_px[{k}]") for k, c in enumerate(centerlines_px)]
+    cfg = config or CMConfig()
+    cp = _as_input(control_points_deg, (cfg.n_control_points,), "control_points_deg")
+    dt = torch.float64
+    ab = triangulate_points(cameras, lm)
+    chord = ab[1] - ab[0]
+    if np.linalg.norm(chord) < 1e-6:
+        raise RegistrationFailure("the triangulated landmarks A and B coincide")
+    kin = CMKinematics(cfg)
+    cp_t = torch.as_tensor(cp, dtype=dt)
+    lm_cm = kin.landmarks_cm(cp_t)
+    centerline_cm = kin.centerline_cm(cp_t, n_points=n_model_points)
+    u = _normalize(torch.as_tensor(chord, dtype=dt))
+    view_axis = torch.as_tensor(cameras[0].world_from_camera[:3, 2], dtype=dt)
+    ref = torch.linalg.cross(view_axis, u)
+    if float(ref.norm()) < 1e-6:  # chord along view 0's axis: any perpendicular will do
+        ref = torch.linalg.cross(torch.tensor([1.0, 0.0, 0.0], dtype=dt), u)
+    ref = _normalize(ref)
+    theta = torch.arange(n_theta, dtype=dt) * (360.0 / n_theta)
+    th = torch.deg2rad(theta)[:, None]
+    e2 = torch.cos(th) * ref + torch.sin(th) * torch.linalg.cross(u, ref)
+    basis = torch.stack([u.expand_as(e2), e2, torch.linalg.cross(u.expand_as(e2), e2)], dim=-1)
+    R = basis @ _cm_basis(lm_cm[1] - lm_cm[0]).T
+    t = torch.as_tensor(ab[0], dtype=dt) - (R @ lm_cm[0])
+    W = make_transform(R, t)  # (N, 4, 4) world_from_cm
+    cost = torch.zeros(n_theta, dtype=dt)
+    for cam, cl in zip(cameras, cls, strict=True):
+        T = torch.as_tensor(cam.camera_from_world, dtype=dt) @ W
+        cost = cost + centerline_cost(
+            torch.as_tensor(cam.K, dtype=dt),
+            T,
+            centerline_cm,
+            torch.as_tensor(cl, dtype=dt),
+            trim_fraction=trim_fraction,
+        )
+    cost = cost / len(cameras)
+    c = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, math.inf))
+    minima = (c <= torch.roll(c, 1)) & (c <= torch.roll(c, -1)) & torch.isfinite(c)
+    idx = torch.nonzero(minima).squeeze(-1)
+    idx = idx[torch.argsort(c[idx])]
+    if idx.numel() == 0:
+        raise RegistrationFailure("no finite centreline cost over the roll scan")
+    best = int(idx[0])
+    return MultiViewInitResult(
+        world_from_cm=W[best].numpy(),
+        theta_deg=float(theta[best]),
+        cost_px=float(c[best]),
+        landmarks_world=ab,
+        alternatives=W[idx].numpy(),
+        alternative_costs_px=c[idx].numpy(),
+        theta_grid_deg=theta.numpy(),
+        theta_costs_px=c.numpy(),
+    )
+
+
+def mirror_about_chord(
+    world_from_cm: np.ndarray, control_points_deg: np.ndarray, config: CMConfig | None = None
+) -> np.ndarray:
+    """The CM pose turned 180° about its A→B chord: A and B stay put, the bending plane flips.
+
+    A centreline seen in one view hardly tells these two apart (the paper's θ ambiguity), so both are
+    worth a start.
+
+    Args:
+        world_from_cm: (4, 4) CM base pose (any frame).
+        control_points_deg: (5,) shape.
+        config: CM geometry (default :class:`CMConfig`).
+
+    Returns:
+        (4, 4) the mirrored pose, same frame.
+    """
+    from scipy.spatial.transform import Rotation
+
+    kin = CMKinematics(config or CMConfig())
+    ab = kin.landmarks_cm(torch.as_tensor(control_points_deg, dtype=torch.float64)).numpy()
+    axis = ab[1] - ab[0]
+    flip = np.eye(4)
+    flip[:3, :3] = Rotation.from_rotvec(np.pi * axis / np.linalg.norm(axis)).as_matrix()
+    flip[:3, 3] = ab[0] - flip[:3, :3] @ ab[0]
+    return np.asarray(world_from_cm, dtype=np.float64) @ flip
 
 
 # ----- evaluation ---------------------------------------------------------------------------------

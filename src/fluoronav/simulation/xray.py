@@ -62,6 +62,10 @@ class SimulationConfig:
         cm_material: ``"nitinol"`` (6.45 g/cm³) or ``"hu2000"`` (the authors' 2000 HU voxels).
         drill: remove the CT inside the CM envelope.
         drill_voxel_mm: voxel size of the envelope used to remove the CT, mm.
+        shaft_length_mm: length of the rigid tube the CM's base is mounted on (the robot's shaft,
+            same outer and inner diameter and material as the CM), behind the base along −z of the
+            CM frame; 0: the bare CM. Real images show it, and it is what tells the CM's base end
+            (landmark A) from its tip end (B): the bare CM is nearly symmetric end to end.
     """
 
     physics: XrayPhysics = field(
@@ -73,6 +77,36 @@ class SimulationConfig:
     cm_material: str = "nitinol"
     drill: bool = True
     drill_voxel_mm: float = 0.5
+    shaft_length_mm: float = 50.0
+
+
+def tube_chord_mm(
+    origin: torch.Tensor, directions: torch.Tensor, radius_mm: float, z0_mm: float, z1_mm: float
+) -> torch.Tensor:
+    """Length of each ray inside the solid cylinder x² + y² ≤ r², z0 ≤ z ≤ z1 (analytic).
+
+    Args:
+        origin: (3,) ray origin; directions: (N, 3) unit directions (the cylinder's frame).
+        radius_mm, z0_mm, z1_mm: the cylinder.
+
+    Returns:
+        (N,) chord lengths in mm (0 for rays that miss).
+    """
+    ox, oy, oz = origin[0], origin[1], origin[2]
+    dx, dy, dz = directions[:, 0], directions[:, 1], directions[:, 2]
+    a = dx * dx + dy * dy
+    b = 2.0 * (ox * dx + oy * dy)
+    c = ox * ox + oy * oy - radius_mm**2
+    disc = b * b - 4.0 * a * c
+    hit = (disc > 0) & (a > 1e-15)
+    sq = disc.clamp_min(0.0).sqrt()
+    a_safe = torch.where(hit, a, torch.ones_like(a))
+    t1, t2 = (-b - sq) / (2.0 * a_safe), (-b + sq) / (2.0 * a_safe)
+    dz_safe = torch.where(dz.abs() > 1e-15, dz, torch.full_like(dz, 1e-15))
+    s1, s2 = (z0_mm - oz) / dz_safe, (z1_mm - oz) / dz_safe
+    lo = torch.maximum(torch.minimum(s1, s2), t1)
+    hi = torch.minimum(torch.maximum(s1, s2), t2)
+    return torch.where(hit, (hi - lo).clamp_min(0.0), torch.zeros_like(a))
 
 
 @dataclass(frozen=True, eq=False)
@@ -229,6 +263,38 @@ class XraySimulator:
         )[0]
         binned = torch.nn.functional.avg_pool2d(img[None, None], f)[0, 0]
         out[r0:r1, c0:c1] = binned
+        if self.config.shaft_length_mm > 0:
+            out = out + self._shaft_integral(scene, camera)
+        return out
+
+    def _shaft_integral(self, scene: Scene, camera: Camera) -> torch.Tensor:
+        """∫ dl (mm) through the hollow shaft tube (analytic chords), area-binned like the CM."""
+        cm = scene.cm_config
+        z1 = -float(cm.base_length_mm)
+        z0 = z1 - float(self.config.shaft_length_mm)
+        r_out, r_in = cm.outer_diameter_mm / 2.0, cm.inner_diameter_mm / 2.0
+        out = torch.zeros(camera.rows, camera.cols, dtype=torch.float32, device=self.device)
+        corners = np.array([[x, y, z] for x in (-r_out, r_out) for y in (-r_out, r_out) for z in (z0, z1)])
+        world = corners @ scene.world_from_cm[:3, :3].T + scene.world_from_cm[:3, 3]
+        cam_pts = camera.to_camera(world)
+        if np.any(cam_pts[:, 2] <= 1.0):
+            return out
+        uv = camera.project(world)
+        c0, r0 = np.floor(uv.min(axis=0)).astype(int) - 1
+        c1, r1 = np.ceil(uv.max(axis=0)).astype(int) + 2
+        c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, camera.cols), min(r1, camera.rows)
+        if c1 <= c0 or r1 <= r0:
+            return out
+        f = self.config.cm_oversample
+        fine = scene.camera.scaled_to(camera.rows * f, camera.cols * f)
+        crop = fine.crop(row0=r0 * f, col0=c0 * f, rows=(r1 - r0) * f, cols=(c1 - c0) * f)
+        cm_from_camera = np.linalg.inv(crop.camera_from_world @ scene.world_from_cm)
+        dirs = crop.ray_directions_world()  # unit rays in the world frame, (rows, cols, 3)
+        d = torch.as_tensor(dirs.reshape(-1, 3) @ scene.world_from_cm[:3, :3], dtype=torch.float64)
+        o = torch.as_tensor(cm_from_camera[:3, 3], dtype=torch.float64)
+        chord = tube_chord_mm(o, d, r_out, z0, z1) - tube_chord_mm(o, d, r_in, z0, z1)
+        img = chord.reshape(crop.rows, crop.cols).to(torch.float32).to(self.device)
+        out[r0:r1, c0:c1] = torch.nn.functional.avg_pool2d(img[None, None], f)[0, 0]
         return out
 
     def _ct_densities(self, camera: Camera) -> dict[str, torch.Tensor]:

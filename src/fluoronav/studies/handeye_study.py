@@ -31,8 +31,11 @@ Navigation trial: register the CM (single view; initial pose the truth moved by 
 tip on it and the CM axis along the femoral neck (entry → head centre); eq. 8 / IK with the nominal
 model and a hand-eye of documented error (the truth perturbed by ``handeye_error_deg`` /
 ``handeye_error_mm``, our image-based calibration's measured accuracy); move the *true* robot; the
-repositioning error is the distance of the true tip from the planned tip. A new image at the reached
-pose is simulated and the CM registered again (``reposition_registered_mm``: what the images say).
+repositioning error is the distance of the true tip from the planned tip: ``reposition_open_loop_mm``
+after the first move, ``reposition_tip_mm`` after ``corrections`` corrective moves (default 1), each
+computed from a new simulated image at the reached pose whose CM registration (initialised at the
+plan) replaces the first one in eqs. 7–8 (``reposition_registered_mm``: the first such image's
+registered tip against the plan, what the surgeon would see).
 """
 
 from __future__ import annotations
@@ -89,6 +92,7 @@ HANDEYE_METRICS = (
 )
 NAVIGATION_METRICS = (
     "reposition_tip_mm",
+    "reposition_open_loop_mm",
     "reposition_registered_mm",
     "tip_mm",
     "entry_mm",
@@ -117,6 +121,9 @@ class HandEyeStudyConfig:
         register_bones: navigation: register pelvis and femur (else the true femur pose is used).
         navigation_init: initial CM pose of the navigation registration: "perturbed" (the truth moved
             by the authors' 10° / 10 mm, as their simulation code) or "centerline" (from the image).
+        corrections: navigation: corrective moves after the first, each from a registration of a new
+            image at the reached pose (eqs. 7–8 again from the reached joints); the first move's
+            rotation error of the registration is multiplied by its length, a correction is short.
         tracker_sigma_mm: baseline tracker marker noise per axis.
         oracle_landmarks: use truth + U(−3, 3) px even when a detector is available.
     """
@@ -136,6 +143,7 @@ class HandEyeStudyConfig:
     handeye_error_mm: float = 0.5
     register_bones: bool = True
     navigation_init: str = "perturbed"
+    corrections: int = 1
     tracker_sigma_mm: float = 0.1
     oracle_landmarks: bool = True
 
@@ -645,7 +653,8 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         W_after = sc.true_world_from_cm(sc.error_model.actual_joints_deg(q_target, rng=rng))
         tip_after = (W_after @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3]
         planned_true = (tr.world_from_femur @ np.append(plan.tip_target_world_mm, 1.0))[:3]
-        row["reposition_tip_mm"] = point_error_mm(tip_after, planned_true)
+        row["reposition_open_loop_mm"] = point_error_mm(tip_after, planned_true)
+        row["reposition_tip_mm"] = row["reposition_open_loop_mm"]
         row["joint_motion_deg"] = float(np.max(np.abs(wrap_deg(q_target - q_regi))))
         # error budget without image errors: true registrations, the same hand-eye and robot errors
         plan_true = dataclasses.replace(plan, control_points_deg=sc.control_points_deg)
@@ -661,13 +670,18 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         row["reposition_robot_mm"] = point_error_mm(
             (W_ideal @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3], planned_true
         )
-        # what a new image at the reached pose says
+        # new images at the reached pose: what they say, and corrective moves from them
         pts = np.concatenate([kin.landmarks_cm(cpt).numpy(), kin.tip_cm(cpt).numpy()[None]])
-        if _in_view(sc.camera, W_after, pts, 20.0):
+        q_now, W_now = q_target, W_after
+        planned_est = (world_from_femur_est @ np.append(plan.tip_target_world_mm, 1.0))[:3]
+        for k in range(cfg.corrections + 1):
+            if not _in_view(sc.camera, W_now, pts, 20.0):
+                row["reposition_reason"] = "reached pose outside the image"
+                break
             img2 = simulate_scenario_images(
-                sc, simulator, seed=int(rng.integers(2**31)), image_size=cfg.image_size, world_from_cm=W_after
+                sc, simulator, seed=int(rng.integers(2**31)), image_size=cfg.image_size, world_from_cm=W_now
             )[0]
-            lm2 = img2.camera.project(pts[:2] @ W_after[:3, :3].T + W_after[:3, 3])
+            lm2 = img2.camera.project(pts[:2] @ W_now[:3, :3].T + W_now[:3, 3])
             lm2 = lm2 + rng.uniform(-3.0, 3.0, (2, 2)) / b
             reg2 = _register_single(
                 img2,
@@ -677,10 +691,21 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
                 cfg,
                 int(rng.integers(2**31)),
             )
-            planned_est = (world_from_femur_est @ np.append(plan.tip_target_world_mm, 1.0))[:3]
-            row["reposition_registered_mm"] = point_error_mm(reg2.tip_world[0], planned_est)
-        else:
-            row["reposition_reason"] = "reached pose outside the image"
+            if k == 0:
+                row["reposition_registered_mm"] = point_error_mm(reg2.tip_world[0], planned_est)
+            if k == cfg.corrections:
+                break
+            _, q_now = robot_target(
+                sc.nominal,
+                q_now,
+                ee_from_cm=X_used,
+                carm_from_femur=cam @ world_from_femur_est,
+                carm_from_cm=cam @ reg2.world_from_cm[0],
+                femur_from_cm_target=femur_from_cm_target,
+            )
+            W_now = sc.true_world_from_cm(sc.error_model.actual_joints_deg(q_now, rng=rng))
+            tip_now = (W_now @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3]
+            row["reposition_tip_mm"] = point_error_mm(tip_now, planned_true)
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
         mark_failed(row, exc, trial_id)
     return finish_row(row, t0)
@@ -862,6 +887,7 @@ def run_handeye_or_navigation_study(
     image_size: int = 768,
     register_bones: bool = True,
     navigation_init: str = "perturbed",
+    corrections: int = 1,
 ) -> dict[str, Any]:
     """Entry point of ``fluoronav study hand-eye|navigation`` → the summary dict (CONTRACTS)."""
     cfg = HandEyeStudyConfig(
@@ -874,5 +900,6 @@ def run_handeye_or_navigation_study(
         device=device,
         register_bones=register_bones,
         navigation_init=navigation_init,
+        corrections=corrections,
     )
     return run_study(cfg, Path(out), scheduler=scheduler, workers=workers)

@@ -18,7 +18,6 @@ import dataclasses
 import functools
 import json
 import logging
-import math
 import time
 from pathlib import Path
 from typing import Any
@@ -180,61 +179,38 @@ def _register_bones(
     return out
 
 
-def mirror_about_chord(world_from_cm: np.ndarray, control_points_deg: np.ndarray, config: Any) -> np.ndarray:
-    """The CM pose turned 180° about its A→B chord: A and B stay put, the bending plane flips.
+def cm_start_poses(
+    init: Any, camera: Any, control_points_deg: np.ndarray, cm_config: Any, *, n_alternatives: int = 2
+) -> list[np.ndarray]:
+    """World-frame starts from a centreline initialisation: its best ``n_alternatives`` local minima
+    and the mirror of each about the A→B chord (the roll a single centreline hardly fixes)."""
+    from fluoronav.registration.centerline_init import mirror_about_chord
 
-    A centreline seen in one view hardly tells these two apart (the paper's θ ambiguity).
-    """
-    from scipy.spatial.transform import Rotation
-
-    from fluoronav.manipulator.kinematics import CMKinematics
-
-    ab = CMKinematics(config).landmarks_cm(torch.as_tensor(control_points_deg, dtype=torch.float64)).numpy()
-    axis = ab[1] - ab[0]
-    flip = np.eye(4)
-    flip[:3, :3] = Rotation.from_rotvec(np.pi * axis / np.linalg.norm(axis)).as_matrix()
-    flip[:3, 3] = ab[0] - flip[:3, :3] @ ab[0]
-    return world_from_cm @ flip
+    alts = init.alternatives if init.alternatives is not None else init.camera_from_cm[None]
+    poses = [init.camera_from_cm]
+    for T in alts:
+        if len(poses) >= n_alternatives:
+            break
+        if np.linalg.norm(T[:3, 3] - poses[0][:3, 3]) > 1e-6 or not np.allclose(T[:3, :3], poses[0][:3, :3]):
+            poses.append(T)
+    world = [camera.world_from_camera @ T for T in poses]
+    return [w for W in world for w in (W, mirror_about_chord(W, control_points_deg, cm_config))]
 
 
-def _register_cm_two_starts(
-    views: list[Any],
-    world_from_cm0: np.ndarray,
-    trial: Any,
-    base_from_cm: np.ndarray | None,
-    cfg: StudyConfig,
-    *,
-    seed: int,
-) -> Any:
-    """Coarse level from the centreline pose and from its mirror; the full registration from the better."""
-    from fluoronav.registration.cm import CMRegistrationConfig, register_cm
-
-    full = CMRegistrationConfig(device=cfg.device)
-    coarse = full.with_(levels=full.levels[:1])
-    cp0 = trial.initial_control_points_deg
-    starts = [world_from_cm0, mirror_about_chord(world_from_cm0, cp0, trial.cm_config)]
-    trials = [
-        register_cm(
-            views,
-            initial_control_points_deg=cp0,
-            initial_world_from_cm=w,
-            base_from_cm=base_from_cm,
-            config=coarse,
-            seed=seed,
-        )
-        for w in starts
+def multiview_start_poses(
+    init: Any, *, max_starts: int = 2, cost_ratio: float = 1.5, slack_px: float = 0.25
+) -> list[np.ndarray]:
+    """Starts from a multi-view centreline initialisation: its roll minima whose cost is within
+    ``cost_ratio`` × the best + ``slack_px``, at most ``max_starts``, best first. Several views
+    usually leave one clear minimum (e.g. 0.45 px against 1.55 px for the next), and a start in a
+    clearly worse one only costs time and risks the short screening picking it."""
+    best = float(init.alternative_costs_px[0])
+    keep = [
+        W
+        for W, c in zip(init.alternatives, init.alternative_costs_px, strict=True)
+        if float(c) <= cost_ratio * best + slack_px
     ]
-    best = min(trials, key=lambda r: r.cost if math.isfinite(r.cost) else math.inf)
-    res = register_cm(
-        views,
-        initial_control_points_deg=best.control_points_deg,
-        initial_world_from_cm=best.world_from_cm[0],
-        base_from_cm=base_from_cm,
-        config=full,
-        seed=seed + 1,
-    )
-    coarse_s = sum(r.seconds for r in trials)
-    return dataclasses.replace(res, seconds=res.seconds + coarse_s)
+    return keep[:max_starts]
 
 
 def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
@@ -317,8 +293,25 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                     seed=cm_seed,
                 )
             else:
-                world_from_cm0 = np.linalg.inv(cams[0].camera_from_world) @ init.camera_from_cm
-                res = _register_cm_two_starts(views, world_from_cm0, trial, base_from_cm, cfg, seed=cm_seed)
+                from fluoronav.registration.cm import CMRegistrationConfig, register_cm_multistart
+
+                if cfg.workflow == "multi-view":
+                    from fluoronav.registration.centerline_init import centerline_initialize_multiview
+
+                    mv = centerline_initialize_multiview(
+                        cams, np.stack(lms), cls, trial.initial_control_points_deg, config=trial.cm_config
+                    )
+                    starts = multiview_start_poses(mv)
+                else:
+                    starts = cm_start_poses(init, cams[0], trial.initial_control_points_deg, trial.cm_config)
+                res = register_cm_multistart(
+                    views,
+                    starts,
+                    initial_control_points_deg=trial.initial_control_points_deg,
+                    base_from_cm=base_from_cm,
+                    config=CMRegistrationConfig(device=cfg.device),
+                    seed=cm_seed,
+                )
             row["seconds_registration"] = res.seconds
             if not res.success:
                 row["status"] = "failed"
