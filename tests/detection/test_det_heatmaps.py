@@ -59,7 +59,7 @@ def test_softmax_heatmaps_decode_subpixel_and_confidence() -> None:
     torch.testing.assert_close(est.double(), pts, atol=1e-3, rtol=0)
     # mass of a 2-D Gaussian within 2σ of its centre: 1 − exp(−2) (± the pixel grid)
     assert torch.all((conf - (1 - np.exp(-2.0))).abs() < 0.05)
-    flat, conf_flat = decode_logit_heatmaps(torch.zeros(1, 2, 48, 40), sigma_px=sigma)
+    _, conf_flat = decode_logit_heatmaps(torch.zeros(1, 2, 48, 40), sigma_px=sigma)
     assert torch.all(conf_flat < 0.05)  # a diffuse prediction is not confident
 
 
