@@ -44,6 +44,7 @@ class DetectorConfig:
         roi_margin_frac: ROI margin on each side as a fraction of the detected extent.
         roi_min_side_px: smallest ROI side in input pixels.
         fine_passes: fine-stage passes; each pass after the first uses a ROI fitted to the previous one.
+        fine_flip_tta: average the fine stage over the ROI and its mirror image (inference only).
         mask_threshold: probability above which a pixel is CM.
         min_mask_px: smallest coarse mask area (coarse pixels) counted as a detection.
         min_confidence: smallest landmark confidence (heatmap peak) counted as a detection.
@@ -60,6 +61,7 @@ class DetectorConfig:
     roi_margin_frac: float = 0.2
     roi_min_side_px: float = 24.0
     fine_passes: int = 2
+    fine_flip_tta: bool = True
     mask_threshold: float = 0.5
     min_mask_px: int = 6
     min_confidence: float = 0.3

@@ -55,11 +55,14 @@ def _gray(ax: Any, img: np.ndarray, extent: Any = None) -> None:
 
 
 def _edges(img: np.ndarray, frac: float = 0.2) -> np.ndarray:
-    from scipy import ndimage
+    """Thin (Canny) edges of a DRR, thresholds relative to its strongest gradient."""
+    from skimage.feature import canny
 
-    g = np.hypot(ndimage.sobel(img, axis=0), ndimage.sobel(img, axis=1))
-    top = float(g.max())
-    return g > frac * top if top > 0 else np.zeros(img.shape, bool)
+    img = np.asarray(img, dtype=np.float64)
+    top = float(np.ptp(img))
+    if top <= 0:
+        return np.zeros(img.shape, bool)
+    return canny(img / top, sigma=1.0, low_threshold=0.5 * frac * 0.25, high_threshold=frac * 0.25)
 
 
 def _box(points: np.ndarray, shape: tuple[int, int], margin: float) -> tuple[int, int, int, int]:
@@ -195,7 +198,7 @@ def _scene_figure(result: DemoResult) -> bytes:
 
     pel = h(tr.world_from_patient, _surface_points(volume, "pelvis", 2500, rng))
     fem = h(tr.world_from_femur, _surface_points(volume, f"femur_{tr.side}", 1500, rng))
-    ax.scatter(*pel.T, s=0.4, c="#bbbbbb", alpha=0.35, label="pelvis")
+    ax.scatter(*pel.T, s=0.6, c="#888888", alpha=0.5, label="pelvis")
     ax.scatter(*fem.T, s=0.4, c="#d9a066", alpha=0.5, label="femur")
     cp = torch.as_tensor(sc.control_points_deg, dtype=torch.float64)
     axis_cm = kin.centerline_cm(cp, n_points=40, to_z_mm=kin.config.tip_z_mm).numpy()
