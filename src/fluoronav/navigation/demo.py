@@ -402,9 +402,21 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
             image_size=cfg.image_size,
             cm_config=sc.cm_config,
         )
-        found2 = _landmarks([img2], cfg, rng)[0]
+        try:
+            found2: dict[str, Any] | None = _landmarks([img2], cfg, rng)[0]
+        except FluoronavError:  # the registration starts at the plan anyway: centre the ROI there
+            found2 = None
+            log.warning("no CM detected in the verification image: ROI centred on the planned pose")
+        D["verify_detected"] = found2 is not None
         reg2 = register_cm(
-            [CMView(img2.image, cams_ct[0], landmarks_px=found2["landmarks_px"], name="AP after move")],
+            [
+                CMView(
+                    img2.image,
+                    cams_ct[0],
+                    landmarks_px=None if found2 is None else found2["landmarks_px"],
+                    name="AP after move",
+                )
+            ],
             initial_control_points_deg=reg.control_points_deg,
             initial_world_from_cm=ct_from_femur @ femur_from_cm_target,
             config=CMRegistrationConfig(device=cfg.device),
