@@ -242,8 +242,13 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
         q_regi_actual = sc.error_model.actual_joints_deg(q_regi, rng=rng)
         W_regi = sc.true_world_from_cm(q_regi_actual)
         mid = _h(W_regi, kin.centerline_cm(cpt).numpy()).mean(axis=0)
-        ap = sc.camera
-        cams_full = [ap] + [orbit_camera(ap, angle_deg=a, isocenter_world=mid) for a in cfg.orbit_deg]
+        # C-arm centred between the CM and the femur's entry point: the CM is in view where it is
+        # registered and where it is sent (the field of view is ~130 mm at the isocentre)
+        shift = np.eye(4)
+        shift[:3, 3] = -0.5 * (tr.entry_world - mid)
+        ap = sc.camera.with_pose(sc.camera.camera_from_world @ shift)
+        iso = 0.5 * (tr.entry_world + mid)
+        cams_full = [ap] + [orbit_camera(ap, angle_deg=a, isocenter_world=iso) for a in cfg.orbit_deg]
         names = ["AP"] + [f"orbit {a:+g}°" for a in cfg.orbit_deg]
     D["views"] = names
     D["true"] = {
