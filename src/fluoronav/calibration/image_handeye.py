@@ -38,7 +38,7 @@ import torch
 from fluoronav.calibration import _se3
 from fluoronav.calibration.handeye import check_motion
 from fluoronav.calibration.results import HandEyeFailure
-from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.config import CMConfig, with_shaft
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.cm import DEFAULT_CM_MU_PER_MM, CMView, ViewROI, view_roi
 from fluoronav.registration.engine import PriorFn, Registration
@@ -131,6 +131,9 @@ class ImageHandEyeConfig:
         control_point_sigma_deg: Gaussian prior of the control points around the initial values.
         min_axis_spread_deg: degeneracy threshold of :func:`~fluoronav.calibration.handeye.check_motion`.
         cm_mu_per_mm, cm_config: CM DRR attenuation and geometry.
+        shaft_length_mm: length of the rigid tube the CM is mounted on, rendered as a longer base
+            (:func:`~fluoronav.manipulator.config.with_shaft`): it shows in the images and pins the
+            base's direction down; 0 for a bare CM. The simulator's default is the same 50 mm.
         chunk_size: render at most this many candidates per call (None: whole population).
         device: torch device.
     """
@@ -142,6 +145,7 @@ class ImageHandEyeConfig:
     min_axis_spread_deg: float = 5.0
     cm_mu_per_mm: float = DEFAULT_CM_MU_PER_MM
     cm_config: CMConfig = field(default_factory=CMConfig)
+    shaft_length_mm: float = 50.0
     chunk_size: int | None = None
     device: str = "cpu"
 
@@ -278,7 +282,9 @@ class ImageHandEyeProblem:
         cp0 = np.asarray(initial_control_points_deg, np.float64).reshape(-1)
         self.param = HandEye(initial_world_from_rbase, rbase_from_ee, initial_ee_from_cm, cp0, device=dev)
         self.kinematics = CMKinematics(cfg.cm_config)
-        self.renderer = CMRenderer(cfg.cm_config, mu_per_mm=cfg.cm_mu_per_mm, device=dev)
+        self.renderer = CMRenderer(
+            with_shaft(cfg.cm_config, cfg.shaft_length_mm), mu_per_mm=cfg.cm_mu_per_mm, device=dev
+        )
         f64 = torch.float64
         self.K_full = torch.as_tensor(np.stack([v.camera.K for v in self.views]), dtype=f64, device=dev)
         self.T_full = torch.as_tensor(

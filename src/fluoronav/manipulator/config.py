@@ -118,6 +118,22 @@ class CMConfig(BaseModel):
         return math.degrees(math.atan2(self.notch_width_mm, max(lever, 1e-9)))
 
 
+def with_shaft(config: CMConfig, shaft_length_mm: float) -> CMConfig:
+    """The CM with its mounting shaft as a longer base: the base tube extended by ``shaft_length_mm``
+    behind the base (−z), landmarks, notches and tip unchanged. For rendering the CM as it appears
+    in an X-ray (the rigid shaft it is mounted on, same tube); 0 returns ``config``."""
+    if shaft_length_mm < 0:
+        raise ValueError(f"shaft_length_mm must be ≥ 0, got {shaft_length_mm}")
+    if shaft_length_mm == 0:
+        return config
+    return config.model_copy(
+        update={
+            "base_length_mm": config.base_length_mm + shaft_length_mm,
+            "total_length_mm": config.total_length_mm + shaft_length_mm,
+        }
+    )
+
+
 def load_cm_config(path: str | Path) -> CMConfig:
     """Read a CM configuration from TOML or JSON; missing keys keep the paper's defaults."""
     p = Path(path)

@@ -38,7 +38,7 @@ import torch
 
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.rotations import angle_between_rotations_deg
-from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.config import CMConfig, with_shaft
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.engine import PriorFn, Registration
 from fluoronav.registration.levels import CM_SIGMA, LevelConfig
@@ -112,6 +112,9 @@ class CMRegistrationConfig:
         use_background: add the views' background DRRs (when given) to the CM DRR.
         cm_mu_per_mm: attenuation of the CM in the DRR (matters only relative to a background).
         cm_config: CM geometry.
+        shaft_length_mm: length of the rigid tube the CM is mounted on, rendered as a longer base
+            (:func:`~fluoronav.manipulator.config.with_shaft`): it shows in the images and pins the
+            base's direction down; 0 for a bare CM. The simulator's default is the same 50 mm.
         chunk_size: render at most this many candidates per call (None: the whole population).
         device: torch device of rendering and similarity.
     """
@@ -123,6 +126,7 @@ class CMRegistrationConfig:
     use_background: bool = True
     cm_mu_per_mm: float = DEFAULT_CM_MU_PER_MM
     cm_config: CMConfig = field(default_factory=CMConfig)
+    shaft_length_mm: float = 50.0
     chunk_size: int | None = None
     device: str = "cpu"
 
@@ -358,7 +362,9 @@ class CMProblem:
             proj = v.camera.project(ab0 @ T[:3, :3].T + T[:3, 3])
             self.centers.append(_landmark_center(v, proj.mean(axis=0)))
 
-        self.renderer = CMRenderer(cfg.cm_config, mu_per_mm=cfg.cm_mu_per_mm, device=device)
+        self.renderer = CMRenderer(
+            with_shaft(cfg.cm_config, cfg.shaft_length_mm), mu_per_mm=cfg.cm_mu_per_mm, device=device
+        )
         self._rois: dict[int, list[ViewROI]] = {}
         self._tensors: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
         f64 = torch.float64
