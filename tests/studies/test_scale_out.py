@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fluoronav.studies.runner import CsvLog, run_tasks
+from fluoronav.studies.runner import CsvLog, run_tasks, task_seeds
 
 COLUMNS = ["trial", "seed", "value"]
 
@@ -45,7 +45,7 @@ _SCRIPT = textwrap.dedent(
     """
     import sys, time
     import numpy as np
-    from fluoronav.studies.runner import CsvLog, run_tasks
+    from fluoronav.studies.runner import CsvLog, run_tasks, task_seeds
 
     def task(tid, seed):
         time.sleep(0.15)
@@ -86,3 +86,42 @@ def test_a_killed_process_resumes_with_exactly_every_trial_once(tmp_path: Path) 
     )
     by_id = {int(r["trial"]): float(r["value"]) for r in rows}
     assert all(abs(by_id[r["trial"]] - r["value"]) < 1e-12 for r in ref)
+
+
+def test_an_existing_scheduler_runs_the_tasks(tmp_path: Path) -> None:
+    # the --scheduler path: a cluster started elsewhere, only its address is given to the run
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        task = functools.partial(_dying_task, marker_dir=str(tmp_path))
+        rows = run_tasks(
+            task, 8, 9, CsvLog(tmp_path / "trials.csv", COLUMNS), scheduler=cluster.scheduler_address
+        )
+    assert sorted(r["trial"] for r in rows) == list(range(8))
+    ref = {tid: _value(s) for tid, s in enumerate(task_seeds(9, 8))}
+    assert all(abs(r["value"] - ref[r["trial"]]) < 1e-12 for r in rows)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(sys.platform == "win32", reason="SIGKILL")
+def test_a_killed_12_trial_study_resumes_to_exactly_12_trials(tmp_path: Path) -> None:
+    out = tmp_path / "study"
+    cmd = [sys.executable, "-m", "fluoronav", "study", "centerline", "--trials", "12", "--seed", "4"]
+    cmd += ["--out", str(out), "--workers", "0", "--oracle-landmarks", "--image-size", "384"]
+    csv_path = out / "trials.csv"
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 900.0
+        while time.monotonic() < deadline and proc.poll() is None:
+            if csv_path.exists() and len(CsvLog(csv_path, ["trial"]).read()) >= 3:
+                break
+            time.sleep(0.5)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=60)
+    assert 3 <= len(CsvLog(csv_path, ["trial"]).read()) < 12
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    trials = [int(r["trial"]) for r in CsvLog(csv_path, ["trial"]).read()]
+    assert sorted(trials) == list(range(12))
+    summary = __import__("json").loads((out / "summary.json").read_text(encoding="utf-8"))
+    assert summary["trials"] == 12 and summary["completed"] + summary["failed"] == 12

@@ -144,6 +144,8 @@ def load_calibration_case(path: str | Path) -> CalibrationCase:
     if "camera" not in d:
         raise InputError(src, "'camera' (the one C-arm camera file) is required")
     cam_entry = d["camera"]
+    if not isinstance(cam_entry, (str, dict)) or cam_entry == "":
+        raise InputError(src, "'camera' must be a camera file name or a camera object")
     camera = (
         Camera.from_dict(cam_entry, source=f"{src} camera")
         if isinstance(cam_entry, dict)
@@ -159,7 +161,9 @@ def load_calibration_case(path: str | Path) -> CalibrationCase:
     for k, v in enumerate(vlist):
         if not isinstance(v, dict) or "image" not in v:
             raise InputError(src, f"views[{k}] must be an object with 'image'")
-        img, _ = load_image(root / str(v["image"]))
+        if not isinstance(v["image"], str) or not v["image"]:
+            raise InputError(src, f"views[{k}].image must be a file name")
+        img, _ = load_image(root / v["image"])
         if img.shape != (camera.rows, camera.cols):
             raise InputError(
                 src, f"views[{k}]: image {img.shape} does not match camera {camera.rows}x{camera.cols}"

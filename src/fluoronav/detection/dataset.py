@@ -89,7 +89,7 @@ def load_sample(root: str | Path, record: dict) -> Sample:
             image = np.asarray(npz["image"], dtype=np.float32)
             mask = np.asarray(npz["mask"]) > 0 if "mask" in npz.files else np.zeros(image.shape, bool)
             lm = np.asarray(npz["landmarks_px"], dtype=np.float64) if "landmarks_px" in npz.files else None
-    except (OSError, ValueError, KeyError) as exc:
+    except (OSError, ValueError, KeyError, EOFError) as exc:
         raise InputError(path, f"unreadable sample ({exc})") from exc
     if image.ndim != 2 or mask.shape != image.shape:
         raise InputError(path, f"image {image.shape} and mask {mask.shape} must be equal 2-D shapes")

@@ -267,12 +267,12 @@ def load_image(path: str | Path) -> tuple[np.ndarray, float | None]:
                 arr = np.asarray(npz["image"])
                 if "pixel_spacing_mm" in npz.files:
                     spacing = float(np.mean(npz["pixel_spacing_mm"]))
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError) as exc:
             raise InputError(path, f"unreadable .npz ({exc.__class__.__name__})") from exc
     elif suffix == ".npy":
         try:
             arr = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError) as exc:
             raise InputError(path, f"unreadable .npy ({exc.__class__.__name__})") from exc
     elif suffix in (".png", ".tif", ".tiff", ".jpg", ".jpeg"):
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)

@@ -319,14 +319,18 @@ def load_case(path: str | Path) -> CMCase:
     for k, v in enumerate(vlist):
         if not isinstance(v, dict) or "image" not in v or "camera" not in v:
             raise InputError(src, f"views[{k}] must be an object with 'image' and 'camera'")
-        img, _spacing = load_image(root / str(v["image"]))
+        if not isinstance(v["image"], str) or not v["image"]:
+            raise InputError(src, f"views[{k}].image must be a file name")
         cam_entry = v["camera"]
+        if not isinstance(cam_entry, (str, dict)) or cam_entry == "":
+            raise InputError(src, f"views[{k}].camera must be a camera file name, 'dicom' or a camera object")
+        img, _spacing = load_image(root / v["image"])
         if isinstance(cam_entry, dict):
             camera = Camera.from_dict(cam_entry, source=f"{src} views[{k}].camera")
         elif cam_entry == "dicom":  # the geometry tags of the (DICOM) image itself
             from fluoronav.geometry.dicom import camera_from_dicom
 
-            camera = camera_from_dicom(root / str(v["image"]))
+            camera = camera_from_dicom(root / v["image"])
         else:
             camera = Camera.load(root / str(cam_entry))
         if img.shape != (camera.rows, camera.cols):
