@@ -114,10 +114,12 @@ def _full_to_image_px(uv_full: np.ndarray, binning: int) -> np.ndarray:
 
 def _landmarks_and_centerline(
     images: list[Any], trial: Any, cfg: StudyConfig, binning: int
-) -> tuple[list[np.ndarray], list[np.ndarray]]:
+) -> tuple[list[np.ndarray | None], list[np.ndarray | None]]:
+    """Per image: landmarks (2, 2) and centreline, or None where the detector found no CM."""
     from fluoronav.detection.centerline import extract_centerline
 
-    lms, cls = [], []
+    lms: list[np.ndarray | None] = []
+    cls: list[np.ndarray | None] = []
     for i, sim in enumerate(images):
         if cfg.oracle_landmarks:
             lm = _full_to_image_px(trial.oracle_landmarks_px[i], binning)
@@ -125,7 +127,11 @@ def _landmarks_and_centerline(
         else:
             det = _detector(cfg.device).detect(sim.image, pixel_spacing_mm=sim.camera.pixel_spacing_mm)
             if not det.found or det.landmarks_px is None:
-                raise _TrialFailure(f"detector found no CM in image {i}")
+                # the view still counts in the registration (ROI at the initial pose's projection);
+                # the initialisation needs view 0 (one-view workflows) or two views (multi-view)
+                lms.append(None)
+                cls.append(None)
+                continue
             lm, mask = det.landmarks_px, det.mask
             if det.centerline_px is not None:
                 lms.append(lm)
@@ -257,12 +263,22 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
             )
         else:
             world_est_from_world = np.eye(4)
-        # centreline initialisation in the first (AP) view
-        init = centerline_initialize(
-            cams[0], lms[0], cls[0], trial.initial_control_points_deg, seed=int(rng.integers(2**31))
-        )
+        found = [k for k, lm in enumerate(lms) if lm is not None]
+        row["views_detected"] = len(found)
+        if cfg.workflow == "multi-view" and cfg.init != "perturbed":
+            if len(found) < 2:
+                raise _TrialFailure(f"the detector found the CM in {len(found)} of {len(lms)} views (need 2)")
+            init = None
+        elif lms[0] is None or cls[0] is None:
+            raise _TrialFailure("detector found no CM in image 0")
+        else:
+            # centreline initialisation in the first (AP) view
+            init = centerline_initialize(
+                cams[0], lms[0], cls[0], trial.initial_control_points_deg, seed=int(rng.integers(2**31))
+            )
         carm0_true = images[0].camera.camera_from_world @ trial.world_from_cm[0]
         if cfg.workflow == "centerline":
+            assert init is not None
             carm_from_cm_est = init.camera_from_cm
             cp_est = trial.initial_control_points_deg
             true_depth = carm0_true[2, 3]
@@ -303,7 +319,11 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                     from fluoronav.registration.centerline_init import centerline_initialize_multiview
 
                     mv = centerline_initialize_multiview(
-                        cams, np.stack(lms), cls, trial.initial_control_points_deg, config=trial.cm_config
+                        [cams[k] for k in found],
+                        np.stack([np.asarray(lms[k]) for k in found]),
+                        [np.asarray(cls[k]) for k in found],
+                        trial.initial_control_points_deg,
+                        config=trial.cm_config,
                     )
                     starts = multiview_start_poses(mv)
                 else:
@@ -373,6 +393,7 @@ def _columns(workflow: str) -> list[str]:
         "seconds",
         "seconds_registration",
         "seconds_bones",
+        "views_detected",
         "true_control_points_deg",
         "est_control_points_deg",
         "true_world_from_cm",
