@@ -151,11 +151,12 @@ def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ T[:3, :3].T + T[:3, 3]
 
 
-def _landmarks(images: list[Any], cfg: DemoConfig, rng: np.random.Generator) -> list[dict[str, Any]]:
-    """Per view: landmarks (2, 2), centreline (P, 2), mask, confidence (detector or oracle)."""
+def _landmarks(images: list[Any], cfg: DemoConfig, rng: np.random.Generator) -> list[dict[str, Any] | None]:
+    """Per view: landmarks (2, 2), centreline (P, 2), mask, confidence (detector or oracle); None
+    where the detector found no CM."""
     from fluoronav.detection.centerline import extract_centerline
 
-    out = []
+    out: list[dict[str, Any] | None] = []
     for i, sim in enumerate(images):
         binning = max(1, round(1536 / sim.camera.cols))
         if cfg.oracle_landmarks:
@@ -174,7 +175,9 @@ def _landmarks(images: list[Any], cfg: DemoConfig, rng: np.random.Generator) -> 
 
         det = _detector(cfg.device).detect(sim.image, pixel_spacing_mm=sim.camera.pixel_spacing_mm)
         if not det.found or det.landmarks_px is None or det.centerline_px is None:
-            raise FluoronavError(f"the detector found no CM in view {i}")
+            log.warning("the detector found no CM in view %d", i)
+            out.append(None)
+            continue
         out.append(
             {
                 "landmarks_px": det.landmarks_px,
@@ -280,13 +283,18 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     with stage("detect"):
         found = _landmarks(images, cfg, rng)
     A["detections"] = found
+    seen = [k for k, f in enumerate(found) if f is not None]
+    D["views_detected"] = len(seen)
+    if len(seen) < 2:
+        raise FluoronavError(f"the CM was detected in {len(seen)} of {len(found)} views; two are needed")
     det_err = [
-        np.linalg.norm(f["landmarks_px"] - s.landmarks_px, axis=1) for f, s in zip(found, images, strict=True)
+        np.linalg.norm(found[k]["landmarks_px"] - images[k].landmarks_px, axis=1)  # type: ignore[index]
+        for k in seen
     ]
     ps = images[0].camera.pixel_spacing_mm or float("nan")
     E["landmark_px"] = float(np.mean(det_err))
     E["landmark_mm_at_detector"] = float(np.mean(det_err) * ps)
-    D["landmarks_px"] = [f["landmarks_px"].tolist() for f in found]
+    D["landmarks_px"] = [None if f is None else f["landmarks_px"].tolist() for f in found]
 
     # ----- bones: pelvis per view → view geometry in the CT frame; femur in all views -------------
     views = [BoneView(s.image, s.camera) for s in images]
@@ -328,13 +336,16 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
 
     # ----- CM: triangulated depth + centreline init, multi-start multi-view registration ---------
     with stage("cm"):
-        lms = np.stack([f["landmarks_px"] for f in found])
         cp0 = tr.initial_control_points_deg  # FBG reading
         init = centerline_initialize_multiview(
-            cams_ct, lms, [f["centerline_px"] for f in found], cp0, config=sc.cm_config
+            [cams_ct[k] for k in seen],
+            np.stack([found[k]["landmarks_px"] for k in seen]),  # type: ignore[index]
+            [found[k]["centerline_px"] for k in seen],  # type: ignore[index]
+            cp0,
+            config=sc.cm_config,
         )
-        cm_views = [
-            CMView(s.image, c, landmarks_px=f["landmarks_px"], name=n)
+        cm_views = [  # a view without a detection still counts (ROI at the initial pose)
+            CMView(s.image, c, landmarks_px=None if f is None else f["landmarks_px"], name=n)
             for s, c, f, n in zip(images, cams_ct, found, names, strict=True)
         ]
         reg = register_cm_multistart(
@@ -407,11 +418,8 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
             image_size=cfg.image_size,
             cm_config=sc.cm_config,
         )
-        try:
-            found2: dict[str, Any] | None = _landmarks([img2], cfg, rng)[0]
-        except FluoronavError:  # the registration starts at the plan anyway: centre the ROI there
-            found2 = None
-            log.warning("no CM detected in the verification image: ROI centred on the planned pose")
+        # the registration starts at the plan: without a detection its ROI is centred there
+        found2 = _landmarks([img2], cfg, rng)[0]
         D["verify_detected"] = found2 is not None
         reg2 = register_cm(
             [
@@ -475,10 +483,11 @@ def write_case(result: DemoResult, out: Path) -> Path | None:
                 "name": name,
                 "image": f"{name}.npz",
                 "camera": f"{name}_camera.json",
-                "landmarks_px": np.asarray(det["landmarks_px"]).tolist(),
-                "centerline_px": np.asarray(det["centerline_px"]).tolist(),
             }
         )
+        if det is not None:
+            views[-1]["landmarks_px"] = np.asarray(det["landmarks_px"]).tolist()
+            views[-1]["centerline_px"] = np.asarray(det["centerline_px"]).tolist()
     carm = A["images"][0].camera.camera_from_world
     ct_from_cm_true = A["cams_ct"][0].world_from_camera @ carm @ A["W_regi"]
     case = {

@@ -80,6 +80,13 @@ def _detection_figure(result: DemoResult) -> bytes:
     images, dets, names = A["images"], A["detections"], A["names"]
     fig, axes = plt.subplots(1, len(images), figsize=(4.2 * len(images), 4.2))
     for ax, sim, det, name in zip(np.atleast_1d(axes), images, dets, names, strict=True):
+        if det is None:
+            vv, uu = np.nonzero(sim.mask)
+            pts = np.stack([uu, vv], axis=1).astype(float)
+            r0, r1, c0, c1 = _box(pts, sim.image.shape, 25.0)
+            _gray(ax, sim.image[r0:r1, c0:c1], extent=(c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5))
+            ax.set_title(f"{name}: no CM detected", fontsize=9)
+            continue
         vv, uu = np.nonzero(det["mask"]) if det["mask"].any() else np.nonzero(sim.mask)
         pts = np.stack([uu, vv], axis=1).astype(float)
         r0, r1, c0, c1 = _box(pts, sim.image.shape, 25.0)
