@@ -216,7 +216,6 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     from fluoronav.calibration.robot import wrap_deg
     from fluoronav.geometry import orbit_camera
     from fluoronav.manipulator.kinematics import CMKinematics
-    from fluoronav.navigation.navigate import robot_target
     from fluoronav.navigation.planning import Plan, planned_femur_from_cm
     from fluoronav.registration.bone import BoneView, register_femur, register_pelvis_per_view
     from fluoronav.registration.centerline_init import centerline_initialize_multiview
@@ -383,21 +382,20 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
         femur_from_cm_target = planned_femur_from_cm(plan, kinematics=kin)
     D["plan"] = plan.to_dict()
 
-    with stage("robot"):
+    with stage("robot"):  # eqs. 7-8 + IK on the nominal model; the true robot (with its errors) moves
         ee_from_cm_used = _perturb(sc.ee_from_cm, rng, cfg.handeye_error_deg, cfg.handeye_error_mm)
-        _, q_target = robot_target(
-            sc.nominal,
+        q_target, W_after = sc.move_to_plan(
             q_regi,
             ee_from_cm=ee_from_cm_used,
             carm_from_femur=carm_est_from_ct @ ct_from_femur,
             carm_from_cm=carm_est_from_ct @ ct_from_cm,
             femur_from_cm_target=femur_from_cm_target,
+            rng=rng,
         )
     D["q_target_deg"] = q_target.tolist()
     E["joint_motion_deg"] = float(np.max(np.abs(wrap_deg(q_target - q_regi))))
 
     with stage("move"):
-        W_after = sc.true_world_from_cm(sc.error_model.actual_joints_deg(q_target, rng=rng))
         tip_after = _h(W_after, pts_cm[2])
         planned_tip_true = _h(tr.world_from_femur, plan.tip_target_world_mm)
     E["reposition_tip_mm"] = float(np.linalg.norm(tip_after - planned_tip_true))
@@ -445,15 +443,14 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
 
     # ----- one corrective move from the verification registration (closed loop) -----------------
     with stage("correct"):
-        _, q_corr = robot_target(
-            sc.nominal,
+        q_corr, W_final = sc.move_to_plan(
             q_target,
             ee_from_cm=ee_from_cm_used,
             carm_from_femur=carm_est_from_ct @ ct_from_femur,
             carm_from_cm=carm_est_from_ct @ reg2.world_from_cm[0],
             femur_from_cm_target=femur_from_cm_target,
+            rng=rng,
         )
-        W_final = sc.true_world_from_cm(sc.error_model.actual_joints_deg(q_corr, rng=rng))
     D["q_corrected_deg"] = q_corr.tolist()
     D["true"]["world_from_cm_corrected"] = W_final.tolist()
     A["W_final"] = W_final

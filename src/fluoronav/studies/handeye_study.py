@@ -188,6 +188,33 @@ class HandEyeScenario:
         """(..., 4, 4) true CM pose with the joints physically at ``q_actual_deg``."""
         return self.world_from_rbase @ self.true_robot.rbase_from_ee(q_actual_deg) @ self.ee_from_cm
 
+    def move_to_plan(
+        self,
+        q_from_deg: np.ndarray,
+        *,
+        ee_from_cm: np.ndarray,
+        carm_from_femur: np.ndarray,
+        carm_from_cm: np.ndarray,
+        femur_from_cm_target: np.ndarray,
+        rng: np.random.Generator,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Command the nominal robot from ``q_from_deg`` by eqs. 7–8 + IK and move the true one.
+
+        Returns:
+            (commanded joints (6,), true ``world_from_cm`` (4, 4) where the CM physically ends up).
+        """
+        from fluoronav.navigation.navigate import robot_target
+
+        _, q = robot_target(
+            self.nominal,
+            q_from_deg,
+            ee_from_cm=ee_from_cm,
+            carm_from_femur=carm_from_femur,
+            carm_from_cm=carm_from_cm,
+            femur_from_cm_target=femur_from_cm_target,
+        )
+        return q, self.true_world_from_cm(self.error_model.actual_joints_deg(q, rng=rng))
+
 
 def _random_rotation(rng: np.random.Generator, max_deg: float, *, fixed: bool = False) -> np.ndarray:
     axis = rng.normal(size=3)
@@ -557,7 +584,6 @@ def _register_single(
 
 def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, Any]:
     """One navigation trial → one ``trials.csv`` row (module docstring)."""
-    from fluoronav.navigation.navigate import robot_target
     from fluoronav.navigation.planning import Plan, planned_femur_from_cm
     from fluoronav.studies.metrics import cm_errors, point_error_mm, relative_error_mm
     from fluoronav.studies.pipeline import _anatomy
@@ -642,15 +668,14 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         )
         femur_from_cm_target = planned_femur_from_cm(plan, kinematics=kin)
         X_used = _perturb(sc.ee_from_cm, rng, cfg.handeye_error_deg, cfg.handeye_error_mm)
-        _, q_target = robot_target(
-            sc.nominal,
+        q_target, W_after = sc.move_to_plan(
             q_regi,
             ee_from_cm=X_used,
             carm_from_femur=cam @ world_from_femur_est,
             carm_from_cm=cam @ reg.world_from_cm[0],
             femur_from_cm_target=femur_from_cm_target,
+            rng=rng,
         )
-        W_after = sc.true_world_from_cm(sc.error_model.actual_joints_deg(q_target, rng=rng))
         tip_after = (W_after @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3]
         planned_true = (tr.world_from_femur @ np.append(plan.tip_target_world_mm, 1.0))[:3]
         row["reposition_open_loop_mm"] = point_error_mm(tip_after, planned_true)
@@ -658,15 +683,14 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         row["joint_motion_deg"] = float(np.max(np.abs(wrap_deg(q_target - q_regi))))
         # error budget without image errors: true registrations, the same hand-eye and robot errors
         plan_true = dataclasses.replace(plan, control_points_deg=sc.control_points_deg)
-        _, q_ideal = robot_target(
-            sc.nominal,
+        _, W_ideal = sc.move_to_plan(
             q_regi,
             ee_from_cm=X_used,
             carm_from_femur=cam @ tr.world_from_femur,
             carm_from_cm=cam @ W_regi,
             femur_from_cm_target=planned_femur_from_cm(plan_true, kinematics=kin),
+            rng=rng,
         )
-        W_ideal = sc.true_world_from_cm(sc.error_model.actual_joints_deg(q_ideal, rng=rng))
         row["reposition_robot_mm"] = point_error_mm(
             (W_ideal @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3], planned_true
         )
@@ -695,15 +719,14 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
                 row["reposition_registered_mm"] = point_error_mm(reg2.tip_world[0], planned_est)
             if k == cfg.corrections:
                 break
-            _, q_now = robot_target(
-                sc.nominal,
+            q_now, W_now = sc.move_to_plan(
                 q_now,
                 ee_from_cm=X_used,
                 carm_from_femur=cam @ world_from_femur_est,
                 carm_from_cm=cam @ reg2.world_from_cm[0],
                 femur_from_cm_target=femur_from_cm_target,
+                rng=rng,
             )
-            W_now = sc.true_world_from_cm(sc.error_model.actual_joints_deg(q_now, rng=rng))
             tip_now = (W_now @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3]
             row["reposition_tip_mm"] = point_error_mm(tip_now, planned_true)
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
