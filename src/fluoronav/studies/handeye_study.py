@@ -246,6 +246,17 @@ def _in_view(camera: Camera, world_from_cm: np.ndarray, pts_cm: np.ndarray, marg
     )
 
 
+def centre_between(
+    camera: Camera, a_world: np.ndarray, b_world: np.ndarray, current_world: np.ndarray
+) -> Camera:
+    """The camera translated (no rotation) so that the point it centred, ``current_world``, moves to
+    the midpoint of ``a_world`` and ``b_world``: the C-arm placed to see both where the CM is
+    registered and where it is sent (~130 mm field of view at the isocentre)."""
+    shift = np.eye(4)
+    shift[:3, 3] = -(0.5 * (np.asarray(a_world) + np.asarray(b_world)) - np.asarray(current_world))
+    return camera.with_pose(camera.camera_from_world @ shift)
+
+
 def sample_handeye_scenario(
     volume: Any,
     rng: np.random.Generator,
@@ -603,6 +614,9 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         kin = CMKinematics()
         sc = sample_handeye_scenario(volume, rng, n_poses=0)
         tr = sc.trial
+        # the C-arm sees both the working pose and the entry point, so the reached pose can be imaged
+        mid0 = sc.world_from_cm[0][:3, 3] if sc.n_poses else tr.world_from_cm[0][:3, 3]
+        sc = dataclasses.replace(sc, camera=centre_between(sc.camera, mid0, tr.entry_world, mid0))
         cam = sc.camera.camera_from_world
         q_regi = sc.q_work_deg
         W_regi = sc.true_world_from_cm(sc.error_model.actual_joints_deg(q_regi, rng=rng))
