@@ -220,7 +220,12 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     from fluoronav.registration.bone import BoneView, register_femur, register_pelvis_per_view
     from fluoronav.registration.centerline_init import centerline_initialize_multiview
     from fluoronav.registration.cm import CMRegistrationConfig, CMView, register_cm, register_cm_multistart
-    from fluoronav.studies.handeye_study import _perturb, centre_between, sample_handeye_scenario
+    from fluoronav.studies.handeye_study import (
+        _perturb,
+        _work_and_plan_centres,
+        centre_between,
+        sample_handeye_scenario,
+    )
     from fluoronav.studies.metrics import cm_errors
     from fluoronav.studies.pipeline import _anatomy, multiview_start_poses
 
@@ -243,11 +248,11 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
         q_regi = sc.q_work_deg
         q_regi_actual = sc.error_model.actual_joints_deg(q_regi, rng=rng)
         W_regi = sc.true_world_from_cm(q_regi_actual)
-        mid = _h(W_regi, kin.centerline_cm(cpt).numpy()).mean(axis=0)
-        # C-arm centred between the CM and the femur's entry point: the CM is in view where it is
+        # C-arm centred between the CM's working and planned poses: the CM is in view where it is
         # registered and where it is sent (the field of view is ~130 mm at the isocentre)
-        ap = centre_between(sc.camera, mid, tr.entry_world, mid)
-        iso = 0.5 * (tr.entry_world + mid)
+        work_c, plan_c, origin = _work_and_plan_centres(tr)
+        ap = centre_between(sc.camera, work_c, plan_c, origin)
+        iso = 0.5 * (work_c + plan_c)
         cams_full = [ap] + [orbit_camera(ap, angle_deg=a, isocenter_world=iso) for a in cfg.orbit_deg]
         names = ["AP"] + [f"orbit {a:+g}°" for a in cfg.orbit_deg]
     D["views"] = names

@@ -257,6 +257,16 @@ def centre_between(
     return camera.with_pose(camera.camera_from_world @ shift)
 
 
+def _work_and_plan_centres(trial: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(working CM centre, planned CM centre, the working CM origin) in the world: the planned CM
+    lies along the neck axis outward from the entry point (tip on the entry point), its centre
+    ~15 mm out."""
+    work = trial.world_from_cm[0][:3, 3] + 15.0 * trial.world_from_cm[0][:3, 2]
+    axis = trial.femoral_head_world - trial.entry_world
+    plan = trial.entry_world - 15.0 * axis / np.linalg.norm(axis)
+    return work, plan, trial.world_from_cm[0][:3, 3]
+
+
 def sample_handeye_scenario(
     volume: Any,
     rng: np.random.Generator,
@@ -614,9 +624,8 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         kin = CMKinematics()
         sc = sample_handeye_scenario(volume, rng, n_poses=0)
         tr = sc.trial
-        # the C-arm sees both the working pose and the entry point, so the reached pose can be imaged
-        mid0 = sc.world_from_cm[0][:3, 3] if sc.n_poses else tr.world_from_cm[0][:3, 3]
-        sc = dataclasses.replace(sc, camera=centre_between(sc.camera, mid0, tr.entry_world, mid0))
+        # the C-arm sees both the working pose and the planned one, so the reached pose can be imaged
+        sc = dataclasses.replace(sc, camera=centre_between(sc.camera, *_work_and_plan_centres(tr)))
         cam = sc.camera.camera_from_world
         q_regi = sc.q_work_deg
         W_regi = sc.true_world_from_cm(sc.error_model.actual_joints_deg(q_regi, rng=rng))
