@@ -118,3 +118,17 @@ def test_plan_dataclass_is_frozen():
     assert isinstance(plan, Plan)
     with pytest.raises(AttributeError):
         plan.target_name = "x"  # type: ignore[misc]
+
+
+def test_neck_entry_plan_puts_the_tip_on_the_entry_along_the_neck() -> None:
+    import numpy as np
+
+    from fluoronav.manipulator import CMKinematics
+    from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
+
+    entry, head = np.array([80.0, 10.0, -40.0]), np.array([40.0, 15.0, -5.0])
+    plan = neck_entry_plan(entry, head)
+    np.testing.assert_allclose(np.linalg.norm(plan.direction_world), 1.0)
+    np.testing.assert_allclose(plan.tip_target_world_mm, entry)
+    T = planned_femur_from_cm(plan, kinematics=CMKinematics())
+    np.testing.assert_allclose(T[:3, 2], (head - entry) / np.linalg.norm(head - entry), atol=1e-12)

@@ -216,7 +216,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     from fluoronav.calibration.robot import wrap_deg
     from fluoronav.geometry import orbit_camera
     from fluoronav.manipulator.kinematics import CMKinematics
-    from fluoronav.navigation.planning import Plan, planned_femur_from_cm
+    from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
     from fluoronav.registration.bone import BoneView, register_femur, register_pelvis_per_view
     from fluoronav.registration.centerline_init import centerline_initialize_multiview
     from fluoronav.registration.cm import CMRegistrationConfig, CMView, register_cm, register_cm_multistart
@@ -375,13 +375,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
 
     # ----- plan, robot command, move -----------------------------------------------------------
     with stage("plan"):
-        direction = tr.femoral_head_ct - tr.entry_ct
-        plan = Plan(
-            target_name="entry",
-            entry_point_world_mm=tr.entry_ct,
-            direction_world=direction / np.linalg.norm(direction),
-            control_points_deg=reg.control_points_deg,
-        )
+        plan = neck_entry_plan(tr.entry_ct, tr.femoral_head_ct, reg.control_points_deg)
         femur_from_cm_target = planned_femur_from_cm(plan, kinematics=kin)
     D["plan"] = plan.to_dict()
 

@@ -183,6 +183,20 @@ def _frame_axes(direction: np.ndarray, bending: np.ndarray | None) -> np.ndarray
     return np.stack([x, y, z], axis=1)
 
 
+def neck_entry_plan(
+    entry_ct_mm: np.ndarray, femoral_head_ct_mm: np.ndarray, control_points_deg: np.ndarray | None = None
+) -> Plan:
+    """The core-decompression plan of the studies and the demo (femur = CT frame): the CM tip on the
+    entry point, its axis along the femoral neck towards the head centre."""
+    direction = np.asarray(femoral_head_ct_mm, np.float64) - np.asarray(entry_ct_mm, np.float64)
+    return Plan(
+        target_name="entry",
+        entry_point_world_mm=np.asarray(entry_ct_mm, np.float64),
+        direction_world=direction / np.linalg.norm(direction),
+        control_points_deg=None if control_points_deg is None else np.asarray(control_points_deg),
+    )
+
+
 def planned_femur_from_cm(
     plan: Plan,
     *,

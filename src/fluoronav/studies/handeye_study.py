@@ -605,7 +605,7 @@ def _register_single(
 
 def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, Any]:
     """One navigation trial → one ``trials.csv`` row (module docstring)."""
-    from fluoronav.navigation.planning import Plan, planned_femur_from_cm
+    from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
     from fluoronav.studies.metrics import cm_errors, point_error_mm, relative_error_mm
     from fluoronav.studies.pipeline import _anatomy
 
@@ -682,13 +682,7 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
             row["entry_mm"] = point_error_mm(entry_est, tr.entry_world)
             row["relative_mm"] = relative_error_mm(entry_est, tip_reg, tr.entry_world, tip_true_regi)
         # plan (femur = CT frame): tip on the entry point, axis along the neck towards the head
-        direction = tr.femoral_head_ct - tr.entry_ct
-        plan = Plan(
-            target_name="entry",
-            entry_point_world_mm=tr.entry_ct,
-            direction_world=direction / np.linalg.norm(direction),
-            control_points_deg=reg.control_points_deg,
-        )
+        plan = neck_entry_plan(tr.entry_ct, tr.femoral_head_ct, reg.control_points_deg)
         femur_from_cm_target = planned_femur_from_cm(plan, kinematics=kin)
         X_used = _perturb(sc.ee_from_cm, rng, cfg.handeye_error_deg, cfg.handeye_error_mm)
         q_target, W_after = sc.move_to_plan(
