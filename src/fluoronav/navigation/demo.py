@@ -151,7 +151,9 @@ def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ T[:3, :3].T + T[:3, 3]
 
 
-def _landmarks(images: list[Any], cfg: DemoConfig, rng: np.random.Generator) -> list[dict[str, Any] | None]:
+def _landmarks(
+    images: list[Any], cfg: DemoConfig, rng: np.random.Generator, names: list[str] | None = None
+) -> list[dict[str, Any] | None]:
     """Per view: landmarks (2, 2), centreline (P, 2), mask, confidence (detector or oracle); None
     where the detector found no CM."""
     from fluoronav.detection.centerline import extract_centerline
@@ -175,7 +177,7 @@ def _landmarks(images: list[Any], cfg: DemoConfig, rng: np.random.Generator) -> 
 
         det = _detector(cfg.device).detect(sim.image, pixel_spacing_mm=sim.camera.pixel_spacing_mm)
         if not det.found or det.landmarks_px is None or det.centerline_px is None:
-            log.warning("the detector found no CM in view %d", i)
+            log.warning("the detector found no CM in the %s image", names[i] if names else f"#{i}")
             out.append(None)
             continue
         out.append(
@@ -283,7 +285,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     A["images"] = images
 
     with stage("detect"):
-        found = _landmarks(images, cfg, rng)
+        found = _landmarks(images, cfg, rng, names)
     A["detections"] = found
     seen = [k for k, f in enumerate(found) if f is not None]
     D["views_detected"] = len(seen)
@@ -414,7 +416,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
             cm_config=sc.cm_config,
         )
         # the registration starts at the plan: without a detection its ROI is centred there
-        found2 = _landmarks([img2], cfg, rng)[0]
+        found2 = _landmarks([img2], cfg, rng, ["verification (AP after the move)"])[0]
         D["verify_detected"] = found2 is not None
         reg2 = register_cm(
             [
