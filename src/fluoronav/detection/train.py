@@ -119,6 +119,33 @@ def stage_loss(
     return seg + heatmap_weight * hm, {"dice_loss": float(seg.detach()), "heatmap_loss": float(hm.detach())}
 
 
+def detector_loss(
+    coarse_out: torch.Tensor,
+    fine_out: torch.Tensor,
+    batch: dict[str, torch.Tensor],
+    device: torch.device,
+    cfg: DetectorConfig,
+    tcfg: TrainConfig,
+    dice: DiceLoss,
+) -> torch.Tensor:
+    """Sum of the coarse and the fine :func:`stage_loss` of a batch (training and validation)."""
+    total = coarse_out.new_zeros(())
+    for out, stage in ((coarse_out, "coarse"), (fine_out, "fine")):
+        loss, _ = stage_loss(
+            out,
+            batch[f"{stage}_mask"].to(device),
+            batch[f"{stage}_landmarks"].to(device),
+            sigma_px=cfg.sigma_px,
+            heatmap_weight=tcfg.heatmap_weight,
+            dice=dice,
+            fg_weight=tcfg.heatmap_fg_weight,
+            bce_weight=tcfg.bce_weight,
+            heatmap_mode=cfg.heatmap,
+        )
+        total = total + loss
+    return total
+
+
 def save_model(path: Path, net: DetectorNet, *, extra: dict) -> None:
     """Write the model file (state_dict + config + normalisation + version) and its JSON sidecar."""
     cfg = net.config
@@ -152,29 +179,7 @@ def validate(
     for batch in loader:
         ci, fi = batch["coarse_image"].to(device), batch["fine_image"].to(device)
         co, fo = net(ci, fi)
-        lc, _ = stage_loss(
-            co,
-            batch["coarse_mask"].to(device),
-            batch["coarse_landmarks"].to(device),
-            sigma_px=cfg.sigma_px,
-            heatmap_weight=tcfg.heatmap_weight,
-            dice=dice,
-            fg_weight=tcfg.heatmap_fg_weight,
-            bce_weight=tcfg.bce_weight,
-            heatmap_mode=cfg.heatmap,
-        )
-        lf, _ = stage_loss(
-            fo,
-            batch["fine_mask"].to(device),
-            batch["fine_landmarks"].to(device),
-            sigma_px=cfg.sigma_px,
-            heatmap_weight=tcfg.heatmap_weight,
-            dice=dice,
-            fg_weight=tcfg.heatmap_fg_weight,
-            bce_weight=tcfg.bce_weight,
-            heatmap_mode=cfg.heatmap,
-        )
-        losses.append(float(lc + lf))
+        losses.append(float(detector_loss(co, fo, batch, device, cfg, tcfg, dice)))
         pos = batch["positive"].numpy()
         pred = (torch.sigmoid(fo[:, 0]) > cfg.mask_threshold).cpu().numpy()
         true = batch["fine_mask"][:, 0].numpy() > 0.5
@@ -301,29 +306,7 @@ def train(
             if step >= n_steps:
                 break
             co, fo = net(batch["coarse_image"].to(device), batch["fine_image"].to(device))
-            lc, _ = stage_loss(
-                co,
-                batch["coarse_mask"].to(device),
-                batch["coarse_landmarks"].to(device),
-                sigma_px=mcfg.sigma_px,
-                heatmap_weight=tcfg.heatmap_weight,
-                dice=dice,
-                fg_weight=tcfg.heatmap_fg_weight,
-                bce_weight=tcfg.bce_weight,
-                heatmap_mode=mcfg.heatmap,
-            )
-            lf, _ = stage_loss(
-                fo,
-                batch["fine_mask"].to(device),
-                batch["fine_landmarks"].to(device),
-                sigma_px=mcfg.sigma_px,
-                heatmap_weight=tcfg.heatmap_weight,
-                dice=dice,
-                fg_weight=tcfg.heatmap_fg_weight,
-                bce_weight=tcfg.bce_weight,
-                heatmap_mode=mcfg.heatmap,
-            )
-            loss = lc + lf
+            loss = detector_loss(co, fo, batch, device, mcfg, tcfg, dice)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
