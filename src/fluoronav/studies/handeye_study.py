@@ -62,7 +62,7 @@ from fluoronav.errors import FluoronavError, InputError
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
-from fluoronav.studies.runner import finish_row, mark_failed
+from fluoronav.studies.runner import finish_row, mark_failed, new_row
 
 __all__ = [
     "HANDEYE_METRICS",
@@ -485,13 +485,7 @@ def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> d
     t0 = time.perf_counter()
     torch.set_num_threads(1)
     rng = np.random.default_rng(seed)
-    row: dict[str, Any] = {
-        "trial": trial_id,
-        "seed": seed,
-        "workflow": cfg.workflow,
-        "status": "ok",
-        "reason": "",
-    }
+    row = new_row(trial_id, seed, cfg.workflow)
     try:
         volume, simulator = _anatomy(cfg.ct, 1000 * cfg.seed, cfg.image_size, cfg.device)
         kin = CMKinematics()
@@ -612,13 +606,7 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
     t0 = time.perf_counter()
     torch.set_num_threads(1)
     rng = np.random.default_rng(seed)
-    row: dict[str, Any] = {
-        "trial": trial_id,
-        "seed": seed,
-        "workflow": cfg.workflow,
-        "status": "ok",
-        "reason": "",
-    }
+    row = new_row(trial_id, seed, cfg.workflow)
     try:
         volume, simulator = _anatomy(cfg.ct, 1000 * cfg.seed, cfg.image_size, cfg.device)
         kin = CMKinematics()

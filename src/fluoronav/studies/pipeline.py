@@ -28,7 +28,7 @@ import torch
 from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import FluoronavError, InputError
 from fluoronav.studies.metrics import cm_errors, point_error_mm, relative_error_mm
-from fluoronav.studies.runner import CsvLog, finish_row, mark_failed, run_tasks
+from fluoronav.studies.runner import CsvLog, finish_row, mark_failed, new_row, run_tasks
 
 log = logging.getLogger(__name__)
 
@@ -232,13 +232,7 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     torch.set_num_threads(1)  # one trial per worker process; numba kernels keep their own threads
     rng = np.random.default_rng(seed)
-    row: dict[str, Any] = {
-        "trial": trial_id,
-        "seed": seed,
-        "workflow": cfg.workflow,
-        "status": "ok",
-        "reason": "",
-    }
+    row = new_row(trial_id, seed, cfg.workflow)
     try:
         phantom_seed = 1000 * cfg.seed + int(rng.integers(cfg.n_phantoms))
         volume, simulator = _anatomy(cfg.ct, phantom_seed, cfg.image_size, cfg.device)

@@ -25,7 +25,16 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CsvLog", "JsonlLog", "ResultLog", "finish_row", "mark_failed", "run_tasks", "task_seeds"]
+__all__ = [
+    "CsvLog",
+    "JsonlLog",
+    "ResultLog",
+    "finish_row",
+    "mark_failed",
+    "new_row",
+    "run_tasks",
+    "task_seeds",
+]
 
 
 def task_seeds(seed: int, n: int) -> list[int]:
@@ -110,6 +119,11 @@ class CsvLog(ResultLog):
         writer = csv.DictWriter(buf, fieldnames=self.columns, extrasaction="ignore", lineterminator="\n")
         writer.writerow({k: json.dumps(v) if isinstance(v, list | dict) else v for k, v in row.items()})
         _fsync_append(self.path, buf.getvalue())
+
+
+def new_row(task_id: int, seed: int, workflow: str) -> dict[str, Any]:
+    """The start of a study row: id, seed, workflow, status ``ok`` until :func:`mark_failed`."""
+    return {"trial": task_id, "seed": seed, "workflow": workflow, "status": "ok", "reason": ""}
 
 
 def mark_failed(row: dict[str, Any], exc: BaseException, task_id: int) -> None:
