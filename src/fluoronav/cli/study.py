@@ -46,6 +46,12 @@ def register(app: typer.Typer) -> None:
             min=0,
             help="navigation: corrective moves from a new image after the first move (0 = open loop).",
         ),
+        verify_views: int = typer.Option(
+            2,
+            "--verify-views",
+            min=1,
+            help="navigation: C-arm views at a reached pose (re-centred; bones and CM registered anew).",
+        ),
         device: str = DEVICE_OPTION,
     ) -> None:
         """Run (or resume) a simulation study; writes trials.csv, summary.json and figures/."""
@@ -67,6 +73,7 @@ def register(app: typer.Typer) -> None:
                 poses=tuple(poses),
                 image_size=image_size,
                 corrections=corrections,
+                verify_views=verify_views,
             )
         else:
             from fluoronav.studies.pipeline import STUDY_WORKFLOWS, StudyConfig, run_study

@@ -33,9 +33,11 @@ model and a hand-eye of documented error (the truth perturbed by ``handeye_error
 ``handeye_error_mm``, our image-based calibration's measured accuracy); move the *true* robot; the
 repositioning error is the distance of the true tip from the planned tip: ``reposition_open_loop_mm``
 after the first move, ``reposition_tip_mm`` after ``corrections`` corrective moves (default 1), each
-computed from a new simulated image at the reached pose whose CM registration (initialised at the
-plan) replaces the first one in eqs. 7–8 (``reposition_registered_mm``: the first such image's
-registered tip against the plan, what the surgeon would see).
+computed from new simulated images at the reached pose (:func:`_verify`: the C-arm slid to centre
+the femoral head and the planned CM, ``verify_views`` views; pelvis, femur and CM registered anew,
+the CM initialised at the plan) whose femur and CM poses replace the first ones in eqs. 7–8
+(``reposition_registered_mm``: the first verification's registered tip against the plan, what the
+surgeon would see).
 """
 
 from __future__ import annotations
@@ -124,6 +126,10 @@ class HandEyeStudyConfig:
         corrections: navigation: corrective moves after the first, each from a registration of a new
             image at the reached pose (eqs. 7–8 again from the reached joints); the first move's
             rotation error of the registration is multiplied by its length, a correction is short.
+        verify_views, verify_orbit_deg: navigation: the images at a reached pose: the C-arm slid to
+            centre the (estimated) planned CM, an AP view and, for 2 or more, views orbited by
+            ± ``verify_orbit_deg``; pelvis (per view), femur and CM are registered anew in them
+            (multi-view for 2 or more), so that the correction does not reuse the first femur error.
         tracker_sigma_mm: baseline tracker marker noise per axis.
         oracle_landmarks: use truth + U(−3, 3) px even when a detector is available.
     """
@@ -144,6 +150,8 @@ class HandEyeStudyConfig:
     register_bones: bool = True
     navigation_init: str = "perturbed"
     corrections: int = 1
+    verify_views: int = 2
+    verify_orbit_deg: float = 25.0
     tracker_sigma_mm: float = 0.1
     oracle_landmarks: bool = True
 
@@ -246,15 +254,21 @@ def _in_view(camera: Camera, world_from_cm: np.ndarray, pts_cm: np.ndarray, marg
     )
 
 
+def recentre(camera: Camera, from_world: np.ndarray, to_world: np.ndarray) -> Camera:
+    """The camera translated (no rotation) so that the point it showed at ``from_world`` is now at
+    ``to_world``: the C-arm slid on the floor to centre another point."""
+    shift = np.eye(4)
+    shift[:3, 3] = -(np.asarray(to_world, np.float64) - np.asarray(from_world, np.float64))
+    return camera.with_pose(camera.camera_from_world @ shift)
+
+
 def centre_between(
     camera: Camera, a_world: np.ndarray, b_world: np.ndarray, current_world: np.ndarray
 ) -> Camera:
     """The camera translated (no rotation) so that the point it centred, ``current_world``, moves to
     the midpoint of ``a_world`` and ``b_world``: the C-arm placed to see both where the CM is
     registered and where it is sent (~130 mm field of view at the isocentre)."""
-    shift = np.eye(4)
-    shift[:3, 3] = -(0.5 * (np.asarray(a_world) + np.asarray(b_world)) - np.asarray(current_world))
-    return camera.with_pose(camera.camera_from_world @ shift)
+    return recentre(camera, current_world, 0.5 * (np.asarray(a_world) + np.asarray(b_world)))
 
 
 def _work_and_plan_centres(trial: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -352,14 +366,16 @@ def simulate_scenario_images(
     seed: int,
     image_size: int,
     world_from_cm: np.ndarray | None = None,
+    camera: Camera | None = None,
 ) -> list[Any]:
     """Physics images of the CM at ``world_from_cm`` (default: the scenario's M poses) over the
-    phantom at the trial's anatomy pose; image m uses noise seed ``seed + m``."""
+    phantom at the trial's anatomy pose, seen by ``camera`` (default the scenario's); image m uses
+    noise seed ``seed + m``."""
     tr = scenario.trial
     poses = scenario.world_from_cm if world_from_cm is None else np.asarray(world_from_cm).reshape(-1, 4, 4)
     return [
         simulator.simulate(
-            scenario.camera,
+            scenario.camera if camera is None else camera,
             world_from_patient=tr.world_from_patient,
             world_from_femur=tr.world_from_femur,
             cm=(T, scenario.control_points_deg),
@@ -597,6 +613,115 @@ def _register_single(
     )
 
 
+@dataclass(frozen=True)
+class _Verification:
+    """Registrations at a reached pose, in the verification's C-arm frame (its view 0)."""
+
+    carm_from_femur: np.ndarray
+    carm_from_cm: np.ndarray
+    #: registered tip vs the planned tip through the registered femur: what the surgeon sees
+    registered_error_mm: float
+    seconds: float
+
+
+def _verify(
+    sc: HandEyeScenario,
+    simulator: Any,
+    volume: Any,
+    *,
+    world_from_cm_now: np.ndarray,
+    plan: Any,
+    femur_from_cm_target: np.ndarray,
+    world_from_femur_est: np.ndarray,
+    control_points_deg: np.ndarray,
+    binning: int,
+    cfg: HandEyeStudyConfig,
+    rng: np.random.Generator,
+    kin: CMKinematics,
+) -> _Verification | None:
+    """Image the CM where the robot took it and register femur and CM anew (``verify_views``).
+
+    The C-arm is slid (no rotation) to centre the midpoint of the femoral head and the planned CM as
+    the first registration placed them (± 5 mm: a person positions it), and orbited for the other
+    views; the new C-arm pose is unknown to the software, so the pelvis is registered again per view
+    (the view geometry for several views), then the femur and the CM (initial CM pose: the plan on
+    the new femur). None when the CM is not in the AP view (20 px margin)."""
+    from fluoronav.geometry.carm import orbit_camera
+    from fluoronav.registration.bone import BoneView, register_femur, register_pelvis_per_view
+    from fluoronav.registration.cm import CMRegistrationConfig, CMView, register_cm
+
+    t0 = time.perf_counter()
+    tr = sc.trial
+    # between the femoral head and the planned CM: the CM, the neck and the acetabulum in view (the
+    # pelvis registration fails when only the trochanter region is imaged)
+    plan_centre = (world_from_femur_est @ femur_from_cm_target @ np.array([0.0, 0.0, 15.0, 1.0]))[:3]
+    head = (world_from_femur_est @ np.append(tr.femoral_head_ct, 1.0))[:3]
+    centre = 0.5 * (plan_centre + head) + rng.uniform(-5.0, 5.0, 3)
+    cam = sc.camera
+    uv0 = np.array([(cam.cols - 1) / 2.0, (cam.rows - 1) / 2.0])
+    ap = recentre(cam, cam.backproject(uv0, float(cam.to_camera(centre)[2])), centre)
+    cpt = torch.as_tensor(sc.control_points_deg, dtype=torch.float64)
+    pts = np.concatenate([kin.landmarks_cm(cpt).numpy(), kin.tip_cm(cpt).numpy()[None]])
+    if not _in_view(ap, world_from_cm_now, pts, 20.0):
+        return None
+    cams = [ap]
+    for k in range(1, cfg.verify_views):
+        sign = 1.0 if k % 2 else -1.0
+        cams.append(
+            orbit_camera(ap, angle_deg=sign * cfg.verify_orbit_deg * ((k + 1) // 2), isocenter_world=centre)
+        )
+    noise_seed = int(rng.integers(2**31))
+    images = [
+        simulate_scenario_images(
+            sc,
+            simulator,
+            seed=noise_seed + k,
+            image_size=cfg.image_size,
+            world_from_cm=world_from_cm_now,
+            camera=c,
+        )[0]
+        for k, c in enumerate(cams)
+    ]
+    ab_world = kin.landmarks_cm(cpt).numpy() @ world_from_cm_now[:3, :3].T + world_from_cm_now[:3, 3]
+    lms = [im.camera.project(ab_world) + rng.uniform(-3.0, 3.0, (2, 2)) / binning for im in images]
+    views = [BoneView(im.image, im.camera) for im in images]
+    pelvis = register_pelvis_per_view(
+        views, volume, initial_world_from_patient=tr.initial_world_from_patient, seed=int(rng.integers(2**31))
+    )
+    if len(views) > 1:
+        # the CT frame of the pelvis-estimated views (the multi-view study's frame)
+        reg_cams = [v.camera.with_pose(pv.camera_from_bone[0]) for v, pv in zip(views, pelvis, strict=True)]
+        world_from_patient = np.eye(4)
+    else:
+        reg_cams = [images[0].camera]
+        world_from_patient = pelvis[0].world_from_bone
+    femur = register_femur(
+        [BoneView(v.image, c) for v, c in zip(views, reg_cams, strict=True)],
+        volume,
+        side=tr.side,
+        world_from_patient=world_from_patient,
+        seed=int(rng.integers(2**31)),
+    )
+    reg = register_cm(
+        [
+            CMView(im.image, c, landmarks_px=lm, name=f"verify{k}")
+            for k, (im, c, lm) in enumerate(zip(images, reg_cams, lms, strict=True))
+        ],
+        initial_control_points_deg=control_points_deg,
+        initial_world_from_cm=femur.world_from_bone @ femur_from_cm_target,
+        config=CMRegistrationConfig(device=cfg.device),
+        seed=int(rng.integers(2**31)),
+    )
+    planned_tip = (femur.world_from_bone @ np.append(plan.tip_target_world_mm, 1.0))[:3]
+    carm = reg_cams[0].camera_from_world
+    return _Verification(
+        carm_from_femur=carm @ femur.world_from_bone,
+        carm_from_cm=carm @ reg.world_from_cm[0],
+        registered_error_mm=float(np.linalg.norm(reg.tip_world[0] - planned_tip)),
+        seconds=time.perf_counter() - t0,
+    )
+
+
 def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, Any]:
     """One navigation trial → one ``trials.csv`` row (module docstring)."""
     from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
@@ -699,41 +824,44 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         row["reposition_robot_mm"] = point_error_mm(
             (W_ideal @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3], planned_true
         )
-        # new images at the reached pose: what they say, and corrective moves from them
-        pts = np.concatenate([kin.landmarks_cm(cpt).numpy(), kin.tip_cm(cpt).numpy()[None]])
+        # new images at the reached pose (C-arm re-centred): what they say, and corrective moves
         q_now, W_now = q_target, W_after
-        planned_est = (world_from_femur_est @ np.append(plan.tip_target_world_mm, 1.0))[:3]
-        for k in range(cfg.corrections + 1):
-            if not _in_view(sc.camera, W_now, pts, 20.0):
-                row["reposition_reason"] = "reached pose outside the image"
-                break
-            img2 = simulate_scenario_images(
-                sc, simulator, seed=int(rng.integers(2**31)), image_size=cfg.image_size, world_from_cm=W_now
-            )[0]
-            lm2 = img2.camera.project(pts[:2] @ W_now[:3, :3].T + W_now[:3, 3])
-            lm2 = lm2 + rng.uniform(-3.0, 3.0, (2, 2)) / b
-            reg2 = _register_single(
-                img2,
-                lm2,
-                reg.control_points_deg,
-                world_from_femur_est @ femur_from_cm_target,
-                cfg,
-                int(rng.integers(2**31)),
+        seconds_verify = 0.0
+        # one verification per correction (each moves again); one for the record when open loop
+        for k in range(max(1, cfg.corrections)):
+            ver = _verify(
+                sc,
+                simulator,
+                volume,
+                world_from_cm_now=W_now,
+                plan=plan,
+                femur_from_cm_target=femur_from_cm_target,
+                world_from_femur_est=world_from_femur_est,
+                control_points_deg=reg.control_points_deg,
+                binning=b,
+                cfg=cfg,
+                rng=rng,
+                kin=kin,
             )
+            if ver is None:
+                row["reposition_reason"] = "reached pose outside the re-centred image"
+                break
+            seconds_verify += ver.seconds
             if k == 0:
-                row["reposition_registered_mm"] = point_error_mm(reg2.tip_world[0], planned_est)
-            if k == cfg.corrections:
+                row["reposition_registered_mm"] = ver.registered_error_mm
+            if cfg.corrections == 0:
                 break
             q_now, W_now = sc.move_to_plan(
                 q_now,
                 ee_from_cm=X_used,
-                carm_from_femur=cam @ world_from_femur_est,
-                carm_from_cm=cam @ reg2.world_from_cm[0],
+                carm_from_femur=ver.carm_from_femur,
+                carm_from_cm=ver.carm_from_cm,
                 femur_from_cm_target=femur_from_cm_target,
                 rng=rng,
             )
             tip_now = (W_now @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3]
             row["reposition_tip_mm"] = point_error_mm(tip_now, planned_true)
+        row["seconds_verification"] = seconds_verify
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
         mark_failed(row, exc, trial_id)
     return finish_row(row, t0)
@@ -744,7 +872,15 @@ def _columns(cfg: HandEyeStudyConfig) -> list[str]:
     head = ["trial", "seed", "workflow", "status", "reason"]
     tail = ["seconds", "seconds_registration", "seconds_bones"]
     if cfg.workflow == "navigation":
-        return [*head, *NAVIGATION_METRICS, "joint_motion_deg", "reposition_reason", *tail]
+        return [
+            *head,
+            *NAVIGATION_METRICS,
+            "reposition_robot_mm",
+            "joint_motion_deg",
+            "reposition_reason",
+            *tail,
+            "seconds_verification",
+        ]
     per_m = [
         f"{k}_m{m}"
         for m in sorted(cfg.poses)
@@ -849,6 +985,8 @@ def run_study(
         raise InputError("WORKFLOW", f"unknown workflow {cfg.workflow!r}; use hand-eye or navigation")
     if any(m < 1 for m in cfg.poses):
         raise InputError("--poses", "numbers of poses must be positive")
+    if cfg.verify_views < 1:
+        raise InputError("--verify-views", "at least one verification view is needed")
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "config.json"
     cfg_dict = {**dataclasses.asdict(cfg), "version": __version__}
@@ -916,6 +1054,7 @@ def run_handeye_or_navigation_study(
     register_bones: bool = True,
     navigation_init: str = "perturbed",
     corrections: int = 1,
+    verify_views: int = 2,
 ) -> dict[str, Any]:
     """Entry point of ``fluoronav study hand-eye|navigation`` → the summary dict (CONTRACTS)."""
     cfg = HandEyeStudyConfig(
@@ -929,5 +1068,6 @@ def run_handeye_or_navigation_study(
         register_bones=register_bones,
         navigation_init=navigation_init,
         corrections=corrections,
+        verify_views=verify_views,
     )
     return run_study(cfg, Path(out), scheduler=scheduler, workers=workers)
