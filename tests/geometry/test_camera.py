@@ -199,3 +199,30 @@ def test_triangulate_points_recovers_world_points() -> None:
     assert np.max(np.linalg.norm(triangulate_points(cams, noisy) - pts, axis=1)) < 1.0
     with pytest.raises(ValueError):
         triangulate_points(cams[:1], uv[:1])
+
+
+def test_robust_triangulation_drops_the_view_with_a_wrong_detection() -> None:
+    from fluoronav.geometry import carm_camera, orbit_camera, triangulate_points, triangulate_points_robust
+
+    rng = np.random.default_rng(6)
+    iso = np.array([0.0, 10.0, -5.0])
+    ap = carm_camera(source_to_isocenter_mm=450.0, isocenter_world=iso)
+    cams = [ap, orbit_camera(ap, angle_deg=20.0, isocenter_world=iso)]
+    cams.append(orbit_camera(ap, angle_deg=-15.0, isocenter_world=iso))
+    pts = iso + rng.uniform(-30, 30, (2, 3))
+    uv = np.stack([c.project(pts) for c in cams]) + rng.uniform(-1.0, 1.0, (3, 2, 2))
+    uv_bad = uv.copy()
+    uv_bad[0, 1] += [-150.0, -120.0]  # point 1 detected far off in view 0
+    plain = triangulate_points(cams, uv_bad)
+    assert np.linalg.norm(plain[1] - pts[1]) > 5.0  # the plain DLT is pulled off
+    X, inl, res = triangulate_points_robust(cams, uv_bad, max_residual_px=20.0)
+    np.testing.assert_array_equal(inl, [[True, False], [True, True], [True, True]])
+    assert np.max(np.linalg.norm(X - pts, axis=1)) < 1.0
+    assert res[0, 1] > 100.0 and np.all(res[1:] < 5.0)
+    # agreeing views: all kept, same answer as the plain DLT
+    X2, inl2, _ = triangulate_points_robust(cams, uv, max_residual_px=20.0)
+    assert inl2.all()
+    np.testing.assert_allclose(X2, triangulate_points(cams, uv))
+    # two views: nothing to tell apart, both kept
+    _, inl3, _ = triangulate_points_robust(cams[:2], uv_bad[:2], max_residual_px=20.0)
+    assert inl3.all()

@@ -257,4 +257,16 @@ def test_multiview_init_recovers_pose_and_resolves_the_mirror() -> None:
         assert roll > 170.0
         j = int(np.argmin(np.abs((res.theta_grid_deg - (res.theta_deg + 180.0)) % 360.0)))
         assert res.theta_costs_px[j] > res.cost_px + 1.0
+        assert res.landmark_inliers.all()
+        np.testing.assert_allclose(res.landmarks_px, lms)
+        # B detected 80 px off in view 0 (its centreline drawn to the wrong B): that view's B is
+        # left out of the triangulation and view 0 out of the roll score; the pose is unchanged
+        bad = lms.copy()
+        bad[0, 1] += [-60.0, -53.0]
+        cls_bad = [np.concatenate([cls[0][: len(cls[0]) // 2], bad[0, 1][None]]), *cls[1:]]
+        rob = centerline_initialize_multiview(cams, bad, cls_bad, cp)
+        np.testing.assert_array_equal(rob.landmark_inliers, [[True, False], [True, True], [True, True]])
+        np.testing.assert_allclose(rob.landmarks_px[0, 1], lms[0, 1], atol=0.5)
+        tip_rob = rob.world_from_cm[:3, :3] @ kin.tip_cm(cpt).numpy() + rob.world_from_cm[:3, 3]
+        worst = max(worst, float(np.linalg.norm(tip_rob - tip_true)))
     assert worst < 0.6  # 1° roll steps on a ~31 mm CM

@@ -10,6 +10,7 @@ from fluoronav.geometry.camera import (
     project_points,
     stack_cameras,
     triangulate_points,
+    triangulate_points_robust,
 )
 from fluoronav.geometry.carm import carm_camera, carm_camera_from_world, orbit_camera
 
@@ -23,4 +24,5 @@ __all__ = [
     "project_points",
     "stack_cameras",
     "triangulate_points",
+    "triangulate_points_robust",
 ]

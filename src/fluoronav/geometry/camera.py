@@ -26,7 +26,15 @@ import torch
 
 from fluoronav.errors import InputError
 
-__all__ = ["CIOS_FUSION", "Camera", "DetectorSpec", "project_points", "stack_cameras", "triangulate_points"]
+__all__ = [
+    "CIOS_FUSION",
+    "Camera",
+    "DetectorSpec",
+    "project_points",
+    "stack_cameras",
+    "triangulate_points",
+    "triangulate_points_robust",
+]
 
 
 @dataclass(frozen=True)
@@ -353,6 +361,51 @@ def triangulate_points(cameras: Sequence[Camera], uv: np.ndarray) -> np.ndarray:
         X = vt[-1]
         out[n] = X[:3] / X[3]
     return out
+
+
+def triangulate_points_robust(
+    cameras: Sequence[Camera], uv: np.ndarray, *, max_residual_px: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triangulation that drops views whose pixel disagrees with the others (a wrong detection).
+
+    Each point is triangulated from all views (:func:`triangulate_points`); while the largest
+    reprojection residual exceeds ``max_residual_px`` and more than two views remain, the view whose
+    removal leaves the smallest largest residual is dropped. With two views nothing can be told
+    apart: both are kept whatever their residuals.
+
+    Args:
+        cameras: V ≥ 2 cameras in one world frame.
+        uv: (V, N, 2) pixel positions.
+        max_residual_px: largest acceptable reprojection error (the cameras' pixels).
+
+    Returns:
+        ``(points (N, 3) mm, inliers (V, N) bool, residuals_px (V, N))``: residuals of every view
+        (dropped ones too) against the final points.
+    """
+    from itertools import combinations
+
+    uv = np.asarray(uv, dtype=np.float64)
+    pts = triangulate_points(cameras, uv)
+    V, N = uv.shape[:2]
+    inliers = np.ones((V, N), dtype=bool)
+
+    def residuals(X: np.ndarray, n: int) -> np.ndarray:  # (V,) of point n
+        return np.array([np.linalg.norm(c.project(X[None])[0] - uv[v, n]) for v, c in enumerate(cameras)])
+
+    for n in range(N):
+        keep = list(range(V))
+        res = residuals(pts[n], n)
+        while len(keep) > 2 and res[keep].max() > max_residual_px:
+            trials = []
+            for sub in combinations(keep, len(keep) - 1):
+                X = triangulate_points([cameras[v] for v in sub], uv[list(sub)][:, n : n + 1])[0]
+                r = residuals(X, n)
+                trials.append((float(r[list(sub)].max()), sub, X, r))
+            _, sub, X, res = min(trials, key=lambda t: t[0])
+            keep, pts[n] = list(sub), X
+        inliers[:, n] = np.isin(np.arange(V), keep)
+    res_all = np.stack([residuals(pts[n], n) for n in range(N)], axis=1) if N else np.zeros((V, 0))
+    return pts, inliers, res_all
 
 
 def project_points(K: torch.Tensor, camera_from_world: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

@@ -348,9 +348,13 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
             cp0,
             config=sc.cm_config,
         )
+        # landmarks that disagreed with the other views are replaced by the triangulated consensus
+        lm_views: list[np.ndarray | None] = [None if f is None else f["landmarks_px"] for f in found]
+        for i, k in enumerate(seen):
+            lm_views[k] = init.landmarks_px[i]
         cm_views = [  # a view without a detection still counts (ROI at the initial pose)
-            CMView(s.image, c, landmarks_px=None if f is None else f["landmarks_px"], name=n)
-            for s, c, f, n in zip(images, cams_ct, found, names, strict=True)
+            CMView(s.image, c, landmarks_px=lm, name=n)
+            for s, c, lm, n in zip(images, cams_ct, lm_views, names, strict=True)
         ]
         reg = register_cm_multistart(
             cm_views,

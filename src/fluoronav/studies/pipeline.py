@@ -320,6 +320,10 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                         config=trial.cm_config,
                     )
                     starts = multiview_start_poses(mv)
+                    # landmarks that disagreed with the other views: the triangulated consensus
+                    for i, k in enumerate(found):
+                        views[k] = dataclasses.replace(views[k], landmarks_px=mv.landmarks_px[i])
+                    row["landmark_outliers"] = int((~mv.landmark_inliers).sum())
                 else:
                     starts = cm_start_poses(init, cams[0], trial.initial_control_points_deg, trial.cm_config)
                 res = register_cm_multistart(
@@ -388,6 +392,7 @@ def _columns(workflow: str) -> list[str]:
         "seconds_registration",
         "seconds_bones",
         "views_detected",
+        "landmark_outliers",
         "true_control_points_deg",
         "est_control_points_deg",
         "true_world_from_cm",
