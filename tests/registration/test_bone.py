@@ -26,6 +26,7 @@ from fluoronav.registration.bone import (
     register_pelvis_per_view,
     relative_view_poses,
     views_from_images,
+    views_in_ct_frame,
 )
 from fluoronav.registration.levels import LevelConfig
 from fluoronav.registration.trace import RegistrationTrace
@@ -147,6 +148,14 @@ def test_relative_view_poses_from_per_view_estimates():
     rel = relative_view_poses(results)
     for c, r in zip(cams, rel, strict=True):
         np.testing.assert_allclose(r, c.camera_from_world @ cams[0].world_from_camera, atol=1e-9)
+    # the CT frame: each view's camera placed by its pelvis estimate; a CT point projects where the
+    # true camera sees it after the patient motion
+    views = [BoneView(np.zeros((c.rows, c.cols), np.float32), c) for c in cams]
+    ct_views = views_in_ct_frame(views, results)
+    p_ct = np.array([12.0, -30.0, 45.0])
+    p_world = world_from_patient[:3, :3] @ p_ct + world_from_patient[:3, 3]
+    for v, c in zip(ct_views, cams, strict=True):
+        np.testing.assert_allclose(v.camera.project(p_ct[None]), c.project(p_world[None]), atol=1e-9)
 
 
 # ----- accuracy against physics images -------------------------------------------------------------

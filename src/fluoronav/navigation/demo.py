@@ -219,7 +219,12 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     from fluoronav.geometry import orbit_camera
     from fluoronav.manipulator.kinematics import CMKinematics
     from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
-    from fluoronav.registration.bone import BoneView, register_femur, register_pelvis_per_view
+    from fluoronav.registration.bone import (
+        register_femur,
+        register_pelvis_per_view,
+        views_from_images,
+        views_in_ct_frame,
+    )
     from fluoronav.registration.centerline_init import centerline_initialize_multiview
     from fluoronav.registration.cm import CMRegistrationConfig, CMView, register_cm, register_cm_multistart
     from fluoronav.studies.handeye_study import (
@@ -301,12 +306,13 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     D["landmarks_px"] = [None if f is None else f["landmarks_px"].tolist() for f in found]
 
     # ----- bones: pelvis per view → view geometry in the CT frame; femur in all views -------------
-    views = [BoneView(s.image, s.camera) for s in images]
+    views = views_from_images(images)
     with stage("pelvis"):
         pelvis = register_pelvis_per_view(
             views, volume, initial_world_from_patient=tr.initial_world_from_patient, seed=int(seeds[2])
         )
-    cams_ct = [v.camera.with_pose(p.camera_from_bone[0]) for v, p in zip(views, pelvis, strict=True)]
+    views_ct = views_in_ct_frame(views, pelvis)
+    cams_ct = [v.camera for v in views_ct]
     A["pelvis"] = pelvis
     A["cams_ct"] = cams_ct
     # pelvis error: the estimated camera_from_ct against the truth camera_from_world @ world_from_patient
@@ -321,7 +327,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
 
     with stage("femur"):
         femur = register_femur(
-            [BoneView(v.image, c) for v, c in zip(views, cams_ct, strict=True)],
+            views_ct,
             volume,
             side=tr.side,
             world_from_patient=np.eye(4),

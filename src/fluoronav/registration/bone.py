@@ -60,6 +60,7 @@ __all__ = [
     "register_pelvis_per_view",
     "relative_view_poses",
     "views_from_images",
+    "views_in_ct_frame",
 ]
 
 log = logging.getLogger(__name__)
@@ -401,6 +402,18 @@ def relative_view_poses(per_view: Sequence[BoneRegistrationResult]) -> np.ndarra
     """(V, 4, 4) ``camera_k_from_camera_0 = camera_k_from_patient · inv(camera_0_from_patient)``."""
     c0 = per_view[0].camera_from_bone[0]
     return np.stack([r.camera_from_bone[0] @ np.linalg.inv(c0) for r in per_view])
+
+
+def views_in_ct_frame(
+    views: Sequence[BoneView], per_view: Sequence[BoneRegistrationResult]
+) -> list[BoneView]:
+    """The views with each camera placed by its own pelvis registration (``camera_from_patient``):
+    the CT frame becomes the world frame of all views (``world_from_patient`` = identity), the view
+    geometry of the multi-view workflows (§II-C)."""
+    return [
+        BoneView(v.image, v.camera.with_pose(r.camera_from_bone[0]))
+        for v, r in zip(views, per_view, strict=True)
+    ]
 
 
 # ----- femur --------------------------------------------------------------------------------------

@@ -127,7 +127,7 @@ class HandEyeStudyConfig:
             image at the reached pose (eqs. 7–8 again from the reached joints); the first move's
             rotation error of the registration is multiplied by its length, a correction is short.
         verify_views, verify_orbit_deg: navigation: the images at a reached pose: the C-arm slid to
-            centre the (estimated) planned CM, an AP view and, for 2 or more, views orbited by
+            centre the femoral head and the planned CM (estimated), an AP view and views orbited by
             ± ``verify_orbit_deg``; pelvis (per view), femur and CM are registered anew in them
             (multi-view for 2 or more), so that the correction does not reuse the first femur error.
         tracker_sigma_mm: baseline tracker marker noise per axis.
@@ -647,7 +647,12 @@ def _verify(
     (the view geometry for several views), then the femur and the CM (initial CM pose: the plan on
     the new femur). None when the CM is not in the AP view (20 px margin)."""
     from fluoronav.geometry.carm import orbit_camera
-    from fluoronav.registration.bone import BoneView, register_femur, register_pelvis_per_view
+    from fluoronav.registration.bone import (
+        register_femur,
+        register_pelvis_per_view,
+        views_from_images,
+        views_in_ct_frame,
+    )
     from fluoronav.registration.cm import CMRegistrationConfig, CMView, register_cm
 
     t0 = time.perf_counter()
@@ -682,25 +687,18 @@ def _verify(
         )[0]
         for k, c in enumerate(cams)
     ]
-    ab_world = kin.landmarks_cm(cpt).numpy() @ world_from_cm_now[:3, :3].T + world_from_cm_now[:3, 3]
+    ab_world = pts[:2] @ world_from_cm_now[:3, :3].T + world_from_cm_now[:3, 3]
     lms = [im.camera.project(ab_world) + rng.uniform(-3.0, 3.0, (2, 2)) / binning for im in images]
-    views = [BoneView(im.image, im.camera) for im in images]
+    views = views_from_images(images)
     pelvis = register_pelvis_per_view(
         views, volume, initial_world_from_patient=tr.initial_world_from_patient, seed=int(rng.integers(2**31))
     )
-    if len(views) > 1:
-        # the CT frame of the pelvis-estimated views (the multi-view study's frame)
-        reg_cams = [v.camera.with_pose(pv.camera_from_bone[0]) for v, pv in zip(views, pelvis, strict=True)]
-        world_from_patient = np.eye(4)
-    else:
-        reg_cams = [images[0].camera]
-        world_from_patient = pelvis[0].world_from_bone
+    # the CT frame of the pelvis-estimated views (the multi-view study's frame; with one view the
+    # same relative poses as the true camera with the pelvis estimate)
+    views_ct = views_in_ct_frame(views, pelvis)
+    reg_cams = [v.camera for v in views_ct]
     femur = register_femur(
-        [BoneView(v.image, c) for v, c in zip(views, reg_cams, strict=True)],
-        volume,
-        side=tr.side,
-        world_from_patient=world_from_patient,
-        seed=int(rng.integers(2**31)),
+        views_ct, volume, side=tr.side, world_from_patient=np.eye(4), seed=int(rng.integers(2**31))
     )
     reg = register_cm(
         [

@@ -150,9 +150,14 @@ def _register_bones(
     images: list[Any], trial: Any, volume: Volume, cfg: StudyConfig, seed: int
 ) -> dict[str, Any]:
     """Pelvis (per view, and the view geometry), then femur. Returns cameras and the entry estimate."""
-    from fluoronav.registration.bone import BoneView, register_femur, register_pelvis_per_view
+    from fluoronav.registration.bone import (
+        register_femur,
+        register_pelvis_per_view,
+        views_from_images,
+        views_in_ct_frame,
+    )
 
-    views = [BoneView(s.image, s.camera) for s in images]
+    views = views_from_images(images)
     if cfg.workflow == "multi-cm":
         views = views[:1]  # one static C-arm view; every image shows the same anatomy
     pelvis = register_pelvis_per_view(
@@ -164,9 +169,9 @@ def _register_bones(
     }
     if cfg.workflow == "multi-view":
         # work in the CT frame: camera_k_from_ct estimated by each view's pelvis registration
-        cams = [v.camera.with_pose(p.camera_from_bone[0]) for v, p in zip(views, pelvis, strict=True)]
+        femur_views = views_in_ct_frame(views, pelvis)
+        cams = [v.camera for v in femur_views]
         world_from_patient = np.eye(4)
-        femur_views = [BoneView(v.image, c) for v, c in zip(views, cams, strict=True)]
     else:
         cams = [s.camera for s in images]
         world_from_patient = pelvis[0].world_from_bone
