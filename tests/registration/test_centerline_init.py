@@ -219,30 +219,37 @@ def test_noisy_scenes_match_paper_accuracy() -> None:
     assert out["theta_error_deg_mean"] < 35.0
 
 
-def test_multiview_init_recovers_pose_and_resolves_the_mirror() -> None:
+def _multiview_scene(
+    rng: np.random.Generator, *, cp_max_deg: float, rot_max_deg: float, orbits_deg: tuple[float, ...]
+) -> tuple:
+    """A random CM pose seen by an AP view and orbited views: ``(cams, cp, W, lms (V, 2, 2), cls)``."""
     from fluoronav.geometry import orbit_camera
+
+    kin = CMKinematics()
+    cp = rng.uniform(-cp_max_deg, cp_max_deg, 5)
+    cpt = torch.as_tensor(cp)
+    R = euler_to_matrix("xyz", torch.as_tensor(rng.uniform(-rot_max_deg, rot_max_deg, 3))).numpy()
+    W = np.eye(4)
+    W[:3, :3], W[:3, 3] = R, rng.uniform(-10, 10, 3)
+    mid = (kin.centerline_cm(cpt).numpy() @ W[:3, :3].T + W[:3, 3]).mean(0)
+    ap = carm_camera(source_to_isocenter_mm=450.0, isocenter_world=mid)
+    cams = [ap, *(orbit_camera(ap, angle_deg=a, isocenter_world=mid) for a in orbits_deg)]
+    pts = kin.centerline_cm(cpt, n_points=80).numpy() @ W[:3, :3].T + W[:3, 3]
+    ab = kin.landmarks_cm(cpt).numpy() @ W[:3, :3].T + W[:3, 3]
+    return cams, cp, W, np.stack([c.project(ab) for c in cams]), [c.project(pts) for c in cams]
+
+
+def test_multiview_init_recovers_pose_and_resolves_the_mirror() -> None:
     from fluoronav.registration.centerline_init import centerline_initialize_multiview, mirror_about_chord
 
     rng = np.random.default_rng(4)
     kin = CMKinematics()
     worst = 0.0
     for _ in range(4):
-        cp = rng.uniform(-7.9, 7.9, 5)
+        cams, cp, W, lms, cls = _multiview_scene(
+            rng, cp_max_deg=7.9, rot_max_deg=60.0, orbits_deg=(20.0, -15.0)
+        )
         cpt = torch.as_tensor(cp)
-        R = euler_to_matrix("xyz", torch.as_tensor(rng.uniform(-60, 60, 3))).numpy()
-        W = np.eye(4)
-        W[:3, :3], W[:3, 3] = R, rng.uniform(-10, 10, 3)
-        mid = (kin.centerline_cm(cpt).numpy() @ W[:3, :3].T + W[:3, 3]).mean(0)
-        ap = carm_camera(source_to_isocenter_mm=450.0, isocenter_world=mid)
-        cams = [
-            ap,
-            orbit_camera(ap, angle_deg=20.0, isocenter_world=mid),
-            orbit_camera(ap, angle_deg=-15.0, isocenter_world=mid),
-        ]
-        pts = kin.centerline_cm(cpt, n_points=80).numpy() @ W[:3, :3].T + W[:3, 3]
-        ab = kin.landmarks_cm(cpt).numpy() @ W[:3, :3].T + W[:3, 3]
-        lms = np.stack([c.project(ab) for c in cams])
-        cls = [c.project(pts) for c in cams]
         res = centerline_initialize_multiview(cams, lms, cls, cp)
         tip_est = res.world_from_cm[:3, :3] @ kin.tip_cm(cpt).numpy() + res.world_from_cm[:3, 3]
         tip_true = W[:3, :3] @ kin.tip_cm(cpt).numpy() + W[:3, 3]
@@ -270,3 +277,43 @@ def test_multiview_init_recovers_pose_and_resolves_the_mirror() -> None:
         tip_rob = rob.world_from_cm[:3, :3] @ kin.tip_cm(cpt).numpy() + rob.world_from_cm[:3, 3]
         worst = max(worst, float(np.linalg.norm(tip_rob - tip_true)))
     assert worst < 0.6  # 1° roll steps on a ~31 mm CM
+
+
+@pytest.mark.parametrize("bad_view", [0, 1])
+def test_multiview_init_two_views_trusts_the_confident_landmark(bad_view: int) -> None:
+    """Two views, A of one detected on B (the 2-view case of a 20-trial study): no vote is possible;
+    the more confident view's A at the model's chord length from B recovers the pose."""
+    from fluoronav.registration.centerline_init import centerline_initialize_multiview
+
+    kin = CMKinematics()
+    cams, cp, W, lms, cls = _multiview_scene(
+        np.random.default_rng(7), cp_max_deg=5.0, rot_max_deg=40.0, orbits_deg=(20.0,)
+    )
+    cpt = torch.as_tensor(cp)
+    ab = kin.landmarks_cm(cpt).numpy() @ W[:3, :3].T + W[:3, 3]
+    bad = lms.copy()
+    bad[bad_view, 0] = lms[bad_view, 1] + [12.0, 3.0]  # A found next to B
+    cls_bad = list(cls)
+    cls_bad[bad_view] = np.linspace(bad[bad_view, 0], bad[bad_view, 1], 10)  # a stub between them
+    conf = np.full((2, 2), 0.8)
+    conf[bad_view] = 0.3
+    tip_true = W[:3, :3] @ kin.tip_cm(cpt).numpy() + W[:3, 3]
+
+    def tip_error(res: object) -> float:
+        T = res.world_from_cm  # type: ignore[attr-defined]
+        return float(np.linalg.norm(T[:3, :3] @ kin.tip_cm(cpt).numpy() + T[:3, 3] - tip_true))
+
+    naive = centerline_initialize_multiview(cams, bad, cls_bad, cp)
+    assert tip_error(naive) > 5.0  # the failure the confidence is for
+    res = centerline_initialize_multiview(cams, bad, cls_bad, cp, landmark_confidence=conf)
+    expected = np.ones((2, 2), bool)
+    expected[bad_view, 0] = False
+    np.testing.assert_array_equal(res.landmark_inliers, expected)
+    np.testing.assert_allclose(res.landmarks_px[bad_view, 0], lms[bad_view, 0], atol=1.0)
+    np.testing.assert_allclose(res.landmarks_world, ab, atol=0.5)
+    assert tip_error(res) < 0.6
+    # consistent views: the confidences change nothing
+    same = centerline_initialize_multiview(cams, lms, cls, cp, landmark_confidence=conf)
+    np.testing.assert_allclose(
+        same.world_from_cm, centerline_initialize_multiview(cams, lms, cls, cp).world_from_cm
+    )

@@ -62,3 +62,21 @@ def test_callable_priors() -> None:
     )
     with pytest.raises(ValueError):
         GaussianParameterPrior(np.zeros(2), np.array([1.0, 0.0]))
+
+
+def test_flat_bottomed_prior_is_free_within_the_tolerance() -> None:
+    """½ (max(|x − μ| − τ, 0)/σ)²: zero inside ±τ, hand-computed values outside, τ = 0 is the Gaussian."""
+    mean, std = torch.tensor([1.0, -2.0], dtype=torch.float64), torch.tensor([0.25, 0.5], dtype=torch.float64)
+    tol = torch.tensor([1.0, 0.5], dtype=torch.float64)
+    p = torch.tensor([[1.9, -2.4], [2.5, -2.0], [-0.5, -3.0]], dtype=torch.float64)
+    got = gaussian_parameter_prior(p, mean, std, tol)
+    # row 0 inside; row 1: |1.5| − 1 = 0.5 → ½·(0.5/0.25)² = 2; row 2: 2 + ½·((1 − 0.5)/0.5)² = 2.5
+    torch.testing.assert_close(got, torch.tensor([0.0, 2.0, 2.5], dtype=torch.float64))
+    torch.testing.assert_close(
+        gaussian_parameter_prior(p, mean, std, torch.zeros(2, dtype=torch.float64)),
+        gaussian_parameter_prior(p, mean, std),
+    )
+    g = GaussianParameterPrior(mean.numpy(), std.numpy(), tolerance=tol.numpy())
+    torch.testing.assert_close(g(p), got)
+    with pytest.raises(ValueError, match="tolerances"):
+        GaussianParameterPrior(mean.numpy(), std.numpy(), tolerance=np.array([-1.0, 0.0]))

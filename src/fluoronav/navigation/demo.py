@@ -353,6 +353,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
             [found[k]["centerline_px"] for k in seen],  # type: ignore[index]
             cp0,
             config=sc.cm_config,
+            landmark_confidence=np.stack([found[k]["confidence"] for k in seen]),  # type: ignore[index]
         )
         # landmarks that disagreed with the other views are replaced by the triangulated consensus
         lm_views: list[np.ndarray | None] = [None if f is None else f["landmarks_px"] for f in found]

@@ -105,10 +105,14 @@ class CMRegistrationConfig:
         roi_size_full_px: side of the square crop around the landmarks, full-detector pixels.
         landmark_sigma_full_px: landmark prior σ in full-detector pixels (authors: 100); None
             disables the prior.
-        control_point_sigma_deg: σ of a Gaussian prior of the control points around their initial
-            values (the FBG reading); None disables it (the authors have none, our choice: see
-            docs/registration.md — the 4 mm straight base stub barely constrains the base rotation
-            in the bending plane against the first notches, so without it shape and base trade off).
+        control_point_sigma_deg, control_point_tolerance_deg: prior of the control points around
+            their initial values (the FBG reading): free within ± tolerance, Gaussian walls of σ
+            beyond (:func:`~fluoronav.registration.priors.gaussian_parameter_prior`); σ None disables
+            it (the authors have none). Why a flat bottom: a plain Gaussian (σ 1°) held the notch
+            angles at the FBG error (multi-view notch 0.37 → 0.13° and 0.40 → 0.05° without it),
+            and without any prior one of eight multi-view trials traded the base rotation against
+            the shape (notch error 4.4°). The tolerance is the FBG accuracy with a margin (the
+            simulated reading is within ±0.5°); docs/registration.md.
         use_background: add the views' background DRRs (when given) to the CM DRR.
         cm_mu_per_mm: attenuation of the CM in the DRR (matters only relative to a background).
         cm_config: CM geometry.
@@ -122,7 +126,8 @@ class CMRegistrationConfig:
     levels: tuple[LevelConfig, ...] = field(default_factory=default_cm_levels)
     roi_size_full_px: int = 500
     landmark_sigma_full_px: float | None = 100.0
-    control_point_sigma_deg: float | None = 1.0
+    control_point_sigma_deg: float | None = 0.25
+    control_point_tolerance_deg: float = 1.0
     use_background: bool = True
     cm_mu_per_mm: float = DEFAULT_CM_MU_PER_MM
     cm_config: CMConfig = field(default_factory=CMConfig)
@@ -391,7 +396,8 @@ class CMProblem:
         if cfg.control_point_sigma_deg is not None:
             n = cfg.cm_config.n_control_points
             std = np.concatenate([np.full(6, np.inf), np.full(n, cfg.control_point_sigma_deg)])
-            priors.append(GaussianParameterPrior(np.concatenate([np.zeros(6), cp0]), std))
+            tol = np.concatenate([np.zeros(6), np.full(n, cfg.control_point_tolerance_deg)])
+            priors.append(GaussianParameterPrior(np.concatenate([np.zeros(6), cp0]), std, tolerance=tol))
 
         # a level finer than an image's binning cannot be formed from it: drop it
         coarsest = max(v.image_binning for v in views)

@@ -60,16 +60,23 @@ def landmark_reprojection_prior(
     return d2.sum(dim=(1, 2)) / (2.0 * sigma_px**2)
 
 
-def gaussian_parameter_prior(params: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
-    """Independent Gaussian prior on parameters: ``½ Σ ((x − μ)/σ)²``.
+def gaussian_parameter_prior(
+    params: torch.Tensor, mean: torch.Tensor, std: torch.Tensor, tolerance: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Independent Gaussian prior on parameters: ``½ Σ ((x − μ)/σ)²``, or with a ``tolerance`` τ a
+    flat-bottomed one, ``½ Σ (max(|x − μ| − τ, 0)/σ)²``: free within ±τ of the mean (a sensor's stated
+    accuracy), Gaussian walls beyond.
 
     Args:
-        params: (B, D); mean, std: (D,) (std = inf disables a parameter).
+        params: (B, D); mean, std: (D,) (std = inf disables a parameter); tolerance: (D,) ≥ 0 or None.
 
     Returns:
         (B,) negative log-density up to a constant.
     """
-    z = (params - mean.to(params)) / std.to(params)
+    d = params - mean.to(params)
+    if tolerance is not None:
+        d = torch.clamp(d.abs() - tolerance.to(params), min=0.0)
+    z = d / std.to(params)
     return 0.5 * (z * z).sum(dim=-1)
 
 
@@ -103,13 +110,22 @@ class LandmarkPrior:
 
 
 class GaussianParameterPrior:
-    """Callable Gaussian prior on parameters (see :func:`gaussian_parameter_prior`)."""
+    """Callable (flat-bottomed) Gaussian prior on parameters (see :func:`gaussian_parameter_prior`)."""
 
-    def __init__(self, mean: torch.Tensor | np.ndarray, std: torch.Tensor | np.ndarray) -> None:
+    def __init__(
+        self,
+        mean: torch.Tensor | np.ndarray,
+        std: torch.Tensor | np.ndarray,
+        *,
+        tolerance: torch.Tensor | np.ndarray | None = None,
+    ) -> None:
         self.mean = as_tensor(mean, dtype=torch.float64)
         self.std = as_tensor(std, dtype=torch.float64)
+        self.tolerance = None if tolerance is None else as_tensor(tolerance, dtype=torch.float64)
         if torch.any(self.std <= 0):
             raise ValueError("prior standard deviations must be positive")
+        if self.tolerance is not None and torch.any(self.tolerance < 0):
+            raise ValueError("prior tolerances must be non-negative")
 
     def __call__(self, params: torch.Tensor) -> torch.Tensor:
-        return gaussian_parameter_prior(params, self.mean, self.std)
+        return gaussian_parameter_prior(params, self.mean, self.std, self.tolerance)

@@ -114,18 +114,22 @@ def _full_to_image_px(uv_full: np.ndarray, binning: int) -> np.ndarray:
 
 def _landmarks_and_centerline(
     images: list[Any], trial: Any, cfg: StudyConfig, binning: int
-) -> tuple[list[np.ndarray | None], list[np.ndarray | None]]:
-    """Per image: landmarks (2, 2) and centreline, or None where the detector found no CM."""
+) -> tuple[list[np.ndarray | None], list[np.ndarray | None], list[np.ndarray]]:
+    """Per image: landmarks (2, 2) and centreline, or None where the detector found no CM, and the
+    landmarks' confidences (2,) (1 for oracle landmarks, 0 where nothing was found)."""
     from fluoronav.detection.centerline import extract_centerline
 
     lms: list[np.ndarray | None] = []
     cls: list[np.ndarray | None] = []
+    confs: list[np.ndarray] = []
     for i, sim in enumerate(images):
         if cfg.oracle_landmarks:
             lm = _full_to_image_px(trial.oracle_landmarks_px[i], binning)
             mask = sim.mask.astype(bool)
+            confs.append(np.ones(2))
         else:
             det = _detector(cfg.device).detect(sim.image, pixel_spacing_mm=sim.camera.pixel_spacing_mm)
+            confs.append(np.asarray(det.landmark_confidence, dtype=np.float64))
             if not det.found or det.landmarks_px is None:
                 # the view still counts in the registration (ROI at the initial pose's projection);
                 # the initialisation needs view 0 (one-view workflows) or two views (multi-view)
@@ -139,7 +143,7 @@ def _landmarks_and_centerline(
                 continue
         lms.append(lm)
         cls.append(extract_centerline(mask, lm[0], lm[1]))
-    return lms, cls
+    return lms, cls, confs
 
 
 class _TrialFailure(FluoronavError):
@@ -247,7 +251,7 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
             trial, simulator, seed=int(rng.integers(2**31)), image_size=cfg.image_size
         )
         binning = max(1, round(trial.cameras[0].cols / images[0].camera.cols))
-        lms, cls = _landmarks_and_centerline(images, trial, cfg, binning)
+        lms, cls, confs = _landmarks_and_centerline(images, trial, cfg, binning)
         row["true_control_points_deg"] = np.round(trial.control_points_deg, 4).tolist()
         row["true_world_from_cm"] = np.round(trial.world_from_cm[0], 5).tolist()
         labelled = _has_labels(volume) and cfg.register_bones and cfg.workflow != "centerline"
@@ -323,6 +327,7 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                         [np.asarray(cls[k]) for k in found],
                         trial.initial_control_points_deg,
                         config=trial.cm_config,
+                        landmark_confidence=np.stack([confs[k] for k in found]),
                     )
                     starts = multiview_start_poses(mv)
                     # landmarks that disagreed with the other views: the triangulated consensus
