@@ -113,6 +113,9 @@ class CMRegistrationConfig:
             and without any prior one of eight multi-view trials traded the base rotation against
             the shape (notch error 4.4°). The tolerance is the FBG accuracy with a margin (the
             simulated reading is within ±0.5°); docs/registration.md.
+        single_view_control_point_sigma_deg: one view: a plain Gaussian of this σ instead (None:
+            the flat-bottomed prior above). One view does not tell depth from shape: on a 384²
+            single-view test case the flat prior left the depth 7.1 mm off against < 6 mm with it.
         use_background: add the views' background DRRs (when given) to the CM DRR.
         cm_mu_per_mm: attenuation of the CM in the DRR (matters only relative to a background).
         cm_config: CM geometry.
@@ -128,6 +131,7 @@ class CMRegistrationConfig:
     landmark_sigma_full_px: float | None = 100.0
     control_point_sigma_deg: float | None = 0.25
     control_point_tolerance_deg: float = 1.0
+    single_view_control_point_sigma_deg: float | None = 1.0
     use_background: bool = True
     cm_mu_per_mm: float = DEFAULT_CM_MU_PER_MM
     cm_config: CMConfig = field(default_factory=CMConfig)
@@ -393,10 +397,13 @@ class CMProblem:
 
                 priors.append(LandmarkPrior(project, detected, cfg.landmark_sigma_full_px))
 
-        if cfg.control_point_sigma_deg is not None:
+        sigma, tolerance = cfg.control_point_sigma_deg, cfg.control_point_tolerance_deg
+        if len(views) == 1 and cfg.single_view_control_point_sigma_deg is not None:
+            sigma, tolerance = cfg.single_view_control_point_sigma_deg, 0.0
+        if sigma is not None:
             n = cfg.cm_config.n_control_points
-            std = np.concatenate([np.full(6, np.inf), np.full(n, cfg.control_point_sigma_deg)])
-            tol = np.concatenate([np.zeros(6), np.full(n, cfg.control_point_tolerance_deg)])
+            std = np.concatenate([np.full(6, np.inf), np.full(n, sigma)])
+            tol = np.concatenate([np.zeros(6), np.full(n, tolerance)])
             priors.append(GaussianParameterPrior(np.concatenate([np.zeros(6), cp0]), std, tolerance=tol))
 
         # a level finer than an image's binning cannot be formed from it: drop it
