@@ -477,8 +477,9 @@ class MultiViewInitResult:
         cost_px: its centreline cost, mean over the views (pixels).
         landmarks_world: (2, 3) triangulated A and B.
         alternatives: (S, 4, 4) poses of the local minima over θ, lowest cost first (the first is the
-            best); alternative_costs_px: (S,) their costs.
-        theta_grid_deg, theta_costs_px: the scanned θ and the cost curve.
+            best; with two candidate landmark pairs, see ``landmark_confidence``, the minima of
+            both scans); alternative_costs_px: (S,) their costs.
+        theta_grid_deg, theta_costs_px: the scanned θ and the cost curve (of the best pair).
         landmark_inliers: (V, 2) whether view k's A / B agreed with the others (robust triangulation).
         landmarks_px: (V, 2, 2) the given landmarks, with those that disagreed replaced by the
             projection of the triangulated point: use them for the registration's ROI and prior.
