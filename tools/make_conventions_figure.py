@@ -39,7 +39,8 @@ def main() -> None:
     ax.scatter(*src, color="k", s=40)
     ax.text(*src + np.array([0, 40, -120]), "X-ray source = camera origin", fontsize=9)
     # detector outline at SDD
-    corners_uv = np.array([[0, 0], [cam.cols - 1, 0], [cam.cols - 1, cam.rows - 1], [0, cam.rows - 1], [0, 0]])
+    c, r = cam.cols - 1, cam.rows - 1
+    corners_uv = np.array([[0, 0], [c, 0], [c, r], [0, r], [0, 0]])
     det = cam.backproject(corners_uv, 1020.0)
     ax.plot(det[:, 0], det[:, 1], det[:, 2], "k-")
     first = cam.backproject(np.array([[0.0, 0.0]]), 1020.0)[0]

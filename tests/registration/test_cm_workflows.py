@@ -159,6 +159,22 @@ def test_non_converged_run_reports_reason(single_case) -> None:
     assert res.trace.n_evals == 10
 
 
+def test_result_on_the_search_box_edge_is_a_failure(single_case) -> None:
+    # the start is 5 mm / 5° off: a 1 mm box keeps the optimum out of reach, so the search ends on
+    # the box's edge and must not be reported as a success
+    case = single_case
+    res = register_cm(
+        case.views,
+        initial_world_from_cm=case.initial_world_from_cm,
+        initial_control_points_deg=case.initial_control_points_deg,
+        config=CMRegistrationConfig(levels=FAST_LEVELS, max_translation_mm=1.0, max_rotation_deg=1.0),
+    )
+    assert not res.success
+    assert "left the search box" in res.reason
+    delta = np.linalg.inv(case.initial_world_from_cm) @ res.world_from_cm[0]
+    assert np.abs(delta[:3, 3]).max() <= 1.0 + 1e-6  # in the start's CM frame
+
+
 def test_pose_errors_of_a_known_perturbation() -> None:
     rng = np.random.default_rng(0)
     T = perturb_pose(np.eye(4), rng, rotation_deg=0.0, translation_mm=0.0)

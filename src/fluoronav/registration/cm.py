@@ -122,6 +122,11 @@ class CMRegistrationConfig:
         shaft_length_mm: length of the rigid tube the CM is mounted on, rendered as a longer base
             (:func:`~fluoronav.manipulator.config.with_shaft`): it shows in the images and pins the
             base's direction down; 0 for a bare CM. The simulator's default is the same 50 mm.
+        max_rotation_deg, max_translation_mm: search box of the pose around each start (per
+            parameter: rotation-vector components, translation components; None: unbounded). A
+            result on the box's edge is reported as a failure (``success`` False): the optimiser
+            left the region it was started in, typically pulled by a wrong landmark (a single-view
+            trial with a mis-detected B otherwise ended 583 mm away, "converged").
         chunk_size: render at most this many candidates per call (None: the whole population).
         device: torch device of rendering and similarity.
     """
@@ -136,6 +141,8 @@ class CMRegistrationConfig:
     cm_mu_per_mm: float = DEFAULT_CM_MU_PER_MM
     cm_config: CMConfig = field(default_factory=CMConfig)
     shaft_length_mm: float = 50.0
+    max_rotation_deg: float | None = 45.0
+    max_translation_mm: float | None = 50.0
     chunk_size: int | None = None
     device: str = "cpu"
 
@@ -415,6 +422,10 @@ class CMProblem:
             logger.info(
                 "dropped %d level(s) finer than the images' binning", len(cfg.levels) - len(self.levels)
             )
+        self.pose_box = _pose_box(self.param.initial(), cfg.max_rotation_deg, cfg.max_translation_mm)
+        if self.pose_box is not None:
+            box = (tuple(self.pose_box[0].tolist()), tuple(self.pose_box[1].tolist()))
+            self.levels = [lv if lv.bounds is not None else lv.with_(bounds=box) for lv in self.levels]
 
         self.registration = Registration(
             self.moving,
@@ -503,6 +514,9 @@ class CMProblem:
 
     def result(self, params: np.ndarray, res: Any) -> CMRegistrationResult:
         dev, kin = self.device, self.kinematics
+        edge = _on_box_edge(np.asarray(params), self.pose_box, self.param.names)
+        if edge and res.success:
+            res = replace(res, success=False, reason=f"{res.reason}; left the search box ({edge})")
         with torch.no_grad():
             p = torch.as_tensor(np.asarray(params)[None], dtype=torch.float64, device=dev)
             W, cp = self.world_from_cm(p)
@@ -652,6 +666,37 @@ def register_cm_multistart(
         seed=seed + 1,
     )
     return replace(res, seconds=res.seconds + spent, reason=f"{res.reason}; start {k} of {len(screened)}")
+
+
+def _pose_box(
+    x0: np.ndarray, max_rotation_deg: float | None, max_translation_mm: float | None
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lower, upper) of the pose parameters (every block of 3 rotations + 3 translations) around
+    ``x0``; the control points stay unbounded (±90°, the prior holds them)."""
+    if max_rotation_deg is None and max_translation_mm is None:
+        return None
+    half = np.full(x0.size, 90.0)  # control points (and anything else): effectively free
+    n_pose = x0.size - 5
+    for k in range(0, n_pose, 6):
+        half[k : k + 3] = np.inf if max_rotation_deg is None else max_rotation_deg
+        half[k + 3 : k + 6] = np.inf if max_translation_mm is None else max_translation_mm
+    half = np.where(np.isfinite(half), half, 1e6)
+    return x0 - half, x0 + half
+
+
+def _on_box_edge(
+    params: np.ndarray, box: tuple[np.ndarray, np.ndarray] | None, names: Sequence[str] | None
+) -> str:
+    """Names of the pose parameters within 2 % of the box's half-width of its edge ('' if none)."""
+    if box is None:
+        return ""
+    lo, hi = box
+    margin = 0.02 * (hi - lo) / 2.0
+    hit = (params <= lo + margin) | (params >= hi - margin)
+    hit[-5:] = False  # control points are not boxed
+    idx = np.flatnonzero(hit)
+    labels = list(names) if names is not None else [f"p{i}" for i in range(params.size)]
+    return ", ".join(labels[i] for i in idx)
 
 
 def _delta(params6: np.ndarray, device: torch.device) -> torch.Tensor:

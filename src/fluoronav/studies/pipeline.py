@@ -188,6 +188,7 @@ def _register_bones(
     out.update(
         cameras=cams,
         entry_world_est=entry_world_est,
+        head_world_est=(femur.world_from_bone @ np.append(trial.femoral_head_ct, 1.0))[:3],
         femur_seconds=femur.seconds,
         femur_converged=femur.converged,
     )
@@ -234,7 +235,7 @@ def multiview_start_poses(
 
 def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
     """One trial → one ``trials.csv`` row (status ``ok`` or ``failed`` with its reason)."""
-    from fluoronav.registration.centerline_init import centerline_initialize
+    from fluoronav.registration.centerline_init import centerline_initialize, depth_range_about
     from fluoronav.registration.cm import CMView
     from fluoronav.studies.protocol import sample_trial, simulate_trial_images
 
@@ -254,7 +255,8 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
         lms, cls, confs = _landmarks_and_centerline(images, trial, cfg, binning)
         row["true_control_points_deg"] = np.round(trial.control_points_deg, 4).tolist()
         row["true_world_from_cm"] = np.round(trial.world_from_cm[0], 5).tolist()
-        labelled = _has_labels(volume) and cfg.register_bones and cfg.workflow != "centerline"
+        # the centreline study too: its depth search is centred on the registered femoral head
+        labelled = _has_labels(volume) and cfg.register_bones
         bones = (
             _register_bones(images, trial, volume, cfg, seed=int(rng.integers(2**31))) if labelled else None
         )
@@ -275,9 +277,15 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
         elif lms[0] is None or cls[0] is None:
             raise _TrialFailure("detector found no CM in image 0")
         else:
-            # centreline initialisation in the first (AP) view
+            # centreline initialisation in the first (AP) view, depth within reach of the femoral head
+            depth_range = None if bones is None else depth_range_about(cams[0], bones["head_world_est"])
             init = centerline_initialize(
-                cams[0], lms[0], cls[0], trial.initial_control_points_deg, seed=int(rng.integers(2**31))
+                cams[0],
+                lms[0],
+                cls[0],
+                trial.initial_control_points_deg,
+                depth_range_mm=depth_range,
+                seed=int(rng.integers(2**31)),
             )
         carm0_true = images[0].camera.camera_from_world @ trial.world_from_cm[0]
         if cfg.workflow == "centerline":
