@@ -422,7 +422,12 @@ class CMProblem:
             logger.info(
                 "dropped %d level(s) finer than the images' binning", len(cfg.levels) - len(self.levels)
             )
-        self.pose_box = _pose_box(self.param.initial(), cfg.max_rotation_deg, cfg.max_translation_mm)
+        self.pose_box = _pose_box(
+            self.param.initial(),
+            cfg.cm_config.n_control_points,
+            max_rotation_deg=cfg.max_rotation_deg,
+            max_translation_mm=cfg.max_translation_mm,
+        )
         if self.pose_box is not None:
             box = (tuple(self.pose_box[0].tolist()), tuple(self.pose_box[1].tolist()))
             self.levels = [lv if lv.bounds is not None else lv.with_(bounds=box) for lv in self.levels]
@@ -514,7 +519,9 @@ class CMProblem:
 
     def result(self, params: np.ndarray, res: Any) -> CMRegistrationResult:
         dev, kin = self.device, self.kinematics
-        edge = _on_box_edge(np.asarray(params), self.pose_box, self.param.names)
+        edge = _on_box_edge(
+            np.asarray(params), self.pose_box, self.param.names, self.config.cm_config.n_control_points
+        )
         if edge and res.success:
             res = replace(res, success=False, reason=f"{res.reason}; left the search box ({edge})")
         with torch.no_grad():
@@ -669,23 +676,30 @@ def register_cm_multistart(
 
 
 def _pose_box(
-    x0: np.ndarray, max_rotation_deg: float | None, max_translation_mm: float | None
+    x0: np.ndarray,
+    n_control_points: int,
+    *,
+    max_rotation_deg: float | None,
+    max_translation_mm: float | None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """(lower, upper) of the pose parameters (every block of 3 rotations + 3 translations) around
-    ``x0``; the control points stay unbounded (±90°, the prior holds them)."""
+    ``x0``; the last ``n_control_points`` stay effectively free (±90°, the prior holds them)."""
     if max_rotation_deg is None and max_translation_mm is None:
         return None
-    half = np.full(x0.size, 90.0)  # control points (and anything else): effectively free
-    n_pose = x0.size - 5
-    for k in range(0, n_pose, 6):
-        half[k : k + 3] = np.inf if max_rotation_deg is None else max_rotation_deg
-        half[k + 3 : k + 6] = np.inf if max_translation_mm is None else max_translation_mm
-    half = np.where(np.isfinite(half), half, 1e6)
+    unbounded = 1e6  # pycma wants finite bounds on every coordinate
+    rot = unbounded if max_rotation_deg is None else max_rotation_deg
+    trans = unbounded if max_translation_mm is None else max_translation_mm
+    half = np.full(x0.size, 90.0)
+    for k in range(0, x0.size - n_control_points, 6):
+        half[k : k + 3], half[k + 3 : k + 6] = rot, trans
     return x0 - half, x0 + half
 
 
 def _on_box_edge(
-    params: np.ndarray, box: tuple[np.ndarray, np.ndarray] | None, names: Sequence[str] | None
+    params: np.ndarray,
+    box: tuple[np.ndarray, np.ndarray] | None,
+    names: Sequence[str] | None,
+    n_control_points: int,
 ) -> str:
     """Names of the pose parameters within 2 % of the box's half-width of its edge ('' if none)."""
     if box is None:
@@ -693,7 +707,7 @@ def _on_box_edge(
     lo, hi = box
     margin = 0.02 * (hi - lo) / 2.0
     hit = (params <= lo + margin) | (params >= hi - margin)
-    hit[-5:] = False  # control points are not boxed
+    hit[params.size - n_control_points :] = False  # control points are not boxed
     idx = np.flatnonzero(hit)
     labels = list(names) if names is not None else [f"p{i}" for i in range(params.size)]
     return ", ".join(labels[i] for i in idx)

@@ -277,16 +277,19 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
         elif lms[0] is None or cls[0] is None:
             raise _TrialFailure("detector found no CM in image 0")
         else:
-            # centreline initialisation in the first (AP) view, depth within reach of the femoral head
-            depth_range = None if bones is None else depth_range_about(cams[0], bones["head_world_est"])
-            init = centerline_initialize(
-                cams[0],
-                lms[0],
-                cls[0],
-                trial.initial_control_points_deg,
-                depth_range_mm=depth_range,
-                seed=int(rng.integers(2**31)),
-            )
+            init_seed = int(rng.integers(2**31))  # drawn either way: the trial's later draws stay put
+            init = None
+            if cfg.init != "perturbed" or cfg.workflow == "centerline":
+                # centreline initialisation in the first (AP) view, depth within reach of the femoral head
+                depth_range = None if bones is None else depth_range_about(cams[0], bones["head_world_est"])
+                init = centerline_initialize(
+                    cams[0],
+                    lms[0],
+                    cls[0],
+                    trial.initial_control_points_deg,
+                    depth_range_mm=depth_range,
+                    seed=init_seed,
+                )
         carm0_true = images[0].camera.camera_from_world @ trial.world_from_cm[0]
         if cfg.workflow == "centerline":
             assert init is not None
