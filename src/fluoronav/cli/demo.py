@@ -27,7 +27,7 @@ STAGE_LABELS = {
     "plan": "planning the target pose",
     "robot": "computing the robot command (eqs. 7-8, IK)",
     "move": "moving the robot",
-    "verify": "verification image and registration",
+    "verify": "verification images and registration",
     "correct": "corrective move from the verification",
 }
 

@@ -47,7 +47,7 @@ def register(app: typer.Typer) -> None:
             help="navigation: corrective moves from a new image after the first move (0 = open loop).",
         ),
         verify_views: int = typer.Option(
-            2,
+            3,
             "--verify-views",
             min=1,
             help="navigation: C-arm views at a reached pose (re-centred; bones and CM registered anew).",
