@@ -43,7 +43,7 @@ def test_rows_carry_the_contract_metric_names() -> None:
         assert name in he
     nav = _columns(HandEyeStudyConfig(workflow="navigation", trials=1, seed=0))
     assert "reposition_tip_mm" in nav and "entry_mm" in nav and "seconds" in nav
-    assert {"verify_entry_mm", "verify_tip_mm", "verify_relative_mm"} <= set(nav)
+    assert {"verify_entry_mm", "verify_tip_mm", "verify_relative_mm", "reposition_axis_deg"} <= set(nav)
     assert set(HANDEYE_METRICS) <= set(he) and set(NAVIGATION_METRICS) <= set(nav)
 
 

@@ -590,6 +590,12 @@ def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> d
     return finish_row(row, t0)
 
 
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two directions in degrees."""
+    c = float(a @ b) / (float(np.linalg.norm(a)) * float(np.linalg.norm(b)))
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
 def _register_single(
     image: Any,
     lm: np.ndarray,
@@ -827,6 +833,10 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         planned_true = (tr.world_from_femur @ np.append(plan.tip_target_world_mm, 1.0))[:3]
         row["reposition_open_loop_mm"] = point_error_mm(tip_after, planned_true)
         row["reposition_tip_mm"] = row["reposition_open_loop_mm"]
+        # the CM base axis against the planned direction (the drilling direction)
+        axis_true = (tr.world_from_femur @ femur_from_cm_target)[:3, 2]
+        row["reposition_open_loop_axis_deg"] = _angle_deg(W_after[:3, 2], axis_true)
+        row["reposition_axis_deg"] = row["reposition_open_loop_axis_deg"]
         row["joint_motion_deg"] = float(np.max(np.abs(wrap_deg(q_target - q_regi))))
         # error budget without image errors: true registrations, the same hand-eye and robot errors
         plan_true = dataclasses.replace(plan, control_points_deg=sc.control_points_deg)
@@ -887,6 +897,7 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
             )
             tip_now = (W_now @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3]
             row["reposition_tip_mm"] = point_error_mm(tip_now, planned_true)
+            row["reposition_axis_deg"] = _angle_deg(W_now[:3, 2], axis_true)
         row["seconds_verification"] = seconds_verify
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
         mark_failed(row, exc, trial_id)
@@ -902,6 +913,8 @@ def _columns(cfg: HandEyeStudyConfig) -> list[str]:
             *head,
             *NAVIGATION_METRICS,
             "reposition_robot_mm",
+            "reposition_axis_deg",
+            "reposition_open_loop_axis_deg",
             "verify_entry_mm",
             "verify_tip_mm",
             "verify_relative_mm",
@@ -1044,7 +1057,14 @@ def run_study(
     rows = sorted(csv_log.read(), key=lambda r: int(r["trial"]))
     names = list(HANDEYE_METRICS if cfg.workflow == "hand-eye" else NAVIGATION_METRICS)
     if cfg.workflow == "navigation":
-        names += ["reposition_robot_mm", "verify_entry_mm", "verify_tip_mm", "verify_relative_mm"]
+        names += [
+            "reposition_robot_mm",
+            "reposition_axis_deg",
+            "reposition_open_loop_axis_deg",
+            "verify_entry_mm",
+            "verify_tip_mm",
+            "verify_relative_mm",
+        ]
     if cfg.workflow == "hand-eye":
         names += [
             f"{k}_m{m}"
