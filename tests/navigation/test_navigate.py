@@ -13,6 +13,7 @@ from fluoronav.navigation.navigate import (
     femur_from_cm_registered,
     rbase_from_ee_target,
     robot_target,
+    tip_correction_target,
 )
 from fluoronav.navigation.planning import plan_from_dict, planned_femur_from_cm
 
@@ -147,3 +148,17 @@ def test_unreachable_target_raises():
             carm_from_cm=carm_from_cm,
             femur_from_cm_target=far,
         )
+
+
+def test_tip_correction_slides_the_registered_cm_onto_the_planned_tip_without_rotating() -> None:
+    rng = np.random.default_rng(4)
+    R = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    femur_from_cm = _se3.make(R, rng.uniform(-50, 50, 3))
+    tip_cm = np.array([2.0, -1.0, 38.0])
+    target_tip = rng.uniform(-50, 50, 3)
+    T = tip_correction_target(femur_from_cm, tip_cm, target_tip)
+    np.testing.assert_allclose(T[:3, :3], R, atol=1e-12)
+    np.testing.assert_allclose(T[:3, :3] @ tip_cm + T[:3, 3], target_tip, atol=1e-9)
+    # already on the target: no move
+    T0 = tip_correction_target(T, tip_cm, target_tip)
+    np.testing.assert_allclose(T0, T, atol=1e-9)

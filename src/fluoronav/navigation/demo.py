@@ -219,6 +219,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     from fluoronav.calibration.robot import wrap_deg
     from fluoronav.geometry import orbit_camera
     from fluoronav.manipulator.kinematics import CMKinematics
+    from fluoronav.navigation.navigate import femur_from_cm_registered, tip_correction_target
     from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
     from fluoronav.registration.bone import (
         register_femur,
@@ -452,10 +453,11 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
 
     # ----- one corrective move from the verification registration (closed loop) -----------------
     with stage("correct"):
-        # the target for the verification's own shape: its base pose and shape place the tip
-        # together, so the first registration's shape would aim the wrong base pose
-        target2 = planned_femur_from_cm(
-            dataclasses.replace(plan, control_points_deg=reg2.control_points_deg), kinematics=kin
+        # slide the verified CM so that its registered tip meets the plan (tip_correction_target)
+        target2 = tip_correction_target(
+            femur_from_cm_registered(ct_from_femur, reg2.world_from_cm[0]),
+            kin.tip_cm(torch.as_tensor(reg2.control_points_deg, dtype=torch.float64)).numpy(),
+            plan.tip_target_world_mm,
         )
         q_corr, W_final = sc.move_to_plan(
             q_target,

@@ -33,6 +33,7 @@ __all__ = [
     "femur_from_cm_registered",
     "rbase_from_ee_target",
     "robot_target",
+    "tip_correction_target",
 ]
 
 logger = logging.getLogger(__name__)
@@ -55,6 +56,32 @@ def femur_from_cm_registered(carm_from_femur: np.ndarray, carm_from_cm: np.ndarr
     F = _se3.as_transform_array(carm_from_femur, "carm_from_femur")
     C = _se3.as_transform_array(carm_from_cm, "carm_from_cm")
     return _se3.inv(F) @ C
+
+
+def tip_correction_target(
+    femur_from_cm_regi: np.ndarray, tip_cm_mm: np.ndarray, tip_target_femur_mm: np.ndarray
+) -> np.ndarray:
+    """Target of a corrective move that only translates: the registered CM slid so that its tip
+    lands on the planned tip, its orientation kept.
+
+    For a registration at a reached pose whose tip is reliable but whose base orientation is not:
+    base pose and shape place the tip together, and a few degrees of base rotation can trade
+    against the control points with the tip nearly unchanged. Rotating the CM to the plan's
+    orientation would turn such an error into the CM's axis (the demo, seed 0: 8° off the plan);
+    a translation corrects the tip and leaves the axis where the first move put it.
+
+    Args:
+        femur_from_cm_regi: (4, 4) registered CM pose relative to the femur (eq. 7).
+        tip_cm_mm: (3,) the registered CM's tip in its base frame (its registered shape).
+        tip_target_femur_mm: (3,) planned tip in the femur frame.
+
+    Returns:
+        (4, 4) ``femur_from_cm_target`` for :func:`robot_target`.
+    """
+    T = _se3.as_transform_array(femur_from_cm_regi, "femur_from_cm_regi").copy()
+    tip = T[:3, :3] @ np.asarray(tip_cm_mm, dtype=np.float64) + T[:3, 3]
+    T[:3, 3] += np.asarray(tip_target_femur_mm, dtype=np.float64) - tip
+    return T
 
 
 def rbase_from_ee_target(

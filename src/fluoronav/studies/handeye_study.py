@@ -747,6 +747,7 @@ def _verify(
 
 def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, Any]:
     """One navigation trial → one ``trials.csv`` row (module docstring)."""
+    from fluoronav.navigation.navigate import femur_from_cm_registered, tip_correction_target
     from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
     from fluoronav.studies.metrics import cm_errors, point_error_mm, relative_error_mm
     from fluoronav.studies.pipeline import _anatomy
@@ -881,11 +882,13 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
                 row["verify_relative_mm"] = ver.relative_error_mm
             if cfg.corrections == 0:
                 break
-            # the target for this registration's shape: its base pose and shape place the tip
-            # together (one can trade against the other); the first shape's target would move
-            # the base to where the first shape's tip, not this one's, meets the plan
-            target_k = planned_femur_from_cm(
-                dataclasses.replace(plan, control_points_deg=ver.control_points_deg), kinematics=kin
+            # slide the verified CM so that its registered tip meets the plan (tip_correction_target:
+            # the verification's tip is reliable, its base orientation trades against its shape)
+            tip_ver = kin.tip_cm(torch.as_tensor(ver.control_points_deg, dtype=torch.float64)).numpy()
+            target_k = tip_correction_target(
+                femur_from_cm_registered(ver.carm_from_femur, ver.carm_from_cm),
+                tip_ver,
+                plan.tip_target_world_mm,
             )
             q_now, W_now = sc.move_to_plan(
                 q_now,
