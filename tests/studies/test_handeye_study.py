@@ -130,9 +130,10 @@ def test_navigation_needs_a_verification_view(tmp_path) -> None:
 
 @pytest.mark.slow
 def test_navigation_trial_corrects_from_a_recentred_multi_view_registration() -> None:
-    """A whole navigation trial (768², ~3 min): the corrective move from the re-centred 3-view
-    registration lands within 1.5 mm of the plan (measured 0.69 mm on this seed with 2 views;
-    2.06 mm at 384²), and the verification's own femur-relative CM error is below 1.5 mm."""
+    """A whole navigation trial (768², ~3 min): the corrective move (a slide of the tip) from the
+    re-centred 3-view registration lands within 1.5 mm of the plan (measured 0.69 mm on this seed
+    with 2 views; 2.06 mm at 384²), and the verification's own femur-relative CM error is below
+    1.5 mm."""
     from fluoronav.studies.handeye_study import run_navigation_trial
 
     cfg = HandEyeStudyConfig(workflow="navigation", trials=1, seed=5305)
