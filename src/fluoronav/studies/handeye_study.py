@@ -103,6 +103,16 @@ NAVIGATION_METRICS = (
     "base_rotation_deg",
     "notch_rotation_deg",
 )
+#: navigation rows' further summarised figures: the robot-only error of the first move, the CM axis
+#: against the plan, and the verification registration's own errors against the truth
+NAVIGATION_DIAGNOSTICS = (
+    "reposition_robot_mm",
+    "reposition_axis_deg",
+    "reposition_open_loop_axis_deg",
+    "verify_entry_mm",
+    "verify_tip_mm",
+    "verify_relative_mm",
+)
 
 
 class _TrialFailure(FluoronavError):
@@ -915,12 +925,7 @@ def _columns(cfg: HandEyeStudyConfig) -> list[str]:
         return [
             *head,
             *NAVIGATION_METRICS,
-            "reposition_robot_mm",
-            "reposition_axis_deg",
-            "reposition_open_loop_axis_deg",
-            "verify_entry_mm",
-            "verify_tip_mm",
-            "verify_relative_mm",
+            *NAVIGATION_DIAGNOSTICS,
             "joint_motion_deg",
             "reposition_reason",
             *tail,
@@ -1060,14 +1065,7 @@ def run_study(
     rows = sorted(csv_log.read(), key=lambda r: int(r["trial"]))
     names = list(HANDEYE_METRICS if cfg.workflow == "hand-eye" else NAVIGATION_METRICS)
     if cfg.workflow == "navigation":
-        names += [
-            "reposition_robot_mm",
-            "reposition_axis_deg",
-            "reposition_open_loop_axis_deg",
-            "verify_entry_mm",
-            "verify_tip_mm",
-            "verify_relative_mm",
-        ]
+        names += list(NAVIGATION_DIAGNOSTICS)
     if cfg.workflow == "hand-eye":
         names += [
             f"{k}_m{m}"
