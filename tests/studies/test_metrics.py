@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fluoronav.studies.figures import study_figures
-from fluoronav.studies.metrics import base_error, cm_errors, relative_error_mm
+from fluoronav.studies.metrics import axis_error_deg, base_error, cm_errors, relative_error_mm
 from fluoronav.studies.summary import summarize
 
 
@@ -87,3 +87,9 @@ def test_summary_counts_failures_and_figures(tmp_path) -> None:
     assert s["failure_reasons"] == {"not converged": 1}
     paths = study_figures(rows, tmp_path, workflow="single-view")
     assert {p.name for p in paths} == {"error_histograms.png", "per_axis_boxplots.png", "tip_vs_depth.png"}
+
+
+def test_axis_error_is_the_angle_between_directions_whatever_their_length() -> None:
+    assert axis_error_deg(np.array([1.0, 0, 0]), np.array([3.0, 3.0, 0])) == pytest.approx(45.0, abs=1e-12)
+    assert axis_error_deg(np.array([0, 0, 2.0]), np.array([0, 0, -1.0])) == pytest.approx(180.0, abs=1e-12)
+    assert axis_error_deg(np.array([0, 1.0, 0]), np.array([0, 2.0, 0])) == pytest.approx(0.0, abs=1e-6)

@@ -235,7 +235,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
         centre_between,
         sample_handeye_scenario,
     )
-    from fluoronav.studies.metrics import cm_errors
+    from fluoronav.studies.metrics import axis_error_deg, cm_errors
     from fluoronav.studies.pipeline import _anatomy, multiview_start_poses
 
     torch.manual_seed(cfg.seed)
@@ -416,9 +416,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
         planned_tip_true = _h(tr.world_from_femur, plan.tip_target_world_mm)
     E["reposition_tip_mm"] = float(np.linalg.norm(tip_after - planned_tip_true))
     W_plan_true = tr.world_from_femur @ femur_from_cm_target
-    E["reposition_axis_deg"] = float(
-        np.degrees(np.arccos(np.clip(W_after[:3, 2] @ W_plan_true[:3, 2], -1.0, 1.0)))
-    )
+    E["reposition_axis_deg"] = axis_error_deg(W_after[:3, 2], W_plan_true[:3, 2])
     A.update(W_after=W_after, W_plan_true=W_plan_true, ct_from_femur=ct_from_femur)
     D["true"]["world_from_cm_after"] = W_after.tolist()
 
@@ -443,7 +441,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
             seed=int(seeds[7]),
         )
         img2, found2_ap = images2[0], found2[0]
-    A.update(verify_image=img2, verify_images=images2, verify_detection=found2_ap, verify=reg2)
+    A.update(verify_image=img2, verify_detection=found2_ap, verify=reg2)
     planned_tip_ct = _h(ct_from_femur, plan.tip_target_world_mm)
     E["verify_tip_to_plan_mm"] = float(np.linalg.norm(reg2.tip_world[0] - planned_tip_ct))
     E["verify_tip_error_mm"] = float(
@@ -471,9 +469,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     D["true"]["world_from_cm_corrected"] = W_final.tolist()
     A["W_final"] = W_final
     E["corrected_tip_mm"] = float(np.linalg.norm(_h(W_final, pts_cm[2]) - planned_tip_true))
-    E["corrected_axis_deg"] = float(
-        np.degrees(np.arccos(np.clip(W_final[:3, 2] @ W_plan_true[:3, 2], -1.0, 1.0)))
-    )
+    E["corrected_axis_deg"] = axis_error_deg(W_final[:3, 2], W_plan_true[:3, 2])
     E["correction_joint_motion_deg"] = float(np.max(np.abs(wrap_deg(q_corr - q_target))))
 
 

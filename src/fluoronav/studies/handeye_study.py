@@ -600,12 +600,6 @@ def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> d
     return finish_row(row, t0)
 
 
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    """Angle between two directions in degrees."""
-    c = float(a @ b) / (float(np.linalg.norm(a)) * float(np.linalg.norm(b)))
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-
 def _register_single(
     image: Any,
     lm: np.ndarray,
@@ -759,7 +753,7 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
     """One navigation trial → one ``trials.csv`` row (module docstring)."""
     from fluoronav.navigation.navigate import femur_from_cm_registered, tip_correction_target
     from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
-    from fluoronav.studies.metrics import cm_errors, point_error_mm, relative_error_mm
+    from fluoronav.studies.metrics import axis_error_deg, cm_errors, point_error_mm, relative_error_mm
     from fluoronav.studies.pipeline import _anatomy
 
     t0 = time.perf_counter()
@@ -846,7 +840,7 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         row["reposition_tip_mm"] = row["reposition_open_loop_mm"]
         # the CM base axis against the planned direction (the drilling direction)
         axis_true = (tr.world_from_femur @ femur_from_cm_target)[:3, 2]
-        row["reposition_open_loop_axis_deg"] = _angle_deg(W_after[:3, 2], axis_true)
+        row["reposition_open_loop_axis_deg"] = axis_error_deg(W_after[:3, 2], axis_true)
         row["reposition_axis_deg"] = row["reposition_open_loop_axis_deg"]
         row["joint_motion_deg"] = float(np.max(np.abs(wrap_deg(q_target - q_regi))))
         # error budget without image errors: true registrations, the same hand-eye and robot errors
@@ -910,7 +904,7 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
             )
             tip_now = (W_now @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3]
             row["reposition_tip_mm"] = point_error_mm(tip_now, planned_true)
-            row["reposition_axis_deg"] = _angle_deg(W_now[:3, 2], axis_true)
+            row["reposition_axis_deg"] = axis_error_deg(W_now[:3, 2], axis_true)
         row["seconds_verification"] = seconds_verify
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
         mark_failed(row, exc, trial_id)

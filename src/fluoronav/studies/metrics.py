@@ -16,7 +16,7 @@ import torch
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
 
-__all__ = ["base_error", "cm_errors", "point_error_mm", "relative_error_mm"]
+__all__ = ["axis_error_deg", "base_error", "cm_errors", "point_error_mm", "relative_error_mm"]
 
 
 def _rotation_angle_deg(R: np.ndarray) -> float:
@@ -50,6 +50,13 @@ def base_error(carm_from_cm_est: np.ndarray, carm_from_cm_true: np.ndarray) -> d
         "base_ry_deg": float(rv[1]),
         "base_rz_deg": float(rv[2]),
     }
+
+
+def axis_error_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two directions (3,) in degrees (e.g. a CM axis against the planned one)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    c = float(a @ b) / (float(np.linalg.norm(a)) * float(np.linalg.norm(b)))
+    return math.degrees(math.acos(float(np.clip(c, -1.0, 1.0))))
 
 
 def point_error_mm(p_est: np.ndarray, p_true: np.ndarray) -> float:
