@@ -33,8 +33,9 @@ def main() -> None:
     ax.text(-60, 0, -90, "world (LPS) = CT frame", fontsize=9)
     src = cam.source_world
     R = cam.world_from_camera[:3, :3]
-    for i, (name, c) in enumerate(zip(("x_cam: +cols", "y_cam: +rows", "z_cam: to detector"), "rgb",
-                                      strict=True)):
+    for i, (name, c) in enumerate(
+        zip(("x_cam: +cols", "y_cam: +rows", "z_cam: to detector"), "rgb", strict=True)
+    ):
         _arrow(ax, src, R[:, i] * (150 if i < 2 else 300), c, name)
     ax.scatter(*src, color="k", s=40)
     ax.text(*src + np.array([0, 40, -120]), "X-ray source = camera origin", fontsize=9)
@@ -58,16 +59,21 @@ def main() -> None:
     ax2 = fig.add_subplot(1, 2, 2)
     kin = CMKinematics()
     for cp, style in ((torch.zeros(5), "k--"), (torch.full((5,), 4.0), "b-")):
-        line = kin.centerline_cm(cp.double(), n_points=100, from_z_mm=-kin.config.base_length_mm,
-                                 to_z_mm=kin.config.tip_z_mm).numpy()
+        line = kin.centerline_cm(
+            cp.double(), n_points=100, from_z_mm=-kin.config.base_length_mm, to_z_mm=kin.config.tip_z_mm
+        ).numpy()
         ax2.plot(line[:, 2], line[:, 1], style, linewidth=1.5)
         lm = kin.landmarks_cm(cp.double()).numpy()
         tip = kin.tip_cm(cp.double()).numpy()
         ax2.plot(lm[:, 2], lm[:, 1], "ro")
         ax2.plot(tip[2], tip[1], "gs")
     ax2.annotate("A (origin)", (0, 0), textcoords="offset points", xytext=(-10, 10))
-    ax2.annotate("B: distal plane of last notch", (kin.config.distal_notch_plane_mm, 0),
-                 textcoords="offset points", xytext=(-60, 12))
+    ax2.annotate(
+        "B: distal plane of last notch",
+        (kin.config.distal_notch_plane_mm, 0),
+        textcoords="offset points",
+        xytext=(-60, 12),
+    )
     ax2.annotate("tip", (kin.config.tip_z_mm, 0), textcoords="offset points", xytext=(4, 4))
     ax2.arrow(0, -26, 8, 0, head_width=0.8, color="b")
     ax2.text(9, -26, "+z (axis)", color="b")

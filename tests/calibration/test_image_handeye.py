@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from fluoronav.calibration import _se3
 from fluoronav.calibration.image_handeye import (
     ImageHandEyeConfig,
+    ImageHandEyeProblem,
     calibrate_hand_eye_from_images,
     default_handeye_levels,
     initial_world_from_rbase_pnp,
@@ -19,6 +20,7 @@ from fluoronav.calibration.robot import UR10
 from fluoronav.geometry.carm import carm_camera
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.cm import CMView
+from fluoronav.registration.priors import GaussianParameterPrior
 
 HOME = np.array([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
 
@@ -73,6 +75,25 @@ def test_levels_have_seventeen_parameters_and_the_first_stage_holds_the_hand_eye
     levels = default_handeye_levels()
     assert all(len(lv.sigma) == 17 for lv in levels)
     assert max(levels[0].sigma[6:12]) < 1e-3 < min(levels[1].sigma[6:12])
+
+
+def test_shape_prior_is_free_within_the_fbg_tolerance_with_gaussian_walls() -> None:
+    """Default shape prior: ½ Σ (max(|cp − cp0| − 1°, 0) / 0.25°)² (a Gaussian σ 1° held the shape
+    at the FBG reading and the hand-eye tilt absorbed its error)."""
+    views, A, X, cp = _synthetic(5, np.random.default_rng(4))
+    W = initial_world_from_rbase_pnp(views, A, X, cp)
+    assert W is not None
+    problem = ImageHandEyeProblem(
+        views, A, initial_ee_from_cm=X, initial_control_points_deg=cp, initial_world_from_rbase=W
+    )
+    (prior,) = [p for p in problem.registration.priors if isinstance(p, GaussianParameterPrior)]
+    x0 = problem.param.initial()
+    x = np.stack([x0, x0, x0])
+    x[1, 12:] += 0.9  # inside the tolerance
+    x[2, 12:] -= 1.5  # 0.5° beyond it: 5 × ½ (0.5 / 0.25)² = 10
+    x[:, :12] += 3.0  # pose and hand-eye parameters carry no prior
+    got = prior(torch.as_tensor(x)).numpy()
+    np.testing.assert_allclose(got, [0.0, 0.0, 10.0], atol=1e-9)
 
 
 @pytest.mark.slow

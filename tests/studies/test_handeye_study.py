@@ -39,6 +39,8 @@ def test_rows_carry_the_contract_metric_names() -> None:
         "handeye_tip_mm_m4",
         "handeye_tip_mm_m8",
         "baseline_tip_mm",
+        "handeye_axis_deg",
+        "handeye_roll_deg",
     ):
         assert name in he
     nav = _columns(HandEyeStudyConfig(workflow="navigation", trials=1, seed=0))

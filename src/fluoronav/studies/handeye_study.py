@@ -92,6 +92,8 @@ HANDEYE_METRICS = (
     "baseline_rotation_deg",
     "eq9_vs_eq10_mm",
 )
+#: the hand-eye rotation error split into the tilt of the CM axis and the roll about it (rows, summary)
+HANDEYE_DIAGNOSTICS = ("handeye_axis_deg", "handeye_roll_deg")
 NAVIGATION_METRICS = (
     "reposition_tip_mm",
     "reposition_open_loop_mm",
@@ -933,6 +935,7 @@ def _columns(cfg: HandEyeStudyConfig) -> list[str]:
     return [
         *head,
         *HANDEYE_METRICS,
+        *HANDEYE_DIAGNOSTICS,
         "n_poses",
         "converged",
         "mean_residual_px",
@@ -1061,6 +1064,7 @@ def run_study(
     if cfg.workflow == "navigation":
         names += list(NAVIGATION_DIAGNOSTICS)
     if cfg.workflow == "hand-eye":
+        names += list(HANDEYE_DIAGNOSTICS)
         names += [
             f"{k}_m{m}"
             for m in sorted(cfg.poses)
