@@ -58,7 +58,6 @@ def main() -> None:
     sc = hs.sample_handeye_scenario(volume, rng, n_poses=args.poses, rotation_spread_deg=args.spread_deg)
     kin = CMKinematics()
     ab = kin.landmarks_cm(torch.as_tensor(sc.control_points_deg, dtype=torch.float64)).numpy()
-    b = 1536 // size
     noise = np.random.default_rng(args.seed + 1)
     cams = [sc.camera] + [
         orbit_camera(
@@ -68,12 +67,16 @@ def main() -> None:
         )
         for k in range(1, args.views)
     ]
+    oracle = hs.HandEyeStudyConfig(workflow="hand-eye", trials=1, seed=args.seed, oracle_landmarks=True)
     views = []
     for k, cam in enumerate(cams):
         images = hs.simulate_scenario_images(sc, sim, seed=5 + 50 * k, image_size=size, camera=cam)
-        for i, (s, T) in enumerate(zip(images, sc.world_from_cm, strict=True)):
-            lm = cam.project(ab @ T[:3, :3].T + T[:3, 3]) + noise.uniform(-3, 3, (2, 2))
-            views.append(CMView(s.image, s.camera, landmarks_px=(lm + 0.5) / b - 0.5, name=f"v{k}p{i}"))
+        true_full_px = np.stack([cam.project(ab @ T[:3, :3].T + T[:3, 3]) for T in sc.world_from_cm])
+        lms, _ = hs._landmarks(images, true_full_px, noise, oracle)  # the study's truth ± 3 px
+        views += [
+            CMView(s.image, s.camera, landmarks_px=lm, name=f"v{k}p{i}")
+            for i, (s, lm) in enumerate(zip(images, lms, strict=True))
+        ]
     A1 = sc.rbase_from_ee_reported if args.fk == "reported" else sc.true_robot.rbase_from_ee(sc.q_actual_deg)
     A = np.concatenate([A1] * args.views)
     X0 = sc.ee_from_cm if args.start == "truth" else hs._perturb(sc.ee_from_cm, noise, 10.0, 10.0)
@@ -85,7 +88,7 @@ def main() -> None:
     )
     levels = ih.default_handeye_levels()
     if args.shape == "fixed":
-        levels = tuple(replace(lv, sigma=tuple(lv.sigma[:12]) + (1e-6,) * 5) for lv in levels)
+        levels = tuple(replace(lv, sigma=tuple(lv.sigma[:12]) + (ih._HELD,) * 5) for lv in levels)
     cfg = ih.ImageHandEyeConfig(
         levels=levels, control_point_sigma_deg=args.shape_sigma, control_point_tolerance_deg=args.tolerance
     )

@@ -49,7 +49,7 @@ from fluoronav.registration.cm import DEFAULT_CM_MU_PER_MM, CMView, ViewROI, vie
 from fluoronav.registration.engine import PriorFn, Registration
 from fluoronav.registration.levels import LevelConfig
 from fluoronav.registration.parameterization import HandEye
-from fluoronav.registration.priors import GaussianParameterPrior, LandmarkPrior
+from fluoronav.registration.priors import LandmarkPrior, control_point_prior
 from fluoronav.registration.trace import RegistrationTrace
 from fluoronav.rendering.cm import CMRenderer
 
@@ -321,9 +321,14 @@ class ImageHandEyeProblem:
 
             priors.append(LandmarkPrior(project, full, cfg.landmark_sigma_full_px))
         if cfg.control_point_sigma_deg is not None:
-            std = np.concatenate([np.full(12, np.inf), np.full(5, cfg.control_point_sigma_deg)])
-            tol = np.concatenate([np.zeros(12), np.full(5, cfg.control_point_tolerance_deg)])
-            priors.append(GaussianParameterPrior(np.concatenate([np.zeros(12), cp0]), std, tolerance=tol))
+            priors.append(
+                control_point_prior(
+                    cp0,
+                    n_leading=12,
+                    sigma_deg=cfg.control_point_sigma_deg,
+                    tolerance_deg=cfg.control_point_tolerance_deg,
+                )
+            )
         coarsest = max(v.image_binning for v in self.views)
         self.levels = [lv for lv in cfg.levels if lv.downsample % coarsest == 0]
         if not self.levels:

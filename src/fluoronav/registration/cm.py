@@ -43,7 +43,7 @@ from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.engine import PriorFn, Registration
 from fluoronav.registration.levels import CM_SIGMA, LevelConfig
 from fluoronav.registration.parameterization import CMPoseShape, MultiCMReference, reference_frame
-from fluoronav.registration.priors import GaussianParameterPrior, LandmarkPrior
+from fluoronav.registration.priors import LandmarkPrior, control_point_prior
 from fluoronav.registration.roi import CropBox, crop_and_downsample_image
 from fluoronav.registration.trace import RegistrationTrace
 from fluoronav.rendering.cm import CMRenderer
@@ -408,10 +408,7 @@ class CMProblem:
         if len(views) == 1 and cfg.single_view_control_point_sigma_deg is not None:
             sigma, tolerance = cfg.single_view_control_point_sigma_deg, 0.0
         if sigma is not None:
-            n = cfg.cm_config.n_control_points
-            std = np.concatenate([np.full(6, np.inf), np.full(n, sigma)])
-            tol = np.concatenate([np.zeros(6), np.full(n, tolerance)])
-            priors.append(GaussianParameterPrior(np.concatenate([np.zeros(6), cp0]), std, tolerance=tol))
+            priors.append(control_point_prior(cp0, n_leading=6, sigma_deg=sigma, tolerance_deg=tolerance))
 
         # a level finer than an image's binning cannot be formed from it: drop it
         coarsest = max(v.image_binning for v in views)

@@ -20,6 +20,7 @@ from fluoronav.geometry.transforms import as_tensor
 __all__ = [
     "GaussianParameterPrior",
     "LandmarkPrior",
+    "control_point_prior",
     "gaussian_parameter_prior",
     "landmark_reprojection_prior",
 ]
@@ -129,3 +130,22 @@ class GaussianParameterPrior:
 
     def __call__(self, params: torch.Tensor) -> torch.Tensor:
         return gaussian_parameter_prior(params, self.mean, self.std, self.tolerance)
+
+
+def control_point_prior(
+    control_points_deg: np.ndarray,
+    *,
+    n_leading: int,
+    sigma_deg: float,
+    tolerance_deg: float = 0.0,
+) -> GaussianParameterPrior:
+    """Prior of a parameter vector ``[n_leading pose parameters, control points]``: the control points
+    free within ± ``tolerance_deg`` of ``control_points_deg`` (the FBG reading), Gaussian walls of
+    ``sigma_deg`` beyond (a plain Gaussian for tolerance 0); the leading parameters carry none."""
+    cp = np.asarray(control_points_deg, np.float64).reshape(-1)
+    n = cp.size
+    return GaussianParameterPrior(
+        np.concatenate([np.zeros(n_leading), cp]),
+        np.concatenate([np.full(n_leading, np.inf), np.full(n, sigma_deg)]),
+        tolerance=np.concatenate([np.zeros(n_leading), np.full(n, tolerance_deg)]),
+    )
