@@ -14,6 +14,7 @@ Run (the docs/robot-and-calibration.md table, ~5 min each on 2 cores)::
     python tools/handeye_factors.py --seed 71 --poses 15                       # the shipped default
     python tools/handeye_factors.py --seed 71 --poses 15 --shape-sigma 1 --tolerance 0   # old prior
     python tools/handeye_factors.py --seed 71 --poses 15 --shape fixed --exact-shape --fk true
+    python tools/handeye_factors.py --seed 71 --poses 15 --bend-deg 2.5        # the study's bent CM
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ def main() -> None:
     ap.add_argument("--shape", choices=("free", "fixed"), default="free")
     ap.add_argument("--shape-sigma", type=float, default=0.25, help="prior walls σ, deg")
     ap.add_argument("--tolerance", type=float, default=1.0, help="prior flat bottom ±, deg")
+    ap.add_argument("--bend-deg", type=float, default=None, help="calibration C-bend (the study's)")
     ap.add_argument("--views", type=int, default=1)
     ap.add_argument("--orbit", type=float, default=30.0)
     args = ap.parse_args()
@@ -55,7 +57,9 @@ def main() -> None:
     size = args.image_size
     volume, sim = _anatomy("phantom", 0, size, "cpu")
     rng = np.random.default_rng(args.seed)
-    sc = hs.sample_handeye_scenario(volume, rng, n_poses=args.poses, rotation_spread_deg=args.spread_deg)
+    sc = hs.sample_handeye_scenario(
+        volume, rng, n_poses=args.poses, rotation_spread_deg=args.spread_deg, bend_deg=args.bend_deg
+    )
     kin = CMKinematics()
     ab = kin.landmarks_cm(torch.as_tensor(sc.control_points_deg, dtype=torch.float64)).numpy()
     noise = np.random.default_rng(args.seed + 1)

@@ -6,9 +6,11 @@ import functools
 
 import numpy as np
 import pytest
+import torch
 
 from fluoronav.calibration import _se3
 from fluoronav.calibration.robot import UR10
+from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.studies.handeye_study import (
     HANDEYE_METRICS,
     NAVIGATION_METRICS,
@@ -66,6 +68,22 @@ def test_scenario_has_robot_errors_diverse_in_view_poses_and_a_plausible_mount()
     # every landmark is inside the detector (100 px margin)
     lm = sc.landmarks_px
     assert np.all(lm >= 100) and np.all(lm <= sc.camera.cols - 101)
+
+
+def test_calibration_bend_is_one_planar_c_bend_and_stays_in_view() -> None:
+    """``bend_deg``: every control point ±(2.5 + U(−0.5, 0.5))° with one sign, the same shape for all
+    poses, the tip ≥ 15 mm off the base axis (a 2°-per-point bend puts it 15.0 mm off), the
+    landmarks still inside the 100 px margin; None keeps the protocol's working shape."""
+    for seed in (7, 8):
+        sc = sample_handeye_scenario(_volume(), np.random.default_rng(seed), n_poses=6, bend_deg=2.5)
+        cp = sc.control_points_deg
+        assert np.all(np.abs(cp) >= 2.0) and np.all(np.abs(cp) <= 3.0)
+        assert np.all(np.sign(cp) == np.sign(cp[0]))
+        tip = CMKinematics().tip_cm(torch.as_tensor(cp, dtype=torch.float64)).numpy()
+        assert np.hypot(tip[0], tip[1]) >= 15.0
+        assert np.all(sc.landmarks_px >= 100) and np.all(sc.landmarks_px <= sc.camera.cols - 101)
+    working = sample_handeye_scenario(_volume(), np.random.default_rng(7), n_poses=0)
+    np.testing.assert_array_equal(working.control_points_deg, working.trial.control_points_deg)
 
 
 def test_unknown_workflow_is_an_input_error(tmp_path) -> None:

@@ -40,6 +40,13 @@ def register(app: typer.Typer) -> None:
         poses: list[int] = typer.Option(
             [4, 8, 15], "--poses", help="hand-eye: numbers of robot poses M to calibrate with (repeatable)."
         ),
+        calibration_bend_deg: float = typer.Option(
+            2.5,
+            "--calibration-bend-deg",
+            min=0.0,
+            help="hand-eye: the CM's constant bend while calibrating, degrees per control point "
+            "(2.5 ≈ a 70° C-bend; 0 = straight).",
+        ),
         corrections: int = typer.Option(
             1,
             "--corrections",
@@ -74,6 +81,7 @@ def register(app: typer.Typer) -> None:
                 image_size=image_size,
                 corrections=corrections,
                 verify_views=verify_views,
+                calibration_bend_deg=calibration_bend_deg,
             )
         else:
             from fluoronav.studies.pipeline import STUDY_WORKFLOWS, StudyConfig, run_study

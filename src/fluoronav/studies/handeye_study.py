@@ -14,7 +14,11 @@ Setting (both studies; world = CT frame of the phantom, LPS mm):
   configuration (UR-10 "home" ± 10° per joint) holds the CM at that pose.
 - Hand-eye poses: M CM poses, each the working pose moved by a rotation of U(−25, 25)° about a random
   axis and U(−10, 10) mm per axis (CM frame), reached through the nominal IK; poses whose landmarks or
-  tip leave the image (100 px margin) are redrawn. One shape (control points U(−5, 5)°) for all.
+  tip leave the image (100 px margin) are redrawn. One shape for all (the paper keeps the curvature
+  constant during calibration): bent in one plane, control points ±(``calibration_bend_deg`` +
+  U(−0.5, 0.5))° (default 2.5°: a ~70° C-bend, tip ~18 mm off the base axis), because the roll of
+  the hand-eye about the CM axis is seen only through the bend (seed 6701, random U(−5, 5)° shapes:
+  roll 0.35° mean, 1.01° on the least bent CM). The navigation study keeps the working shape.
 - Images: :class:`~fluoronav.simulation.articulated.ArticulatedSimulator` (physics, the CM over the
   hip phantom; never the registration's renderer). Landmarks: the truth + U(−3, 3) full-detector px
   (oracle, as the authors' code) — the shipped detector is used when one is available.
@@ -146,6 +150,8 @@ class HandEyeStudyConfig:
             CM tip 5.1 mm off relative to the femur entry and the correction took the tip from
             1.5 to 5.5 mm from the plan; with three, 0.2 mm and 0.9 mm.
         tracker_sigma_mm: baseline tracker marker noise per axis.
+        calibration_bend_deg: hand-eye: the CM's bend during calibration, degrees per control point
+            (each ± U(0.5), one sign); None: the protocol's random working shape (U(−5, 5)°).
         oracle_landmarks: use truth + U(−3, 3) px even when a detector is available.
     """
 
@@ -168,6 +174,7 @@ class HandEyeStudyConfig:
     verify_views: int = 3
     verify_orbit_deg: float = 25.0
     tracker_sigma_mm: float = 0.1
+    calibration_bend_deg: float | None = 2.5
     oracle_landmarks: bool = True
 
 
@@ -306,8 +313,12 @@ def sample_handeye_scenario(
     margin_px: float = 100.0,
     cm_config: CMConfig | None = None,
     max_redraws: int = 400,
+    bend_deg: float | None = None,
 ) -> HandEyeScenario:
     """Sample robot, mount, C-arm, working pose and ``n_poses`` hand-eye poses (module docstring).
+
+    ``bend_deg``: the CM shape of the hand-eye poses: every control point ±(``bend_deg`` +
+    U(−0.5, 0.5))° with one random sign (a planar C-bend); None keeps the trial's working shape.
 
     Raises:
         ValueError: when not enough reachable in-view poses are found in ``max_redraws`` draws.
@@ -318,6 +329,9 @@ def sample_handeye_scenario(
     kin = CMKinematics(cm_config)
     trial = sample_trial("navigation", volume, rng, cm_config=cm_config)
     cp = trial.control_points_deg
+    if bend_deg is not None:
+        sign = 1.0 if rng.random() < 0.5 else -1.0
+        cp = sign * (bend_deg + rng.uniform(-0.5, 0.5, cm_config.n_control_points))
     cpt = torch.as_tensor(cp, dtype=torch.float64)
     pts_cm = np.concatenate([kin.landmarks_cm(cpt).numpy(), kin.tip_cm(cpt).numpy()[None]])
     camera = trial.cameras[0]
@@ -527,6 +541,7 @@ def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> d
             n_poses=m_max,
             rotation_spread_deg=cfg.rotation_spread_deg,
             translation_spread_mm=cfg.translation_spread_mm,
+            bend_deg=cfg.calibration_bend_deg,
         )
         images = simulate_scenario_images(
             sc, simulator, seed=int(rng.integers(2**31)), image_size=cfg.image_size
@@ -1105,6 +1120,7 @@ def run_handeye_or_navigation_study(
     navigation_init: str = "perturbed",
     corrections: int = 1,
     verify_views: int = 3,
+    calibration_bend_deg: float | None = 2.5,
 ) -> dict[str, Any]:
     """Entry point of ``fluoronav study hand-eye|navigation`` → the summary dict (CONTRACTS)."""
     cfg = HandEyeStudyConfig(
@@ -1119,5 +1135,6 @@ def run_handeye_or_navigation_study(
         navigation_init=navigation_init,
         corrections=corrections,
         verify_views=verify_views,
+        calibration_bend_deg=calibration_bend_deg,
     )
     return run_study(cfg, Path(out), scheduler=scheduler, workers=workers)
