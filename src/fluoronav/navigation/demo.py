@@ -85,7 +85,7 @@ class DemoConfig:
     seed: int = 0
     image_size: int = 768
     orbit_deg: tuple[float, ...] = (20.0, -15.0)
-    handeye_error_deg: float = 0.3
+    handeye_error_deg: float = 0.4
     handeye_error_mm: float = 0.5
     device: str = "cpu"
     oracle_landmarks: bool = False

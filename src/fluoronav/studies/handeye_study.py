@@ -166,7 +166,7 @@ class HandEyeStudyConfig:
     translation_spread_mm: float = 10.0
     init_rotation_deg: float = 10.0
     init_translation_mm: float = 10.0
-    handeye_error_deg: float = 0.3
+    handeye_error_deg: float = 0.4
     handeye_error_mm: float = 0.5
     register_bones: bool = True
     navigation_init: str = "perturbed"
