@@ -45,7 +45,7 @@ def register(app: typer.Typer) -> None:
             "--calibration-bend-deg",
             min=0.0,
             help="hand-eye: the CM's constant bend while calibrating, degrees per control point "
-            "(2.5 ≈ a 70° C-bend; 0 = straight).",
+            "(each ± 0.5°; 2.5 ≈ a 70° C-bend, 0 ≈ straight).",
         ),
         corrections: int = typer.Option(
             1,

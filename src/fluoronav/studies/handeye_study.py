@@ -151,7 +151,7 @@ class HandEyeStudyConfig:
             1.5 to 5.5 mm from the plan; with three, 0.2 mm and 0.9 mm.
         tracker_sigma_mm: baseline tracker marker noise per axis.
         calibration_bend_deg: hand-eye: the CM's bend during calibration, degrees per control point
-            (each ± U(0.5), one sign); None: the protocol's random working shape (U(−5, 5)°).
+            (each + U(−0.5, 0.5), one sign); None: the protocol's random working shape (U(−5, 5)°).
         oracle_landmarks: use truth + U(−3, 3) px even when a detector is available.
     """
 
