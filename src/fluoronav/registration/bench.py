@@ -172,7 +172,9 @@ def _centerline_init(case: CMCase) -> CMCase:
     cp = torch.as_tensor(case.control_points_true_deg)[None]
     mask = env.mask(T, cp, torch.as_tensor(v.camera.K)[None], v.camera.rows, v.camera.cols)[0, 0].numpy()
     centerline = extract_centerline(mask, v.landmarks_px[0], v.landmarks_px[1])
-    init = centerline_initialize(v.camera, v.landmarks_px, centerline, case.initial_control_points_deg)
+    init = centerline_initialize(
+        v.camera, v.landmarks_px, centerline, case.initial_control_points_deg, image=v.image
+    )
     return replace(case, initial_world_from_cm=v.camera.world_from_camera @ init.camera_from_cm)
 
 

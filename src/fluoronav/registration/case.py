@@ -419,7 +419,7 @@ def _centerline_initial_pose(view: CMView, entry: dict[str, Any], cp0: np.ndarra
     from fluoronav.registration.centerline_init import centerline_initialize
 
     assert view.landmarks_px is not None
-    init = centerline_initialize(view.camera, view.landmarks_px, cl, cp0)
+    init = centerline_initialize(view.camera, view.landmarks_px, cl, cp0, image=view.image)
     return view.camera.world_from_camera @ init.camera_from_cm
 
 

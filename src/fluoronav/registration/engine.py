@@ -126,6 +126,8 @@ class Registration:
         seed: CMA-ES seed of level 0 (level i uses seed + i).
         chunk_size: render at most this many candidates per call (memory bound); None = all at once.
         device: device of the parameters passed to ``render`` and of the fixed images.
+        before_level: called as ``before_level(i, level, x)`` before level ``i`` starts from ``x``
+            (e.g. the CM registration measures the image's response at the current estimate).
     """
 
     def __init__(
@@ -141,6 +143,7 @@ class Registration:
         seed: int = 1,
         chunk_size: int | None = None,
         device: torch.device | str = "cpu",
+        before_level: Callable[[int, LevelConfig, np.ndarray], None] | None = None,
     ) -> None:
         if not levels:
             raise ValueError("at least one level is needed")
@@ -153,6 +156,7 @@ class Registration:
         self.seed = int(seed)
         self.chunk_size = chunk_size
         self.device = torch.device(device)
+        self.before_level = before_level
         if callable(fixed):
             self._fixed_fn: Callable[[LevelConfig], torch.Tensor] | None = fixed
             self._fixed: torch.Tensor | None = None
@@ -232,6 +236,8 @@ class Registration:
                     np.asarray(level.bounds[0], dtype=np.float64),
                     np.asarray(level.bounds[1], dtype=np.float64),
                 )
+            if self.before_level is not None:
+                self.before_level(i, level, x)  # e.g. calibrate the renderer at the current estimate
             lt = LevelTrace(
                 index=i, name=level.name or f"level{i}", config=level.to_dict(), x_start=x.tolist()
             )

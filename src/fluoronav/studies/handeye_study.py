@@ -632,7 +632,7 @@ def _register_single(
 
     if world_from_cm0 is None:
         cl = extract_centerline(image.mask.astype(bool), lm[0], lm[1])
-        init = centerline_initialize(image.camera, lm, cl, cp0, seed=seed)
+        init = centerline_initialize(image.camera, lm, cl, cp0, seed=seed, image=image.image)
         world_from_cm0 = init.world_from_cm(image.camera)
     return register_cm(
         [CMView(image.image, image.camera, landmarks_px=lm, name="view0")],

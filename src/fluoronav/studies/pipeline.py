@@ -289,6 +289,7 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                     trial.initial_control_points_deg,
                     depth_range_mm=depth_range,
                     seed=init_seed,
+                    image=images[0].image,
                 )
         carm0_true = images[0].camera.camera_from_world @ trial.world_from_cm[0]
         if cfg.workflow == "centerline":
