@@ -78,6 +78,7 @@ __all__ = [
     "poses_from_depth_theta",
     "roll_about_axis_deg",
     "synthetic_centerline_scene",
+    "turn_about_chord",
 ]
 
 logger = logging.getLogger(__name__)
@@ -974,6 +975,25 @@ def _two_view_landmark_candidates(
     return [ab], inl
 
 
+def turn_about_chord(
+    world_from_cm: np.ndarray,
+    control_points_deg: np.ndarray,
+    angle_deg: float,
+    config: CMConfig | None = None,
+) -> np.ndarray:
+    """The CM pose turned by ``angle_deg`` about its A→B chord: A and B stay put (on their rays), the
+    bending plane turns. (4, 4), same frame as ``world_from_cm``."""
+    from scipy.spatial.transform import Rotation
+
+    kin = CMKinematics(config or CMConfig())
+    ab = kin.landmarks_cm(torch.as_tensor(control_points_deg, dtype=torch.float64)).numpy()
+    axis = ab[1] - ab[0]
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec(math.radians(angle_deg) * axis / np.linalg.norm(axis)).as_matrix()
+    turn[:3, 3] = ab[0] - turn[:3, :3] @ ab[0]
+    return np.asarray(world_from_cm, dtype=np.float64) @ turn
+
+
 def mirror_about_chord(
     world_from_cm: np.ndarray, control_points_deg: np.ndarray, config: CMConfig | None = None
 ) -> np.ndarray:
@@ -990,15 +1010,7 @@ def mirror_about_chord(
     Returns:
         (4, 4) the mirrored pose, same frame.
     """
-    from scipy.spatial.transform import Rotation
-
-    kin = CMKinematics(config or CMConfig())
-    ab = kin.landmarks_cm(torch.as_tensor(control_points_deg, dtype=torch.float64)).numpy()
-    axis = ab[1] - ab[0]
-    flip = np.eye(4)
-    flip[:3, :3] = Rotation.from_rotvec(np.pi * axis / np.linalg.norm(axis)).as_matrix()
-    flip[:3, 3] = ab[0] - flip[:3, :3] @ ab[0]
-    return np.asarray(world_from_cm, dtype=np.float64) @ flip
+    return turn_about_chord(world_from_cm, control_points_deg, 180.0, config)
 
 
 # ----- evaluation ---------------------------------------------------------------------------------

@@ -53,7 +53,7 @@ AXIS_METRICS = (
     "base_depth_mm",
 )
 METRICS = {
-    "centerline": ("depth_mm", "theta_deg", *BASE_METRICS),
+    "centerline": ("depth_mm", "theta_deg", "theta_centerline_deg", *BASE_METRICS),
     "single-view": BASE_METRICS,
     "multi-view": BASE_METRICS,
     "multi-cm": BASE_METRICS,
@@ -75,6 +75,9 @@ class StudyConfig:
     register_bones: bool = True
     #: CM start: "centerline" (the paper) or "perturbed" (truth + 10°/10 mm, the authors' code)
     init: str = "centerline"
+    #: after the centreline initialisation, turn the CM about its chord to the best image score
+    #: (:func:`~fluoronav.registration.cm.roll_scan`); the centreline study records θ before it too
+    roll_scan: bool = True
 
 
 # ----- per-process caches ---------------------------------------------------------------------------
@@ -144,6 +147,21 @@ def _landmarks_and_centerline(
         lms.append(lm)
         cls.append(extract_centerline(mask, lm[0], lm[1]))
     return lms, cls, confs
+
+
+def _theta_error_deg(camera_from_cm: np.ndarray, images: list[Any], trial: Any) -> float:
+    """θ error: the roll about the true A→B chord between an estimated pose (view 0's camera frame)
+    and the true pose, degrees in [0, 180]."""
+    from fluoronav.manipulator.kinematics import CMKinematics
+    from fluoronav.registration.centerline_init import roll_about_axis_deg
+
+    carm0_true = images[0].camera.camera_from_world @ trial.world_from_cm[0]
+    ab = (
+        CMKinematics(trial.cm_config)
+        .landmarks_cm(torch.as_tensor(trial.control_points_deg, dtype=torch.float64))
+        .numpy()
+    )
+    return float(roll_about_axis_deg(camera_from_cm, carm0_true, ab[1] - ab[0]))
 
 
 class _TrialFailure(FluoronavError):
@@ -236,7 +254,7 @@ def multiview_start_poses(
 def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
     """One trial → one ``trials.csv`` row (status ``ok`` or ``failed`` with its reason)."""
     from fluoronav.registration.centerline_init import centerline_initialize, depth_range_about
-    from fluoronav.registration.cm import CMView
+    from fluoronav.registration.cm import CMRegistrationConfig, CMView
     from fluoronav.studies.protocol import sample_trial, simulate_trial_images
 
     t0 = time.perf_counter()
@@ -291,6 +309,26 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                     seed=init_seed,
                     image=images[0].image,
                 )
+                row["theta_centerline_deg"] = _theta_error_deg(init.camera_from_cm, images, trial)
+                if cfg.roll_scan:
+                    from fluoronav.registration.cm import roll_scan
+
+                    cp_init = (
+                        init.control_points_deg
+                        if init.control_points_deg is not None
+                        else trial.initial_control_points_deg
+                    )
+                    scan = roll_scan(
+                        CMView(images[0].image, cams[0], landmarks_px=lms[0]),
+                        cams[0].world_from_camera @ init.camera_from_cm,
+                        cp_init,
+                        config=CMRegistrationConfig(device=cfg.device, cm_config=trial.cm_config),
+                    )
+                    init = dataclasses.replace(
+                        init,
+                        camera_from_cm=cams[0].camera_from_world @ scan.world_from_cm,
+                        theta_deg=(init.theta_deg + scan.angle_deg) % 360.0,
+                    )
         carm0_true = images[0].camera.camera_from_world @ trial.world_from_cm[0]
         if cfg.workflow == "centerline":
             assert init is not None
@@ -298,16 +336,7 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
             cp_est = trial.initial_control_points_deg
             true_depth = carm0_true[2, 3]
             row["depth_mm"] = abs(init.depth_mm - true_depth)
-            from fluoronav.manipulator.kinematics import CMKinematics
-            from fluoronav.registration.centerline_init import roll_about_axis_deg
-
-            # θ: the roll about the true A→B chord between the estimated and the true pose
-            ab = (
-                CMKinematics(trial.cm_config)
-                .landmarks_cm(torch.as_tensor(trial.control_points_deg, dtype=torch.float64))
-                .numpy()
-            )
-            row["theta_deg"] = float(roll_about_axis_deg(init.camera_from_cm, carm0_true, ab[1] - ab[0]))
+            row["theta_deg"] = _theta_error_deg(init.camera_from_cm, images, trial)
             row["seconds_registration"] = time.perf_counter() - t0
         else:
             views = [
