@@ -755,13 +755,16 @@ class RollScanResult:
     Attributes:
         world_from_cm: (4, 4) the best-scoring pose.
         angle_deg: its turn about the A→B chord from the given pose.
-        angles_deg, costs: (n,) the scanned turns and their image costs (lower is better).
+        angles_deg, costs: (n,) the scanned turns and the winning start's image costs (lower is
+            better).
+        start_index: which start won (0: the given pose, k: ``alternatives[k - 1]``).
     """
 
     world_from_cm: np.ndarray
     angle_deg: float
     angles_deg: np.ndarray
     costs: np.ndarray
+    start_index: int = 0
 
 
 def roll_scan(
@@ -770,6 +773,7 @@ def roll_scan(
     control_points_deg: np.ndarray,
     *,
     n_angles: int = 36,
+    alternatives: Sequence[np.ndarray] = (),
     config: CMRegistrationConfig | None = None,
 ) -> RollScanResult:
     """Score the CM turned about its A→B chord through ``n_angles`` angles against one image.
@@ -784,7 +788,13 @@ def roll_scan(
         world_from_cm: (4, 4) the pose to turn (e.g. a centreline initialisation).
         control_points_deg: (5,) shape.
         n_angles: turns evenly spaced over 360°.
+        alternatives: further (4, 4) poses to turn the same way (e.g. the initialisation's other
+            local minima), scored in the same batch; the best of all wins.
         config: registration settings (first level, ROI, shaft, μ).
+
+    Returns:
+        :class:`RollScanResult`; ``angle_deg`` is the turn of the winning pose, which is
+        ``world_from_cm`` or one of the ``alternatives`` (``start_index``: 0 = ``world_from_cm``).
     """
     from fluoronav.registration.centerline_init import turn_about_chord
 
@@ -800,11 +810,18 @@ def roll_scan(
         [view], initial_control_points_deg=control_points_deg, initial_world_from_cm=world_from_cm, config=cfg
     )
     angles = np.arange(n_angles) * (360.0 / n_angles)
-    poses = [turn_about_chord(world_from_cm, control_points_deg, a, cfg.cm_config) for a in angles]
+    starts = [np.asarray(world_from_cm, np.float64), *(np.asarray(W, np.float64) for W in alternatives)]
+    poses = [turn_about_chord(W, control_points_deg, a, cfg.cm_config) for W in starts for a in angles]
     X = np.stack([prob.params_for(W, control_points_deg) for W in poses])
-    costs = prob.registration.objective(prob.levels[0])(X)
-    k = int(np.argmin(costs))
-    return RollScanResult(world_from_cm=poses[k], angle_deg=float(angles[k]), angles_deg=angles, costs=costs)
+    costs = prob.registration.objective(prob.levels[0])(X).reshape(len(starts), n_angles)
+    i, k = np.unravel_index(int(np.argmin(costs)), costs.shape)
+    return RollScanResult(
+        world_from_cm=poses[i * n_angles + k],
+        angle_deg=float(angles[k]),
+        angles_deg=angles,
+        costs=costs[i],
+        start_index=int(i),
+    )
 
 
 def _pose_box(

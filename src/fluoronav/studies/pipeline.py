@@ -318,16 +318,22 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                         if init.control_points_deg is not None
                         else trial.initial_control_points_deg
                     )
+                    to_world = cams[0].world_from_camera
+                    others = (
+                        [] if init.alternatives is None else [to_world @ T for T in init.alternatives[1:]]
+                    )
                     scan = roll_scan(
                         CMView(images[0].image, cams[0], landmarks_px=lms[0]),
-                        cams[0].world_from_camera @ init.camera_from_cm,
+                        to_world @ init.camera_from_cm,
                         cp_init,
+                        alternatives=others,
                         config=CMRegistrationConfig(device=cfg.device, cm_config=trial.cm_config),
                     )
+                    T_scan = cams[0].camera_from_world @ scan.world_from_cm
+                    # A is the CM origin: its depth is the pose's z; θ in the init's own convention is
+                    # not defined for a turned alternative (the study measures θ against the truth)
                     init = dataclasses.replace(
-                        init,
-                        camera_from_cm=cams[0].camera_from_world @ scan.world_from_cm,
-                        theta_deg=(init.theta_deg + scan.angle_deg) % 360.0,
+                        init, camera_from_cm=T_scan, depth_mm=float(T_scan[2, 3]), theta_deg=float("nan")
                     )
         carm0_true = images[0].camera.camera_from_world @ trial.world_from_cm[0]
         if cfg.workflow == "centerline":
