@@ -374,3 +374,20 @@ def test_shaft_width_gives_the_depth_on_a_physics_image() -> None:
     )
     assert init.shaft_depth_mm == pytest.approx(cue.depth_mm, abs=1.0)  # its own search range
     assert abs(init.depth_mm - T[2, 3]) < 15.0, (init.depth_mm, T[2, 3])
+
+
+def test_turn_about_chord_keeps_the_landmarks_and_composes() -> None:
+    from fluoronav.registration.centerline_init import mirror_about_chord, turn_about_chord
+
+    W = np.eye(4)
+    W[:3, :3] = euler_to_matrix("xyz", torch.tensor([10.0, -20.0, 30.0], dtype=torch.float64)).numpy()
+    W[:3, 3] = [5.0, -3.0, 400.0]
+    ab = CMKinematics().landmarks_cm(torch.as_tensor(CP)).numpy()
+    for angle in (37.0, 180.0, 360.0):
+        T = turn_about_chord(W, CP, angle)
+        np.testing.assert_allclose(T[:3, :3] @ ab.T + T[:3, 3:4], W[:3, :3] @ ab.T + W[:3, 3:4], atol=1e-9)
+        assert roll_about_axis_deg(T, W, ab[1] - ab[0]) == pytest.approx(
+            min(angle % 360.0, 360.0 - angle % 360.0), abs=1e-6
+        )
+    np.testing.assert_allclose(turn_about_chord(turn_about_chord(W, CP, 50.0), CP, -50.0), W, atol=1e-12)
+    np.testing.assert_allclose(mirror_about_chord(W, CP), turn_about_chord(W, CP, 180.0), atol=1e-12)

@@ -246,3 +246,25 @@ def test_multi_cm_poses_keep_their_relative_transforms() -> None:
         np.testing.assert_allclose(W[m], W0 @ np.linalg.inv(base_from_cm[0]) @ base_from_cm[m], atol=1e-9)
     x = prob.params_for(W[0], np.zeros(5))
     np.testing.assert_allclose(x, 0.0, atol=1e-9)
+
+
+def test_roll_scan_recovers_the_roll_about_the_chord(single_case) -> None:
+    """Turned 100° about its A→B chord (A and B stay on their rays), the CM is turned back to within
+    one scan step (10°) by the image score; the other start, the truth turned 100°, does not win."""
+    from fluoronav.manipulator.kinematics import CMKinematics
+    from fluoronav.registration.centerline_init import roll_about_axis_deg, turn_about_chord
+    from fluoronav.registration.cm import roll_scan
+
+    case = single_case
+    W_true, cp = case.world_from_cm_true[0], case.control_points_true_deg
+    start = turn_about_chord(W_true, cp, 100.0)
+    far = turn_about_chord(W_true, cp, -100.0)
+    scan = roll_scan(case.views[0], start, cp, n_angles=36, alternatives=[far])
+    ab = CMKinematics().landmarks_cm(torch.as_tensor(cp)).numpy()
+    assert roll_about_axis_deg(scan.world_from_cm, W_true, ab[1] - ab[0]) <= 10.0 + 1e-6
+    assert scan.costs.shape == (36,) and scan.start_index in (0, 1)
+    # A and B stay where they were
+    for W in (start, scan.world_from_cm):
+        np.testing.assert_allclose(
+            W[:3, :3] @ ab.T + W[:3, 3:4], W_true[:3, :3] @ ab.T + W_true[:3, 3:4], atol=1e-9
+        )
