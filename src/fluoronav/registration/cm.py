@@ -756,7 +756,7 @@ class RollScanResult:
         world_from_cm: (4, 4) the best-scoring pose.
         angle_deg: its turn about the A→B chord from the given pose.
         angles_deg, costs: (n,) the scanned turns and the winning start's image costs (lower is
-            better).
+            better; inf where the centreline gate excluded a turn).
         start_index: which start won (0: the given pose, k: ``alternatives[k - 1]``).
     """
 
@@ -774,6 +774,8 @@ def roll_scan(
     *,
     n_angles: int = 36,
     alternatives: Sequence[np.ndarray] = (),
+    centerline_px: np.ndarray | None = None,
+    centerline_margin_px: float = 1.0,
     config: CMRegistrationConfig | None = None,
 ) -> RollScanResult:
     """Score the CM turned about its A→B chord through ``n_angles`` angles against one image.
@@ -790,6 +792,11 @@ def roll_scan(
         n_angles: turns evenly spaced over 360°.
         alternatives: further (4, 4) poses to turn the same way (e.g. the initialisation's other
             local minima), scored in the same batch; the best of all wins.
+        centerline_px: (Q, 2) the extracted centreline in ``view``'s pixels: when given, only turns
+            whose centreline cost is within ``centerline_margin_px`` of the best turn's compete
+            (a turn that moves the projected bend off the centreline is not a candidate, however
+            well its DRR scores).
+        centerline_margin_px: see ``centerline_px``.
         config: registration settings (first level, ROI, shaft, μ).
 
     Returns:
@@ -814,6 +821,21 @@ def roll_scan(
     poses = [turn_about_chord(W, control_points_deg, a, cfg.cm_config) for W in starts for a in angles]
     X = np.stack([prob.params_for(W, control_points_deg) for W in poses])
     costs = prob.registration.objective(prob.levels[0])(X).reshape(len(starts), n_angles)
+    if centerline_px is not None:
+        from fluoronav.detection.centerline import resample_polyline
+        from fluoronav.registration.centerline_init import centerline_cost
+
+        f64 = torch.float64
+        cl_cm = prob.kinematics.centerline_cm(torch.as_tensor(control_points_deg, dtype=f64), n_points=48)
+        cam_from_cm = np.stack([view.camera.camera_from_world @ W for W in poses])
+        cl_cost = centerline_cost(
+            torch.as_tensor(view.camera.K, dtype=f64),
+            torch.as_tensor(cam_from_cm, dtype=f64),
+            cl_cm,
+            torch.as_tensor(resample_polyline(np.asarray(centerline_px, np.float64), 64), dtype=f64),
+        ).numpy()
+        gated = cl_cost.reshape(costs.shape) > float(np.min(cl_cost)) + centerline_margin_px
+        costs = np.where(gated, np.inf, costs)
     i, k = np.unravel_index(int(np.argmin(costs)), costs.shape)
     return RollScanResult(
         world_from_cm=poses[i * n_angles + k],

@@ -327,6 +327,7 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                         to_world @ init.camera_from_cm,
                         cp_init,
                         alternatives=others,
+                        centerline_px=cls[0],
                         config=CMRegistrationConfig(device=cfg.device, cm_config=trial.cm_config),
                     )
                     T_scan = cams[0].camera_from_world @ scan.world_from_cm
