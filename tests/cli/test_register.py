@@ -88,3 +88,35 @@ def test_cli_prints_one_line_error(tmp_path) -> None:
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and str(path) in lines[0] and "JSON object" in lines[0]
+
+
+def test_case_without_a_start_is_initialised_from_its_centreline(example_case, tmp_path) -> None:
+    """No ``initial_world_from_cm``: the centreline initialisation (shaft-width depth cue, roll scan)
+    of the first view starts the registration; here within 20 mm of the truth (centreline = the true
+    CM's projection, landmarks as detected in the example)."""
+    import numpy as np
+    import torch
+
+    from fluoronav.manipulator import CMKinematics
+
+    case = load_case(example_case)
+    d = json.loads(example_case.read_text())
+    W = np.asarray(d["ground_truth"]["world_from_cm"], np.float64).reshape(-1, 4, 4)[0]
+    cp = torch.as_tensor(d["ground_truth"]["control_points_deg"], dtype=torch.float64)
+    cl_cm = CMKinematics().centerline_cm(cp, n_points=40).numpy()
+    d["views"][0]["centerline_px"] = case.views[0].camera.project(cl_cm @ W[:3, :3].T + W[:3, 3]).tolist()
+    d.pop("initial_world_from_cm")
+    for v in d["views"]:  # paths relative to the new case file's folder
+        for key in ("image", "camera", "background"):
+            if isinstance(v.get(key), str) and v[key] != "dicom":
+                v[key] = str(example_case.parent / v[key])
+    path = tmp_path / "case.json"
+    path.write_text(json.dumps(d))
+    started = load_case(path)
+    tip = CMKinematics().tip_cm(cp).numpy()
+    err = np.linalg.norm(
+        started.initial_world_from_cm[:3, :3] @ tip
+        + started.initial_world_from_cm[:3, 3]
+        - (W[:3, :3] @ tip + W[:3, 3])
+    )
+    assert err < 20.0, err

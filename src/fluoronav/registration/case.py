@@ -410,17 +410,25 @@ def load_case(path: str | Path) -> CMCase:
 
 
 def _centerline_initial_pose(view: CMView, entry: dict[str, Any], cp0: np.ndarray, src: str) -> np.ndarray:
-    """Initial pose from the centreline initialisation of the first view (needs its centreline)."""
+    """Initial pose from the centreline initialisation of the first view (needs its centreline), its
+    roll about the chord from the image (:func:`~fluoronav.registration.cm.roll_scan`)."""
     if entry.get("centerline_px") is None:
         raise InputError(src, "give 'initial_world_from_cm' or 'centerline_px' in the first view")
     cl = np.asarray(entry["centerline_px"], dtype=np.float64)
     if cl.ndim != 2 or cl.shape[1] != 2 or len(cl) < 2 or not np.all(np.isfinite(cl)):
         raise InputError(src, "views[0].centerline_px must be a (P >= 2, 2) array")
     from fluoronav.registration.centerline_init import centerline_initialize
+    from fluoronav.registration.cm import roll_scan
 
     assert view.landmarks_px is not None
     init = centerline_initialize(view.camera, view.landmarks_px, cl, cp0, image=view.image)
-    return view.camera.world_from_camera @ init.camera_from_cm
+    # the roll about the chord, which the centreline leaves open, from the image (as the studies)
+    to_world = view.camera.world_from_camera
+    alts = [] if init.alternatives is None else [to_world @ T for T in init.alternatives[1:]]
+    cp = init.control_points_deg if init.control_points_deg is not None else cp0
+    return roll_scan(
+        view, to_world @ init.camera_from_cm, cp, alternatives=alts, centerline_px=cl
+    ).world_from_cm
 
 
 def write_example_case(
