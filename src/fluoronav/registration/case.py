@@ -418,17 +418,12 @@ def _centerline_initial_pose(view: CMView, entry: dict[str, Any], cp0: np.ndarra
     if cl.ndim != 2 or cl.shape[1] != 2 or len(cl) < 2 or not np.all(np.isfinite(cl)):
         raise InputError(src, "views[0].centerline_px must be a (P >= 2, 2) array")
     from fluoronav.registration.centerline_init import centerline_initialize
-    from fluoronav.registration.cm import roll_scan
+    from fluoronav.registration.cm import roll_scan_initialization
 
     assert view.landmarks_px is not None
     init = centerline_initialize(view.camera, view.landmarks_px, cl, cp0, image=view.image)
     # the roll about the chord, which the centreline leaves open, from the image (as the studies)
-    to_world = view.camera.world_from_camera
-    alts = [] if init.alternatives is None else [to_world @ T for T in init.alternatives[1:]]
-    cp = init.control_points_deg if init.control_points_deg is not None else cp0
-    return roll_scan(
-        view, to_world @ init.camera_from_cm, cp, alternatives=alts, centerline_px=cl
-    ).world_from_cm
+    return roll_scan_initialization(view, init, cl, cp0).world_from_cm
 
 
 def write_example_case(

@@ -63,6 +63,7 @@ __all__ = [
     "register_cm",
     "register_cm_multistart",
     "roll_scan",
+    "roll_scan_initialization",
     "save_overlays",
     "view_roi",
 ]
@@ -548,15 +549,14 @@ class CMProblem:
         t = np.linspace(0.1 * shaft, 0.9 * shaft, 40)
         pts_cm = np.stack([np.zeros_like(t), np.zeros_like(t), -t], axis=1)
         for k, v in enumerate(self.views):
-            T = v.camera.camera_from_world @ W[int(self.pose_of_view[k])]
-            pc = pts_cm @ T[:3, :3].T + T[:3, 3]
+            Wk = W[int(self.pose_of_view[k])]
+            pts_world = pts_cm @ Wk[:3, :3].T + Wk[:3, 3]
+            pc = v.camera.to_camera(pts_world)
             if np.any(pc[:, 2] <= 0):
                 continue
-            uvw = pc @ v.camera.K.T
-            uv = uvw[:, :2] / uvw[:, 2:3]  # image pixels
             fit = fit_tube_profile(
                 v.image,
-                uv,
+                v.camera.project(pts_world),
                 outer_radius_mm=cfg.cm_config.outer_radius_mm,
                 inner_radius_mm=cfg.cm_config.inner_radius_mm,
                 px_per_mm=float(v.camera.K[0, 0] / pc[:, 2].mean()),
@@ -843,6 +843,30 @@ def roll_scan(
         angles_deg=angles,
         costs=costs[i],
         start_index=int(i),
+    )
+
+
+def roll_scan_initialization(
+    view: CMView,
+    init: Any,
+    centerline_px: np.ndarray,
+    control_points_deg: np.ndarray,
+    *,
+    config: CMRegistrationConfig | None = None,
+) -> RollScanResult:
+    """:func:`roll_scan` of a centreline initialisation in ``view`` (its pose in ``view.camera``'s frame
+    and its other refined minima as alternatives, its control points, else ``control_points_deg``),
+    gated by the centreline it was fitted to."""
+    to_world = view.camera.world_from_camera
+    alts = [] if init.alternatives is None else [to_world @ T for T in init.alternatives[1:]]
+    cp = init.control_points_deg if init.control_points_deg is not None else control_points_deg
+    return roll_scan(
+        view,
+        to_world @ init.camera_from_cm,
+        cp,
+        alternatives=alts,
+        centerline_px=centerline_px,
+        config=config,
     )
 
 

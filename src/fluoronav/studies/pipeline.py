@@ -311,23 +311,13 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                 )
                 row["theta_centerline_deg"] = _theta_error_deg(init.camera_from_cm, images, trial)
                 if cfg.roll_scan:
-                    from fluoronav.registration.cm import roll_scan
+                    from fluoronav.registration.cm import roll_scan_initialization
 
-                    cp_init = (
-                        init.control_points_deg
-                        if init.control_points_deg is not None
-                        else trial.initial_control_points_deg
-                    )
-                    to_world = cams[0].world_from_camera
-                    others = (
-                        [] if init.alternatives is None else [to_world @ T for T in init.alternatives[1:]]
-                    )
-                    scan = roll_scan(
+                    scan = roll_scan_initialization(
                         CMView(images[0].image, cams[0], landmarks_px=lms[0]),
-                        to_world @ init.camera_from_cm,
-                        cp_init,
-                        alternatives=others,
-                        centerline_px=cls[0],
+                        init,
+                        cls[0],
+                        trial.initial_control_points_deg,
                         config=CMRegistrationConfig(device=cfg.device, cm_config=trial.cm_config),
                     )
                     T_scan = cams[0].camera_from_world @ scan.world_from_cm
