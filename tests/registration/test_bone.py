@@ -25,6 +25,7 @@ from fluoronav.registration.bone import (
     register_pelvis,
     register_pelvis_per_view,
     relative_view_poses,
+    static_view_composite,
     views_from_images,
     views_in_ct_frame,
 )
@@ -158,6 +159,51 @@ def test_relative_view_poses_from_per_view_estimates():
         np.testing.assert_allclose(v.camera.project(p_ct[None]), c.project(p_world[None]), atol=1e-9)
 
 
+def test_instrument_masks_become_view_masks():
+    cam = carm_camera().downsample(32)
+    img = np.random.default_rng(0).random((cam.rows, cam.cols)).astype(np.float32)
+    inst = np.zeros(img.shape, bool)
+    inst[10:14, :] = True
+
+    class Im:
+        image, camera = img, cam
+
+    a, b = views_from_images([Im(), Im()], [inst, None])
+    assert b.mask is None and a.mask is not None
+    np.testing.assert_array_equal(a.mask, ~inst)
+    with pytest.raises(ValueError, match="2 images"):
+        views_from_images([Im(), Im()], [inst])
+    with pytest.raises(ValueError, match="mask shape"):
+        BoneView(img, cam, np.ones((3, 3), bool))
+
+
+def test_static_view_composite_fills_each_instrument_from_the_other_images():
+    cam = carm_camera().downsample(32)
+    rng = np.random.default_rng(1)
+    anatomy = rng.random((cam.rows, cam.cols)).astype(np.float32)
+    views = []
+    for r0 in (5, 20, 35):  # the instrument moves between the images, the anatomy stays
+        img = anatomy.copy()
+        img[r0 : r0 + 4, 8:30] += 5.0
+        use = np.ones(img.shape, bool)
+        use[r0 - 1 : r0 + 5, 7:31] = False
+        views.append(BoneView(img, cam, use))
+    views.append(BoneView(anatomy + 9.0, cam))  # no mask: its instrument was not found; left out
+    comp = static_view_composite(views)
+    assert comp.mask is not None and comp.mask.all()
+    np.testing.assert_allclose(comp.image, anatomy, atol=1e-6)
+    # pixels no image can fill stay masked
+    both = [BoneView(v.image, cam, np.where(np.arange(cam.cols) < 4, False, v.mask)) for v in views[:3]]
+    comp2 = static_view_composite(both)
+    assert comp2.mask is not None and not comp2.mask[:, :4].any() and comp2.mask[:, 4:].all()
+    # without any mask: the first view; different cameras: an error
+    assert static_view_composite(views[3:]) is views[3]
+    with pytest.raises(ValueError, match="one camera"):
+        static_view_composite(
+            [views[0], BoneView(anatomy, carm_camera(source_to_isocenter_mm=500.0).downsample(32))]
+        )
+
+
 # ----- accuracy against physics images -------------------------------------------------------------
 def test_pelvis_single_view_recovers_3deg_10mm(volume, simulator):
     trial = sample_trial("single-view", volume, np.random.default_rng(1))
@@ -194,6 +240,31 @@ def test_femur_single_view_recovers_10deg_about_the_head(volume, simulator):
     assert entry_err < 1.5, entry_err
     # the femur turns about its head only
     np.testing.assert_allclose((res.world_from_bone @ _h(head))[:3], head, atol=1e-6)
+
+
+def test_masked_instrument_does_not_steer_the_femur(volume, simulator):
+    """A bright metal-like bar across the femoral neck, masked out: the pixels under the mask have no
+    influence at all (the same result with other values there) and the femur is recovered."""
+    head = volume.landmarks_world["femoral_head_left"]
+    world_from_femur = _rotation_about([4.0, -6.0, 5.0], head)
+    cam = carm_camera(isocenter_world=head + np.array([0.0, 0.0, -10.0]), source_to_isocenter_mm=450.0)
+    img = simulator.simulate(
+        cam, world_from_patient=np.eye(4), world_from_femur=world_from_femur, seed=0, image_size=256
+    )
+    uv = img.camera.project(head[None])[0]
+    v, u = np.mgrid[0 : img.camera.rows, 0 : img.camera.cols]
+    across = np.abs((u - uv[0]) * 0.6 - (v - uv[1]) * 0.8)
+    bar = across <= 4.0
+    use = across > 4.0 + 10.0  # wider than the smoothing and Sobel support
+    results = []
+    for level in (3.0, 0.5):
+        image = np.where(bar, img.image + level, img.image).astype(np.float32)
+        res = register_femur(
+            [BoneView(image, img.camera, use)], volume, side="left", world_from_patient=np.eye(4), seed=3
+        )
+        results.append(res)
+    np.testing.assert_allclose(results[0].world_from_bone, results[1].world_from_bone, atol=1e-9)
+    assert _errors(results[0].world_from_bone, world_from_femur, head)[1] < 1.0
 
 
 @pytest.mark.slow

@@ -217,6 +217,7 @@ def run_demo(
 
 def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     from fluoronav.calibration.robot import wrap_deg
+    from fluoronav.detection.instrument import instrument_masks
     from fluoronav.geometry import orbit_camera
     from fluoronav.manipulator.kinematics import CMKinematics
     from fluoronav.navigation.navigate import femur_from_cm_registered, tip_correction_target
@@ -312,7 +313,14 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     D["landmarks_px"] = [None if f is None else f["landmarks_px"].tolist() for f in found]
 
     # ----- bones: pelvis per view → view geometry in the CT frame; femur in all views -------------
-    views = views_from_images(images)
+    # the CM and its shaft are left out of the bone similarity
+    views = views_from_images(
+        images,
+        instrument_masks(
+            [None if f is None else f["mask"] for f in found],
+            [None if f is None else f["centerline_px"] for f in found],
+        ),
+    )
     with stage("pelvis"):
         pelvis = register_pelvis_per_view(
             views, volume, initial_world_from_patient=tr.initial_world_from_patient, seed=int(seeds[2])

@@ -683,6 +683,7 @@ def _verify(
     views; the new C-arm pose is unknown to the software, so the pelvis is registered again per view
     (the view geometry for several views), then the femur and the CM (initial CM pose: the plan on
     the new femur). None when the CM is not in the AP view (20 px margin)."""
+    from fluoronav.detection.instrument import instrument_mask_from_landmarks
     from fluoronav.geometry.carm import orbit_camera
     from fluoronav.registration.bone import (
         register_femur,
@@ -726,7 +727,10 @@ def _verify(
     ]
     ab_world = pts[:2] @ world_from_cm_now[:3, :3].T + world_from_cm_now[:3, 3]
     lms = [im.camera.project(ab_world) + rng.uniform(-3.0, 3.0, (2, 2)) / binning for im in images]
-    views = views_from_images(images)
+    # the CM and its shaft are left out of the bone similarity (segmentation + oracle landmarks)
+    views = views_from_images(
+        images, [instrument_mask_from_landmarks(im.mask, lm) for im, lm in zip(images, lms, strict=True)]
+    )
     pelvis = register_pelvis_per_view(
         views, volume, initial_world_from_patient=tr.initial_world_from_patient, seed=int(rng.integers(2**31))
     )
@@ -812,10 +816,11 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         )
         # femur: registered (pelvis then femur in the one view) or the truth
         if cfg.register_bones:
-            from fluoronav.registration.bone import BoneView, register_femur, register_pelvis
+            from fluoronav.detection.instrument import instrument_mask_from_landmarks
+            from fluoronav.registration.bone import register_femur, register_pelvis, views_from_images
 
             tb = time.perf_counter()
-            bv = [BoneView(img.image, img.camera)]
+            bv = views_from_images([img], [instrument_mask_from_landmarks(img.mask, lm)])
             pelvis = register_pelvis(
                 bv,
                 volume,

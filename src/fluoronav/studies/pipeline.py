@@ -117,18 +117,21 @@ def _full_to_image_px(uv_full: np.ndarray, binning: int) -> np.ndarray:
 
 def _landmarks_and_centerline(
     images: list[Any], trial: Any, cfg: StudyConfig, binning: int
-) -> tuple[list[np.ndarray | None], list[np.ndarray | None], list[np.ndarray]]:
-    """Per image: landmarks (2, 2) and centreline, or None where the detector found no CM, and the
-    landmarks' confidences (2,) (1 for oracle landmarks, 0 where nothing was found)."""
+) -> tuple[list[np.ndarray | None], list[np.ndarray | None], list[np.ndarray], list[np.ndarray | None]]:
+    """Per image: landmarks (2, 2) and centreline, or None where the detector found no CM, the
+    landmarks' confidences (2,) (1 for oracle landmarks, 0 where nothing was found), and the CM
+    segmentation (None where nothing was found)."""
     from fluoronav.detection.centerline import extract_centerline
 
     lms: list[np.ndarray | None] = []
     cls: list[np.ndarray | None] = []
     confs: list[np.ndarray] = []
+    masks: list[np.ndarray | None] = []
     for i, sim in enumerate(images):
         if cfg.oracle_landmarks:
             lm = _full_to_image_px(trial.oracle_landmarks_px[i], binning)
             mask = sim.mask.astype(bool)
+            cl = None
             confs.append(np.ones(2))
         else:
             det = _detector(cfg.device).detect(sim.image, pixel_spacing_mm=sim.camera.pixel_spacing_mm)
@@ -138,15 +141,13 @@ def _landmarks_and_centerline(
                 # the initialisation needs view 0 (one-view workflows) or two views (multi-view)
                 lms.append(None)
                 cls.append(None)
+                masks.append(None)
                 continue
-            lm, mask = det.landmarks_px, det.mask
-            if det.centerline_px is not None:
-                lms.append(lm)
-                cls.append(det.centerline_px)
-                continue
+            lm, mask, cl = det.landmarks_px, det.mask, det.centerline_px
+        masks.append(mask)
         lms.append(lm)
-        cls.append(extract_centerline(mask, lm[0], lm[1]))
-    return lms, cls, confs
+        cls.append(cl if cl is not None else extract_centerline(mask, lm[0], lm[1]))
+    return lms, cls, confs, masks
 
 
 def _theta_error_deg(camera_from_cm: np.ndarray, images: list[Any], trial: Any) -> float:
@@ -169,19 +170,28 @@ class _TrialFailure(FluoronavError):
 
 
 def _register_bones(
-    images: list[Any], trial: Any, volume: Volume, cfg: StudyConfig, seed: int
+    images: list[Any],
+    trial: Any,
+    volume: Volume,
+    cfg: StudyConfig,
+    seed: int,
+    instruments: list[np.ndarray | None] | None = None,
 ) -> dict[str, Any]:
-    """Pelvis (per view, and the view geometry), then femur. Returns cameras and the entry estimate."""
+    """Pelvis (per view, and the view geometry), then femur, with the instrument (``instruments``:
+    per image True on the CM and its shaft, or None) left out of the similarity. Returns cameras and
+    the entry estimate."""
     from fluoronav.registration.bone import (
         register_femur,
         register_pelvis_per_view,
+        static_view_composite,
         views_from_images,
         views_in_ct_frame,
     )
 
-    views = views_from_images(images)
+    views = views_from_images(images, instruments)
     if cfg.workflow == "multi-cm":
-        views = views[:1]  # one static C-arm view; every image shows the same anatomy
+        # one static C-arm view: every image shows the same anatomy and the CM elsewhere
+        views = [static_view_composite(views)]
     pelvis = register_pelvis_per_view(
         views, volume, initial_world_from_patient=trial.initial_world_from_patient, seed=seed
     )
@@ -253,6 +263,7 @@ def multiview_start_poses(
 
 def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
     """One trial → one ``trials.csv`` row (status ``ok`` or ``failed`` with its reason)."""
+    from fluoronav.detection.instrument import instrument_masks
     from fluoronav.registration.centerline_init import centerline_initialize, depth_range_about
     from fluoronav.registration.cm import CMRegistrationConfig, CMView
     from fluoronav.studies.protocol import sample_trial, simulate_trial_images
@@ -270,13 +281,22 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
             trial, simulator, seed=int(rng.integers(2**31)), image_size=cfg.image_size
         )
         binning = max(1, round(trial.cameras[0].cols / images[0].camera.cols))
-        lms, cls, confs = _landmarks_and_centerline(images, trial, cfg, binning)
+        lms, cls, confs, cm_masks = _landmarks_and_centerline(images, trial, cfg, binning)
         row["true_control_points_deg"] = np.round(trial.control_points_deg, 4).tolist()
         row["true_world_from_cm"] = np.round(trial.world_from_cm[0], 5).tolist()
         # the centreline study too: its depth search is centred on the registered femoral head
         labelled = _has_labels(volume) and cfg.register_bones
         bones = (
-            _register_bones(images, trial, volume, cfg, seed=int(rng.integers(2**31))) if labelled else None
+            _register_bones(
+                images,
+                trial,
+                volume,
+                cfg,
+                seed=int(rng.integers(2**31)),
+                instruments=instrument_masks(cm_masks, cls),
+            )
+            if labelled
+            else None
         )
         cams = bones["cameras"] if bones is not None else [s.camera for s in images]
         if cfg.workflow == "multi-view":
