@@ -36,8 +36,11 @@ def test_shaft_band_runs_from_a_to_the_border_and_nowhere_else():
         assert out[round(v2), round(u2)], s
         u3, v3 = a + s * d + 9.0 * n
         assert not out[round(v3), round(u3)], s
-    # beyond B there is no shaft: only the margin around the segmentation
-    u, v = b + 5.0 * (b - a) / np.linalg.norm(b - a)
+    # beyond B only the solid tip: 1.5 tube widths (~15 px here), then nothing
+    e = (b - a) / np.linalg.norm(b - a)
+    u, v = b + 10.0 * e
+    assert out[round(v), round(u)]
+    u, v = b + 22.0 * e
     assert not out[round(v), round(u)]
     assert out[round(b[1] - 2 * d[1]), round(b[0] - 2 * d[0])]
     assert out.sum() < 0.2 * out.size
@@ -75,3 +78,25 @@ def test_from_landmarks_extracts_the_centreline_and_fails_softly():
     both = instrument_masks([cm, None, np.zeros_like(cm)], [cl, cl, cl], margin_px=3.0)
     assert both[1] is None and both[2] is None
     np.testing.assert_array_equal(both[0], ref)
+
+
+def test_shaft_direction_is_refined_on_the_image():
+    """The centreline's base points 8° off the real shaft: far from A only the image finds it."""
+    from fluoronav.detection.instrument import shaft_direction
+
+    shape = (300, 400)
+    a = np.array([300.0, 150.0])
+    b = np.array([360.0, 150.0])  # the base direction behind A is (−1, 0)
+    cm, cl = _tube(shape, a, b, half_width=4.0)
+    ang = np.radians(180.0 + 8.0)
+    d_true = np.array([np.cos(ang), np.sin(ang)])
+    shaft_img, _ = _tube(shape, a + 280.0 * d_true, a, half_width=4.0)
+    rng = np.random.default_rng(0)
+    image = 0.5 + 2.0 * (shaft_img | cm) + rng.normal(0.0, 0.2, shape)
+    d = shaft_direction(image, a, np.array([-1.0, 0.0]), 10.0)
+    assert np.degrees(np.arccos(np.clip(d @ d_true, -1, 1))) < 1.0  # a tube, not a line: a plateau
+    far = a + 250.0 * d_true
+    with_image = instrument_mask(cm, cl, image=image, margin_px=3.0)
+    without = instrument_mask(cm, cl, margin_px=3.0)
+    assert with_image[round(far[1]), round(far[0])]
+    assert not without[round(far[1]), round(far[0])]

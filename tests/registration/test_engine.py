@@ -169,3 +169,51 @@ def test_engine_two_views_with_mask_sums_view_costs() -> None:
     res = reg.run(np.zeros(3))
     assert res.success
     np.testing.assert_allclose(res.params, TRUTH, atol=0.02)
+
+
+def test_multi_start_keeps_the_lowest_first_level_and_records_the_others():
+    """A tilted double well f(x) = (x² − 1)² + 0.3 (x − 1)²: from x0 = −1.2 with a small σ CMA-ES
+    stays in the local well at −1; a second start at +1.2 finds the global one near +1."""
+
+    def render_x(params: torch.Tensor, level: LevelConfig) -> torch.Tensor:
+        return params[:, :1, None, None]  # (P, 1, 1, 1): the "image" is the parameter
+
+    def double_well(fixed, level, mask):
+        return lambda moving: ((moving[:, 0, 0, 0] ** 2 - 1) ** 2 + 0.3 * (moving[:, 0, 0, 0] - 1) ** 2)
+
+    lv = [
+        LevelConfig(sigma=(0.05,), popsize=8, tolx=1e-6, tolfun=1e-12, max_iters=100, name="a"),
+        LevelConfig(sigma=(0.01,), popsize=8, tolx=1e-7, tolfun=1e-12, max_iters=100, name="b"),
+    ]
+    reg = Registration(render_x, torch.zeros(1, 1, 1), lv, similarity=double_well, seed=3)
+    single = reg.run([-1.2])
+    assert single.params[0] < 0 and not single.trace.screened
+    multi = reg.run([-1.2], starts=[[1.2]])
+    assert multi.params[0] > 0.9 and multi.cost < single.cost
+    assert len(multi.trace.levels) == 2 and len(multi.trace.screened) == 1
+    assert multi.trace.screened[0].x[0] < 0 and multi.trace.levels[0].x_start == [1.2]
+    back = type(multi.trace).from_json(multi.trace.to_json())
+    assert len(back.screened) == 1 and back.screened[0].x == multi.trace.screened[0].x
+
+
+def test_multi_start_keep_two_lets_the_last_level_choose():
+    """The first level prefers the well at −1, the last the well at +1: with ``keep=1`` the result
+    stays at −1, with ``keep=2`` both wells are finished and the last level's choice wins."""
+
+    def render_x(params: torch.Tensor, level: LevelConfig) -> torch.Tensor:
+        return params[:, :1, None, None]
+
+    def wells(fixed, level, mask):
+        tilt = 1.0 if level.name == "a" else -1.0
+        return lambda m: (m[:, 0, 0, 0] ** 2 - 1) ** 2 + 0.3 * (m[:, 0, 0, 0] + tilt) ** 2
+
+    lv = [
+        LevelConfig(sigma=(0.05,), popsize=8, tolx=1e-6, tolfun=1e-12, max_iters=100, name="a"),
+        LevelConfig(sigma=(0.01,), popsize=8, tolx=1e-7, tolfun=1e-12, max_iters=100, name="b"),
+    ]
+    reg = Registration(render_x, torch.zeros(1, 1, 1), lv, similarity=wells, seed=5)
+    one = reg.run([1.2], starts=[[-1.2]], keep=1)
+    two = reg.run([1.2], starts=[[-1.2]], keep=2)
+    assert one.params[0] < 0 and two.params[0] > 0.9
+    assert len(two.trace.levels) == 2 and len(two.trace.screened) == 2  # the other run's two levels
+    assert [lt.name for lt in two.trace.levels] == ["a", "b"]

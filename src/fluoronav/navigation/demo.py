@@ -319,6 +319,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
         instrument_masks(
             [None if f is None else f["mask"] for f in found],
             [None if f is None else f["centerline_px"] for f in found],
+            [im.image for im in images],
         ),
     )
     with stage("pelvis"):

@@ -22,6 +22,7 @@ level's best parameters. The parts are supplied by the workflow:
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -31,7 +32,14 @@ import torch
 
 from fluoronav.errors import RegistrationFailure
 from fluoronav.registration.levels import LevelConfig
-from fluoronav.registration.optimizer import CMAES, IterationRecord, NelderMead, Objective, Optimizer
+from fluoronav.registration.optimizer import (
+    CMAES,
+    IterationRecord,
+    NelderMead,
+    Objective,
+    OptimizationResult,
+    Optimizer,
+)
 from fluoronav.registration.roi import area_downsample
 from fluoronav.registration.similarity import PatchGradNCC
 from fluoronav.registration.trace import LevelTrace, RegistrationTrace
@@ -210,14 +218,78 @@ class Registration:
         return objective
 
     # ----- run ------------------------------------------------------------------------------------
+    def _run_level(
+        self,
+        i: int,
+        level: LevelConfig,
+        x: np.ndarray,
+        on_iteration: Callable[[int, IterationRecord], None] | None,
+    ) -> tuple[LevelTrace, OptimizationResult]:
+        """One level from ``x``: its trace and the optimiser's result."""
+        if len(level.sigma) not in (1, x.size):
+            raise ValueError(f"level {i} has {len(level.sigma)} sigmas for {x.size} parameters")
+        if level.bounds is not None:
+            x = np.clip(
+                x,
+                np.asarray(level.bounds[0], dtype=np.float64),
+                np.asarray(level.bounds[1], dtype=np.float64),
+            )
+        if self.before_level is not None:
+            self.before_level(i, level, x)  # e.g. calibrate the renderer at the current estimate
+        lt = LevelTrace(index=i, name=level.name or f"level{i}", config=level.to_dict(), x_start=x.tolist())
+        tl = time.perf_counter()
+        cb = None if on_iteration is None else (lambda rec, i=i: on_iteration(i, rec))
+        res = optimizer_for(level, seed=self.seed + i).minimize(self.objective(level), x, callback=cb)
+        lt.iterations = res.history
+        lt.x, lt.cost, lt.n_evals, lt.n_iters = res.x.tolist(), float(res.f), res.n_evals, res.n_iters
+        lt.converged, lt.stop_reason, lt.n_nonfinite = res.converged, res.stop_reason, res.n_nonfinite
+        lt.seconds = time.perf_counter() - tl
+        logger.info(
+            "level %d (%s): cost %.6g after %d evaluations, %s",
+            i,
+            lt.name,
+            res.f,
+            res.n_evals,
+            res.stop_reason,
+        )
+        return lt, res
+
+    def _continue(
+        self,
+        first: tuple[LevelTrace, OptimizationResult] | None,
+        x: np.ndarray,
+        trace: RegistrationTrace,
+        on_iteration: Callable[[int, IterationRecord], None] | None,
+    ) -> tuple[np.ndarray, float, bool, str]:
+        """Run the levels into ``trace`` from ``x`` (or after an already run first level ``first``).
+        Returns (x, cost, converged, reason)."""
+        cost, converged, reason = float("nan"), False, ""
+        for i, level in enumerate(self.levels):
+            lt, res = first if (i == 0 and first is not None) else self._run_level(i, level, x, on_iteration)
+            trace.levels.append(lt)
+            cost, converged = float(res.f), res.converged
+            if not np.isfinite(cost):
+                return x, cost, False, f"non-finite cost at level {i}"
+            x = res.x
+            reason = f"converged ({res.stop_reason})" if converged else f"not converged: {res.stop_reason}"
+        return x, cost, converged, reason
+
     def run(
         self,
         x0: np.ndarray | Sequence[float],
         *,
+        starts: Sequence[np.ndarray | Sequence[float]] = (),
+        keep: int = 1,
         raise_on_failure: bool = False,
         on_iteration: Callable[[int, IterationRecord], None] | None = None,
     ) -> RegistrationResult:
         """Run every level from ``x0`` (D,), warm-starting each from the previous best.
+
+        ``starts``: more (D,) starts for the first level (multi-start): the first level runs from
+        ``x0`` and from each of them; the ``keep`` runs with the lowest finite first-level costs go on
+        through the other levels, and the one with the lowest final cost is the result (a coarse
+        first level may not tell the basins apart as well as the last). The first-level runs not
+        continued and the levels of the continued runs not chosen are kept in ``trace.screened``.
 
         Raises:
             RegistrationFailure: when ``raise_on_failure`` and the result is not a success.
@@ -226,47 +298,38 @@ class Registration:
         x = np.asarray(x0, dtype=np.float64).reshape(-1)
         names = self.parameter_names or [f"p{i}" for i in range(x.size)]
         trace = RegistrationTrace(parameter_names=list(names))
-        cost, converged, reason = float("nan"), False, ""
-        for i, level in enumerate(self.levels):
-            if len(level.sigma) not in (1, x.size):
-                raise ValueError(f"level {i} has {len(level.sigma)} sigmas for {x.size} parameters")
-            if level.bounds is not None:
-                x = np.clip(
-                    x,
-                    np.asarray(level.bounds[0], dtype=np.float64),
-                    np.asarray(level.bounds[1], dtype=np.float64),
-                )
-            if self.before_level is not None:
-                self.before_level(i, level, x)  # e.g. calibrate the renderer at the current estimate
-            lt = LevelTrace(
-                index=i, name=level.name or f"level{i}", config=level.to_dict(), x_start=x.tolist()
-            )
-            trace.levels.append(lt)
-            tl = time.perf_counter()
-            cb = None if on_iteration is None else (lambda rec, i=i: on_iteration(i, rec))
-            res = optimizer_for(level, seed=self.seed + i).minimize(self.objective(level), x, callback=cb)
-            lt.iterations = res.history
-            lt.x, lt.cost, lt.n_evals, lt.n_iters = res.x.tolist(), float(res.f), res.n_evals, res.n_iters
-            lt.converged, lt.stop_reason, lt.n_nonfinite = res.converged, res.stop_reason, res.n_nonfinite
-            lt.seconds = time.perf_counter() - tl
+        if len(starts) == 0:
+            x, cost, converged, reason = self._continue(None, x, trace, on_iteration)
+        else:
+            firsts = [
+                self._run_level(0, self.levels[0], np.asarray(s, dtype=np.float64).reshape(-1), on_iteration)
+                for s in [x, *starts]
+            ]
+            first_costs = [float(r.f) if np.isfinite(r.f) else math.inf for _, r in firsts]
+            order = [int(k) for k in np.argsort(first_costs, kind="stable")]
+            kept = [k for k in order[: max(1, keep)] if math.isfinite(first_costs[k])] or order[:1]
+            finished = []
+            for k in kept:
+                tr = RegistrationTrace(parameter_names=list(names))
+                x_k = np.asarray(firsts[k][0].x_start, dtype=np.float64)
+                finished.append((k, tr, *self._continue(firsts[k], x_k, tr, on_iteration)))
+            final = [c if math.isfinite(c) else math.inf for _, _, _, c, _, _ in finished]
+            j = int(np.argmin(final))
+            k, best_trace, x, cost, converged, reason = finished[j]
+            trace.levels = best_trace.levels
+            trace.screened = [firsts[i][0] for i in order if i not in kept] + [
+                lt for jj, f in enumerate(finished) if jj != j for lt in f[1].levels
+            ]
             logger.info(
-                "level %d (%s): cost %.6g after %d evaluations, %s",
-                i,
-                lt.name,
-                res.f,
-                res.n_evals,
-                res.stop_reason,
+                "multi-start: first-level costs %s, continued %s, final costs %s, result from start %d",
+                np.round(first_costs, 6).tolist(),
+                kept,
+                np.round(final, 6).tolist(),
+                k,
             )
-            cost, converged = float(res.f), res.converged
-            if not np.isfinite(cost):
-                reason = f"non-finite cost at level {i}"
-                converged = False
-                break
-            x = res.x
-            reason = f"converged ({res.stop_reason})" if converged else f"not converged: {res.stop_reason}"
         success = converged and np.isfinite(cost)
         result = RegistrationResult(
-            params=x.copy(),
+            params=np.asarray(x, dtype=np.float64).copy(),
             cost=cost,
             converged=converged,
             success=bool(success),

@@ -53,10 +53,12 @@ class LevelTrace:
 
 @dataclass
 class RegistrationTrace:
-    """The whole registration: parameter names and one :class:`LevelTrace` per level."""
+    """The whole registration: parameter names and one :class:`LevelTrace` per level; ``screened``:
+    the first level's runs from the other starts of a multi-start run (not continued)."""
 
     parameter_names: list[str]
     levels: list[LevelTrace] = field(default_factory=list)
+    screened: list[LevelTrace] = field(default_factory=list)
 
     @property
     def n_evals(self) -> int:
@@ -77,8 +79,7 @@ class RegistrationTrace:
         def num(v: Any) -> float:
             return math.nan if v is None else float(v)
 
-        levels = []
-        for lv in d["levels"]:
+        def level(lv: dict[str, Any]) -> LevelTrace:
             its = [
                 IterationRecord(
                     **{
@@ -91,8 +92,13 @@ class RegistrationTrace:
                 )
                 for it in lv["iterations"]
             ]
-            levels.append(LevelTrace(**{**lv, "cost": num(lv["cost"]), "iterations": its}))
-        return cls(parameter_names=list(d["parameter_names"]), levels=levels)
+            return LevelTrace(**{**lv, "cost": num(lv["cost"]), "iterations": its})
+
+        return cls(
+            parameter_names=list(d["parameter_names"]),
+            levels=[level(lv) for lv in d["levels"]],
+            screened=[level(lv) for lv in d.get("screened", [])],
+        )
 
     @classmethod
     def from_json(cls, text: str) -> RegistrationTrace:

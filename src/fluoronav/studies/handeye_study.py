@@ -729,7 +729,11 @@ def _verify(
     lms = [im.camera.project(ab_world) + rng.uniform(-3.0, 3.0, (2, 2)) / binning for im in images]
     # the CM and its shaft are left out of the bone similarity (segmentation + oracle landmarks)
     views = views_from_images(
-        images, [instrument_mask_from_landmarks(im.mask, lm) for im, lm in zip(images, lms, strict=True)]
+        images,
+        [
+            instrument_mask_from_landmarks(im.mask, lm, image=im.image)
+            for im, lm in zip(images, lms, strict=True)
+        ],
     )
     pelvis = register_pelvis_per_view(
         views, volume, initial_world_from_patient=tr.initial_world_from_patient, seed=int(rng.integers(2**31))
@@ -820,7 +824,7 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
             from fluoronav.registration.bone import register_femur, register_pelvis, views_from_images
 
             tb = time.perf_counter()
-            bv = views_from_images([img], [instrument_mask_from_landmarks(img.mask, lm)])
+            bv = views_from_images([img], [instrument_mask_from_landmarks(img.mask, lm, image=img.image)])
             pelvis = register_pelvis(
                 bv,
                 volume,

@@ -293,7 +293,7 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                 volume,
                 cfg,
                 seed=int(rng.integers(2**31)),
-                instruments=instrument_masks(cm_masks, cls),
+                instruments=instrument_masks(cm_masks, cls, [im.image for im in images]),
             )
             if labelled
             else None
