@@ -34,6 +34,7 @@ of them (joint); :func:`register_pelvis_per_view` registers each view alone and 
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -103,6 +104,14 @@ class BoneView:
             )
         if self.mask is not None and np.shape(self.mask) != img.shape:
             raise ValueError(f"mask shape {np.shape(self.mask)} does not match image {img.shape}")
+
+    @functools.cached_property
+    def filled_image(self) -> np.ndarray:
+        """The image with its masked pixels filled (:func:`harmonic_fill`); computed once per view,
+        shared by the pelvis and femur registrations of the view."""
+        if self.mask is None:
+            return np.asarray(self.image)
+        return harmonic_fill(self.image, ~np.asarray(self.mask, dtype=bool))
 
 
 def views_from_images(
@@ -392,16 +401,9 @@ class _LevelData:
         )
         # masked pixels are filled from their surroundings first: the instrument's edge would
         # otherwise reach the used pixels next to it through binning, smoothing and Sobel
-        images = torch.stack(
-            [
-                torch.as_tensor(
-                    np.asarray(
-                        v.image if v.mask is None else harmonic_fill(v.image, ~np.asarray(v.mask)), np.float32
-                    )
-                )
-                for v in views
-            ]
-        ).to(device)
+        images = torch.stack([torch.as_tensor(np.asarray(v.filled_image, np.float32)) for v in views]).to(
+            device
+        )
         for i, lv in enumerate(levels):
             cols = views[0].camera.cols
             f = max(1, round(cols / lv.image_px))

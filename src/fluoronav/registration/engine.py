@@ -268,8 +268,8 @@ class Registration:
             lt, res = first if (i == 0 and first is not None) else self._run_level(i, level, x, on_iteration)
             trace.levels.append(lt)
             cost, converged = float(res.f), res.converged
-            if not np.isfinite(cost):
-                return x, cost, False, f"non-finite cost at level {i}"
+            if not np.isfinite(cost):  # the level's (bound-clipped) start is the result
+                return np.asarray(lt.x_start, dtype=np.float64), cost, False, f"non-finite cost at level {i}"
             x = res.x
             reason = f"converged ({res.stop_reason})" if converged else f"not converged: {res.stop_reason}"
         return x, cost, converged, reason

@@ -54,7 +54,8 @@ class LevelTrace:
 @dataclass
 class RegistrationTrace:
     """The whole registration: parameter names and one :class:`LevelTrace` per level; ``screened``:
-    the first level's runs from the other starts of a multi-start run (not continued)."""
+    the runs of a multi-start that were not chosen (first levels not continued, then the levels of
+    continued runs that lost on the final cost)."""
 
     parameter_names: list[str]
     levels: list[LevelTrace] = field(default_factory=list)
