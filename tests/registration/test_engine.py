@@ -179,7 +179,7 @@ def test_multi_start_keeps_the_lowest_first_level_and_records_the_others():
         return params[:, :1, None, None]  # (P, 1, 1, 1): the "image" is the parameter
 
     def double_well(fixed, level, mask):
-        return lambda moving: ((moving[:, 0, 0, 0] ** 2 - 1) ** 2 + 0.3 * (moving[:, 0, 0, 0] - 1) ** 2)
+        return lambda moving: (moving[:, 0, 0, 0] ** 2 - 1) ** 2 + 0.3 * (moving[:, 0, 0, 0] - 1) ** 2
 
     lv = [
         LevelConfig(sigma=(0.05,), popsize=8, tolx=1e-6, tolfun=1e-12, max_iters=100, name="a"),

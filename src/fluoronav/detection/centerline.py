@@ -33,6 +33,22 @@ def resample_polyline(points: np.ndarray, n_points: int) -> np.ndarray:
     return np.stack([np.interp(t, s, pts[:, 0]), np.interp(t, s, pts[:, 1])], axis=1)
 
 
+def end_direction(points: np.ndarray, fraction: float, *, at_start: bool) -> np.ndarray:
+    """Unit (u, v) direction out of a polyline (N, 2) at its start (backwards from the first point)
+    or its end, from the chord over ``fraction`` of its points (at least one step).
+
+    Raises:
+        ValueError: that chord has no length.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    k = max(1, round(fraction * (len(pts) - 1)))
+    d = pts[0] - pts[k] if at_start else pts[-1] - pts[-1 - k]
+    nd = float(np.linalg.norm(d))
+    if nd <= 0.0:
+        raise ValueError("the centreline has no length at its " + ("start" if at_start else "end"))
+    return d / nd
+
+
 def extract_centerline(
     mask: np.ndarray,
     landmark_a_px: np.ndarray,

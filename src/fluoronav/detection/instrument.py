@@ -17,6 +17,8 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import ndimage
 
+from fluoronav.detection.centerline import end_direction
+
 __all__ = ["instrument_mask", "instrument_mask_from_landmarks", "instrument_masks", "shaft_direction"]
 
 log = logging.getLogger(__name__)
@@ -31,16 +33,6 @@ def _band(
     along = du * direction[0] + dv * direction[1]
     across = np.abs(-du * direction[1] + dv * direction[0])
     return (along >= 0.0) & (along <= length) & (across <= half_width)
-
-
-def _end_direction(cl: np.ndarray, fraction: float, at_start: bool) -> np.ndarray:
-    """Unit direction pointing out of the centreline at its start (behind A) or its end (beyond B)."""
-    k = max(1, round(fraction * (len(cl) - 1)))
-    d = cl[0] - cl[k] if at_start else cl[-1] - cl[-1 - k]
-    nd = float(np.linalg.norm(d))
-    if nd <= 0.0:
-        raise ValueError("the centreline has no length at its " + ("start" if at_start else "end"))
-    return d / nd
 
 
 def shaft_direction(
@@ -137,10 +129,10 @@ def instrument_mask(
     half = 0.5 * width + margin_px
     if tip_widths > 0:
         out |= _band(
-            cm.shape, cl[-1], _end_direction(cl, direction_fraction, False), half, tip_widths * width
+            cm.shape, cl[-1], end_direction(cl, direction_fraction, at_start=False), half, tip_widths * width
         )
     if shaft:
-        d = _end_direction(cl, direction_fraction, True)
+        d = end_direction(cl, direction_fraction, at_start=True)
         if image is not None:
             d = shaft_direction(image, cl[0], d, width)
         out |= _band(cm.shape, cl[0], d, half, float(np.hypot(*cm.shape)))

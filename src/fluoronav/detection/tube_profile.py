@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, optimize
 
-from fluoronav.detection.centerline import resample_polyline
+from fluoronav.detection.centerline import end_direction, resample_polyline
 
 __all__ = ["TubeProfileFit", "annulus_chord", "fit_tube_profile", "shaft_axis_px"]
 
@@ -90,13 +90,11 @@ def shaft_axis_px(
     if cl.ndim != 2 or cl.shape[1] != 2 or cl.shape[0] < 2:
         raise ValueError(f"centerline_px must have shape (P >= 2, 2), got {cl.shape}")
     length = float(np.linalg.norm(np.diff(cl, axis=0), axis=1).sum())
-    k = max(1, round(direction_fraction * (len(cl) - 1)))
-    d = cl[0] - cl[k]
-    nd = float(np.linalg.norm(d))
-    if length <= 0.0 or nd <= 0.0:
+    if length <= 0.0:
         raise ValueError("the centreline has no length")
+    d = end_direction(cl, direction_fraction, at_start=True)
     t = np.linspace(start_fraction * length, stop_fraction * length, n_points)
-    return cl[0][None] + t[:, None] * (d / nd)[None]
+    return cl[0][None] + t[:, None] * d[None]
 
 
 def _model(p: np.ndarray, x_px: np.ndarray, fine: np.ndarray, R: float, Ri: float) -> np.ndarray:
