@@ -118,7 +118,26 @@ def test_with_pixel_scale() -> None:
     physics = XrayPhysics(blur_sigma_px=1.0, glare_gamma_px=8.0, scatter_sigma_px=40.0)
     half = physics.with_pixel_scale(2.0)
     assert (half.blur_sigma_px, half.glare_gamma_px, half.scatter_sigma_px) == (0.5, 4.0, 20.0)
-    assert half.kvp == physics.kvp and half.photons_per_pixel == physics.photons_per_pixel
+    assert half.kvp == physics.kvp
+    # a 2×2 binned pixel collects the photons and read-out noise of four detector pixels
+    assert half.photons_per_pixel == 4.0 * physics.photons_per_pixel
+    assert half.electronic_noise_std == 2.0 * physics.electronic_noise_std
+    assert XrayPhysics(photons_per_pixel=None).with_pixel_scale(3.0).photons_per_pixel is None
+
+
+def test_binning_noise_matches_binned_detector() -> None:
+    """Noise of an image simulated at 2× binned pixels = the detector image area-binned 2×2."""
+    physics = XrayPhysics(
+        photons_per_pixel=200.0, scatter_to_primary=0.0, blur_sigma_px=0.0, glare_fraction=0.0
+    )
+    a = {"water": torch.full((256, 256), 5.0, dtype=torch.float64)}
+    full = physics.detected(a, seed=1)  # (256, 256) detector pixels
+    binned_from_full = torch.nn.functional.avg_pool2d(full[None, None], 2)[0, 0]
+    small = {"water": torch.full((128, 128), 5.0, dtype=torch.float64)}
+    direct = physics.with_pixel_scale(2.0).detected(small, seed=2)
+    ratio = float(direct.std() / binned_from_full.std())
+    assert abs(ratio - 1.0) < 0.05, ratio  # 128² samples: std estimated within ~1.3 %
+    torch.testing.assert_close(direct.mean(), binned_from_full.mean(), rtol=0.01, atol=0.0)
 
 
 def test_scatter_to_primary_ratio_on_uniform_slab() -> None:

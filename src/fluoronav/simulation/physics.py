@@ -128,9 +128,12 @@ class XrayPhysics:
         extra_filtration_mm: extra (material, thickness mm) filters applied with xraylib μ.
         detector: ``"energy_integrating"`` (flat panel) or ``"photon_counting"``.
         scintillator_csi_mm: CsI thickness in mm for the spectral absorption efficiency (0: ideal).
-        photons_per_pixel: N0, mean detected photons per pixel in the flat field (the authors use
-            5000); ``None`` gives the noise-free image (no quantum or electronic noise).
-        electronic_noise_std: additive Gaussian noise std in detected-photon units.
+        photons_per_pixel: N0, mean detected photons per detector pixel in the flat field (the
+            authors use 5000 on the 0.194 mm pixels of the 1536² detector); a binned pixel collects
+            the photons of all its detector pixels (see :meth:`with_pixel_scale`). ``None`` gives
+            the noise-free image (no quantum or electronic noise).
+        electronic_noise_std: additive Gaussian noise std per detector pixel in detected-photon
+            units.
         blur_sigma_px: Gaussian PSF std in pixels.
         glare_fraction: weight of the Lorentzian tail of the PSF (veiling glare), 0–1.
         glare_gamma_px: Lorentzian scale in pixels.
@@ -180,15 +183,22 @@ class XrayPhysics:
                 raise ValueError(f"{name} must be ≥ 0")
 
     def with_pixel_scale(self, factor: float) -> XrayPhysics:
-        """The same physics for pixels ``factor`` times larger (blur, glare and scatter widths in
-        pixels divided by ``factor``), e.g. after 2× binning use ``factor=2``."""
+        """The same physics for pixels ``factor`` times larger, e.g. after 2× binning ``factor=2``.
+
+        Blur, glare and scatter widths in pixels are divided by ``factor``; a binned pixel sums the
+        photons of ``factor²`` detector pixels (N0 × factor²) and their independent read-out noise
+        (std × factor), so binning lowers the relative quantum noise as a real detector's does.
+        """
         if factor <= 0:
             raise ValueError("factor must be > 0")
+        area = factor * factor
         return dataclasses.replace(
             self,
             blur_sigma_px=self.blur_sigma_px / factor,
             glare_gamma_px=self.glare_gamma_px / factor,
             scatter_sigma_px=self.scatter_sigma_px / factor,
+            photons_per_pixel=None if self.photons_per_pixel is None else self.photons_per_pixel * area,
+            electronic_noise_std=self.electronic_noise_std * factor,
         )
 
     @functools.cached_property
