@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -83,6 +84,35 @@ def test_pipeline_maps_landmarks_mask_and_centerline_to_input_pixels() -> None:
     n = np.array([-d[1], d[0]]) / np.linalg.norm(d)
     assert np.max(np.abs((cl - lm[0]) @ n)) < 2.0
     assert det.pixel_spacing_mm == 0.2
+
+
+@pytest.mark.parametrize("tta", [1, 2, 4, 8])
+def test_dihedral_tta_maps_every_transform_back(tta: int) -> None:
+    # a pointwise stage is exactly equivariant: averaging over transforms mapped back changes nothing
+    img = drawn_cm()[0]
+    net = DetectorNet(TINY)
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    ref = Detector(net, device="cpu").detect(img)
+    net_tta = DetectorNet(dataclasses.replace(TINY, fine_tta=tta))
+    net_tta.coarse, net_tta.fine = IntensityOracle(), IntensityOracle()
+    res = Detector(net_tta, device="cpu").detect(img)
+    np.testing.assert_allclose(res.landmarks_px, ref.landmarks_px, atol=1e-4)
+    np.testing.assert_array_equal(res.mask, ref.mask)
+    x = torch.arange(2 * 5 * 5, dtype=torch.float32).reshape(2, 1, 5, 5)
+    outs = {tuple(detector_module._dihedral(x, k, f).flatten().tolist()) for k, f in detector_module.DIHEDRAL}
+    assert len(outs) == 8  # eight distinct transforms
+    for k, f in detector_module.DIHEDRAL:
+        torch.testing.assert_close(
+            detector_module._dihedral_inverse(detector_module._dihedral(x, k, f), k, f), x
+        )
+
+
+def test_tta_setting_is_validated_and_old_files_read() -> None:
+    with pytest.raises(ValueError, match="fine_tta"):
+        DetectorConfig(fine_tta=3)
+    assert DetectorConfig.from_dict({"fine_flip_tta": True}).fine_tta == 2
+    assert DetectorConfig.from_dict({"fine_flip_tta": False}).fine_tta == 1
+    assert DetectorConfig.from_dict({"fine_tta": 8, "fine_flip_tta": True}).fine_tta == 8
 
 
 def test_blank_image_gives_no_detection() -> None:

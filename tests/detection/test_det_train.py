@@ -52,3 +52,30 @@ def test_resume_without_checkpoint_is_an_input_error(tmp_path: Path) -> None:
         train(
             data, tmp_path / "m.pt", config=TrainConfig(epochs=1, device="cpu"), resume=True, progress=False
         )
+
+
+def test_init_starts_from_a_model_files_weights(tmp_path: Path) -> None:
+    data = write_dataset(tmp_path / "data", 6, size=64, seed=4, negative_every=3)
+    cfg = TrainConfig(epochs=1, batch_size=2, max_steps_per_epoch=1, device="cpu", val_fraction=0.3, seed=5)
+    first = tmp_path / "first.pt"
+    train(data, first, config=cfg, model_config=TINY, progress=False)
+    w0 = torch.load(first, weights_only=True)["state_dict"]
+    # lr 0: the fine-tuned model keeps the initial weights exactly (BatchNorm statistics aside)
+    tuned = tmp_path / "tuned.pt"
+    zero_lr = TrainConfig(**{**cfg.__dict__, "lr": 0.0})
+    train(data, tuned, config=zero_lr, init=first, progress=False)
+    w1 = torch.load(tuned, weights_only=True)["state_dict"]
+    learned = [k for k in w0 if not k.endswith(("running_mean", "running_var", "num_batches_tracked"))]
+    assert learned and all(torch.equal(w0[k], w1[k]) for k in learned)
+    assert json.loads(sidecar_path(tuned).read_text())["train"]["init"] == str(first)
+    assert Detector.load(tuned, device="cpu").config.channels == TINY.channels  # the init's architecture
+    # without init the same run starts from other (random) weights
+    fresh = tmp_path / "fresh.pt"
+    train(
+        data, fresh, config=TrainConfig(**{**zero_lr.__dict__, "seed": 6}), model_config=TINY, progress=False
+    )
+    w2 = torch.load(fresh, weights_only=True)["state_dict"]
+    assert any(not torch.equal(w0[k], w2[k]) for k in learned)
+    (tmp_path / "bad.pt").write_bytes(b"not a model")
+    with pytest.raises(InputError, match=r"bad\.pt"):
+        train(data, tmp_path / "x.pt", config=cfg, init=tmp_path / "bad.pt", progress=False)

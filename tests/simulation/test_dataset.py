@@ -56,6 +56,7 @@ def test_dataset_passes_the_contract_checks(reference: Path) -> None:
     # documented storage resolution: 1536² detector binned to 96², spacing scaled accordingly
     assert meta["storage"]["rows"] == row["rows"] == 96
     assert row["pixel_spacing_mm"] == pytest.approx(0.194 * 1536 / 96)
+    assert meta["storage"]["photons_per_pixel"] == pytest.approx(5000.0 * 16**2)  # 16×16 binned
     assert row["camera"]["K"][0][0] == pytest.approx(meta["sdd_mm"] / row["pixel_spacing_mm"])
     assert (reference / "contact_sheet.png").stat().st_size > 1000
     assert {r["ct"] for r in _rows(reference).values()} <= {"phantom-424242000", "phantom-424242001"}

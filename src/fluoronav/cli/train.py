@@ -29,6 +29,11 @@ def train_command(
     ),
     workers: int = typer.Option(0, "--workers", min=0, help="Data loader worker processes."),
     resume: bool = typer.Option(False, "--resume", help="Continue from the checkpoint MODEL.ckpt."),
+    init: Path | None = typer.Option(
+        None,
+        "--init",
+        help="Start from the weights of this model file (fine-tuning; fresh optimiser and schedule).",
+    ),
     seed: int = SEED_OPTION,
     device: str = DEVICE_OPTION,
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
@@ -45,7 +50,7 @@ def train_command(
         device=device,
         workers=workers,
     )
-    metrics = train(data, out, config=config, resume=resume, progress=progress)
+    metrics = train(data, out, config=config, resume=resume, init=init, progress=progress)
     typer.echo(json.dumps(metrics))
 
 

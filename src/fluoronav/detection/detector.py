@@ -93,6 +93,31 @@ def _component_at(mask: np.ndarray, seeds_uv: np.ndarray) -> np.ndarray:
     return np.isin(labels, sorted(keep))
 
 
+#: (quarter turns, mirrored) of the dihedral group, in the order the test-time augmentation adds them
+DIHEDRAL: tuple[tuple[int, bool], ...] = (
+    (0, False),
+    (0, True),
+    (2, False),
+    (2, True),
+    (1, False),
+    (1, True),
+    (3, False),
+    (3, True),
+)
+
+
+def _dihedral(x: torch.Tensor, quarter_turns: int, mirrored: bool) -> torch.Tensor:
+    """(…, S, S) mirrored left-right (if asked), then turned by quarter turns."""
+    y = torch.flip(x, dims=[-1]) if mirrored else x
+    return torch.rot90(y, quarter_turns, dims=(-2, -1)) if quarter_turns else y
+
+
+def _dihedral_inverse(y: torch.Tensor, quarter_turns: int, mirrored: bool) -> torch.Tensor:
+    """Undo :func:`_dihedral`."""
+    x = torch.rot90(y, -quarter_turns, dims=(-2, -1)) if quarter_turns else y
+    return torch.flip(x, dims=[-1]) if mirrored else x
+
+
 def _check_image(image: np.ndarray, source: str) -> np.ndarray:
     arr = np.asarray(image)
     if arr.ndim == 3 and 1 in (arr.shape[0], arr.shape[-1]):
@@ -151,19 +176,23 @@ class Detector:
 
     @torch.no_grad()
     def _run(
-        self, net: torch.nn.Module, view_image: np.ndarray, *, flip_tta: bool = False
+        self, net: torch.nn.Module, view_image: np.ndarray, *, tta: int = 1
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(S, S) normalised image → seg logit (S, S), landmarks (2, 2) view px, confidences (2,).
 
-        ``flip_tta`` averages the logits with those of the left-right mirrored input (mirrored back):
-        the network's small left/right biases cancel, which sharpens mask edges and landmarks.
+        ``tta`` > 1 averages the logits over that many dihedral transforms of the input (each mapped
+        back, all in one batch): the network's small orientation biases cancel, which sharpens mask
+        edges and landmarks.
         """
         x = torch.from_numpy(view_image)[None, None].to(self.device)
-        if flip_tta:
-            both = net(torch.cat([x, torch.flip(x, dims=[-1])]))
-            out = 0.5 * (both[0] + torch.flip(both[1], dims=[-1])).float()
-        else:
-            out = net(x)[0].float()
+        transforms = DIHEDRAL[:tta]
+        batch = torch.cat([_dihedral(x, k, f) for k, f in transforms])
+        outs = net(batch)
+        out = (
+            torch.stack([_dihedral_inverse(outs[i : i + 1], k, f)[0] for i, (k, f) in enumerate(transforms)])
+            .mean(0)
+            .float()
+        )
         pts, conf = decode_landmarks(out[None, 1:], mode=self.config.heatmap, sigma_px=self.config.sigma_px)
         return out[0].cpu().numpy(), pts[0].cpu().numpy().astype(np.float64), conf[0].cpu().numpy()
 
@@ -179,9 +208,7 @@ class Detector:
 
     def fine(self, image: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fine stage on a ROI: seg logit (R, R), landmarks (2, 2) in input px, confidences (2,)."""
-        logit, pts, conf = self._run(
-            self.net.fine, self._view_input(image, view), flip_tta=self.config.fine_flip_tta
-        )
+        logit, pts, conf = self._run(self.net.fine, self._view_input(image, view), tta=self.config.fine_tta)
         return logit, view.to_input(pts), conf
 
     def detect(self, image: np.ndarray, *, pixel_spacing_mm: float | None = None) -> Detection:

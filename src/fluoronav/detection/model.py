@@ -44,7 +44,10 @@ class DetectorConfig:
         roi_margin_frac: ROI margin on each side as a fraction of the detected extent.
         roi_min_side_px: smallest ROI side in input pixels.
         fine_passes: fine-stage passes; each pass after the first uses a ROI fitted to the previous one.
-        fine_flip_tta: average the fine stage over the ROI and its mirror image (inference only).
+        fine_tta: test-time augmentation of the fine stage (inference only): its logits averaged
+            over this many transforms of the ROI from the dihedral group (1: none; 2: the mirror
+            image; 4: + the 180° turn and its mirror; 8: all quarter turns and their mirrors). Model
+            files with the older ``fine_flip_tta`` flag read it as 2 (True) or 1.
         mask_threshold: probability above which a pixel is CM.
         min_mask_px: smallest coarse mask area (coarse pixels) counted as a detection.
         min_confidence: smallest landmark confidence (heatmap peak) counted as a detection.
@@ -61,12 +64,16 @@ class DetectorConfig:
     roi_margin_frac: float = 0.2
     roi_min_side_px: float = 24.0
     fine_passes: int = 2
-    fine_flip_tta: bool = True
+    fine_tta: int = 8
     mask_threshold: float = 0.5
     min_mask_px: int = 6
     min_confidence: float = 0.3
     low_pct: float = 1.0
     high_pct: float = 99.0
+
+    def __post_init__(self) -> None:
+        if self.fine_tta not in (1, 2, 4, 8):
+            raise ValueError(f"fine_tta must be 1, 2, 4 or 8, got {self.fine_tta}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -78,6 +85,8 @@ class DetectorConfig:
         known = {f.name for f in fields(cls)}
         kw = {k: v for k, v in d.items() if k in known}
         kw.setdefault("heatmap", "gaussian")  # files written before the softmax heatmaps
+        if "fine_tta" not in kw and "fine_flip_tta" in d:  # files before the dihedral TTA
+            kw["fine_tta"] = 2 if d["fine_flip_tta"] else 1
         for key in ("channels", "roi_channels"):
             if key in kw:
                 kw[key] = tuple(int(c) for c in kw[key])

@@ -15,6 +15,7 @@ per-epoch metrics are appended to ``MODEL.log.jsonl``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -76,6 +77,18 @@ class TrainConfig:
     workers: int = 0
     max_steps_per_epoch: int | None = None
     augment: bool = True
+
+
+#: the model configuration fields fixed by trained weights (the rest only steer decoding)
+ARCHITECTURE_FIELDS = (
+    "input_size",
+    "roi_size",
+    "channels",
+    "roi_channels",
+    "num_res_units",
+    "sigma_px",
+    "heatmap",
+)
 
 
 def checkpoint_path(model_path: Path) -> Path:
@@ -212,6 +225,7 @@ def train(
     config: TrainConfig | None = None,
     model_config: DetectorConfig | None = None,
     resume: bool = False,
+    init: str | Path | None = None,
     progress: bool = True,
 ) -> dict[str, float]:
     """Train the detector on one or more simulate data sets and write the model file ``out_path``.
@@ -220,7 +234,11 @@ def train(
     each keeps its own id-based train/val split.
 
     Returns the last epoch's metrics. With ``resume`` the checkpoint next to ``out_path`` is
-    continued (its model configuration wins over ``model_config``).
+    continued (its model configuration wins over ``model_config``). ``init`` starts from the weights
+    of a model file (fine-tuning, e.g. on a new data set) and takes its architecture
+    (:data:`ARCHITECTURE_FIELDS`); the decoding settings come from ``model_config`` (default: this
+    version's), the optimiser and the learning-rate schedule start afresh. ``resume`` wins over
+    ``init``.
     """
     tcfg = config or TrainConfig()
     out_path = Path(out_path)
@@ -236,10 +254,21 @@ def train(
         except Exception as exc:  # torch raises many types for a damaged file
             raise InputError(ckpt_file, f"unreadable checkpoint ({exc.__class__.__name__})") from exc
         model_config = DetectorConfig.from_dict(ckpt["config"])
+    init_state = None
+    if init is not None and ckpt is None:
+        from fluoronav.detection.detector import Detector
+
+        start = Detector.load(init, device="cpu")  # validated: one-line error on a bad file
+        arch = {f: getattr(start.config, f) for f in ARCHITECTURE_FIELDS}
+        model_config = dataclasses.replace(model_config or DetectorConfig(), **arch)
+        init_state = start.net.state_dict()
+        logger.info("starting from the weights of %s", init)
     mcfg = model_config or DetectorConfig()
 
     torch.manual_seed(tcfg.seed)
     net = DetectorNet(mcfg).to(device)
+    if init_state is not None:
+        net.load_state_dict(init_state)
     opt = torch.optim.Adam(net.parameters(), lr=tcfg.lr)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=tcfg.lr_step_epochs, gamma=tcfg.lr_gamma)
     start_epoch = 0
@@ -333,7 +362,12 @@ def train(
             fh.write(json.dumps(metrics) + "\n")
         logger.info("epoch %d: %s", epoch + 1, metrics)
         extra = {
-            "train": {**asdict(tcfg), "data": [str(d) for d in dirs], "samples": len(train_ds)},
+            "train": {
+                **asdict(tcfg),
+                "data": [str(d) for d in dirs],
+                "samples": len(train_ds),
+                "init": None if init is None else str(init),
+            },
             "metrics": metrics,
         }
         save_model(out_path, net, extra=extra)

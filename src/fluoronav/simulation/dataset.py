@@ -184,6 +184,8 @@ def simulate_dataset(
             "cols": spec.image_size,
             "binning": sampling.detector.cols / spec.image_size,
             "pixel_spacing_mm": sampling.detector.pixel_spacing_mm * sampling.detector.cols / spec.image_size,
+            # flat-field photons per stored pixel: the detector pixels' N0 summed over the binning
+            "photons_per_pixel": _stored_photons(sampling.detector.cols / spec.image_size),
         },
     }
     if meta_path.exists():
@@ -210,6 +212,11 @@ def simulate_dataset(
     if all_rows and contact_sheet_png:
         contact_sheet(out_dir, sorted(all_rows, key=lambda r: r["id"])[:16], out_dir / "contact_sheet.png")
     return rows
+
+
+def _stored_photons(binning: float) -> float | None:
+    physics = SimulationConfig().physics.with_pixel_scale(binning)
+    return physics.photons_per_pixel
 
 
 def contact_sheet(data_dir: Path, rows: list[dict[str, Any]], path: Path) -> None:
