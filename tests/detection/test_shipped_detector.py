@@ -9,10 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.detection.detector import Detector, shipped_model_path
 from fluoronav.detection.evaluate import dice_score
-from fluoronav.simulation.dataset import _simulator
 from fluoronav.simulation.scene import SceneSampling, sample_scene
+from fluoronav.simulation.xray import SimulationConfig, XraySimulator
 
 pytestmark = pytest.mark.skipif(not shipped_model_path().is_file(), reason="no shipped weights")
 
@@ -20,7 +21,8 @@ N_POSITIVE = 6
 
 
 def test_shipped_detector_on_unseen_simulated_images() -> None:
-    sim = _simulator("phantom", 9, 512, "cpu", 1.0)  # phantom seed 9: not in any training set
+    # the data sets' 512² images of a phantom anatomy (seed 9) that no training set used
+    sim = XraySimulator(hip_phantom(seed=9), config=SimulationConfig(image_size=512), device="cpu")
     det = Detector.load(device="cpu")
     dices, errors_px, found = [], [], 0
     for k in range(N_POSITIVE):
