@@ -172,20 +172,22 @@ def simulate_dataset(
     out_dir.mkdir(parents=True, exist_ok=True)
     meta_path = out_dir / "dataset.json"
     sampling = SceneSampling()
+    sim_config = SimulationConfig(image_size=spec.image_size)
+    binning = sampling.detector.cols / spec.image_size
     meta = {
         "version": __version__,
         "n": n,
         "spec": dataclasses.asdict(spec),
-        "simulation": repr(SimulationConfig(image_size=spec.image_size)),
+        "simulation": repr(sim_config),
         "detector": dataclasses.asdict(sampling.detector),
         "sdd_mm": sampling.detector.sdd_mm,
         "storage": {
             "rows": spec.image_size,
             "cols": spec.image_size,
-            "binning": sampling.detector.cols / spec.image_size,
+            "binning": binning,
             "pixel_spacing_mm": sampling.detector.pixel_spacing_mm * sampling.detector.cols / spec.image_size,
             # flat-field photons per stored pixel: the detector pixels' N0 summed over the binning
-            "photons_per_pixel": _stored_photons(sampling.detector.cols / spec.image_size),
+            "photons_per_pixel": sim_config.physics.with_pixel_scale(binning).photons_per_pixel,
         },
     }
     if meta_path.exists():
@@ -212,11 +214,6 @@ def simulate_dataset(
     if all_rows and contact_sheet_png:
         contact_sheet(out_dir, sorted(all_rows, key=lambda r: r["id"])[:16], out_dir / "contact_sheet.png")
     return rows
-
-
-def _stored_photons(binning: float) -> float | None:
-    physics = SimulationConfig().physics.with_pixel_scale(binning)
-    return physics.photons_per_pixel
 
 
 def contact_sheet(data_dir: Path, rows: list[dict[str, Any]], path: Path) -> None:
