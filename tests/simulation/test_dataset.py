@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -124,3 +125,25 @@ def test_unseen_seed_negatives(tmp_path: Path) -> None:
 def test_same_seed_same_samples_with_two_workers(reference: Path, tmp_path: Path) -> None:
     simulate_dataset(tmp_path, 5, SPEC, workers=2)
     _assert_same_samples(tmp_path, reference)
+
+
+def test_foreshortened_data_set(tmp_path: Path) -> None:
+    spec = DatasetSpec(
+        n_phantoms=1, image_size=64, seed=31, phantom_spacing_mm=2.0, max_projected_ab_mm=20.0
+    )
+    simulate_dataset(tmp_path, 3, spec, workers=0, contact_sheet_png=False)
+    assert check_dataset(tmp_path, n=3) == []
+    for r in _rows(tmp_path).values():
+        ab = np.linalg.norm(np.subtract(*r["landmarks_px"])) * r["pixel_spacing_mm"]
+        assert ab <= 20.0 + 1e-6
+    meta = json.loads((tmp_path / "dataset.json").read_text())
+    assert meta["spec"]["max_projected_ab_mm"] == 20.0
+    # a data set written before the option existed resumes (its spec lacks the key: the default)
+    old = tmp_path / "old"
+    simulate_dataset(old, 1, dataclasses.replace(spec, max_projected_ab_mm=None), workers=0)
+    m = json.loads((old / "dataset.json").read_text())
+    del m["spec"]["max_projected_ab_mm"]
+    (old / "dataset.json").write_text(json.dumps(m))
+    assert simulate_dataset(old, 1, dataclasses.replace(spec, max_projected_ab_mm=None), workers=0) == []
+    with pytest.raises(InputError):  # but not with the option switched on
+        simulate_dataset(old, 1, spec, workers=0)

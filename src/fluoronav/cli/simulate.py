@@ -29,6 +29,13 @@ def register(app: typer.Typer) -> None:
         phantoms: int = typer.Option(
             4, "--phantoms", min=1, help="Phantom anatomies (seeds) to cycle through."
         ),
+        max_projected_ab_mm: float = typer.Option(
+            None,
+            "--max-projected-ab-mm",
+            min=0.1,
+            help="Keep only foreshortened views: landmarks A and B at most this far apart on the "
+            "detector (mm; a CM across the view projects ~60 mm). For training sets rich in hard views.",
+        ),
         device: str = DEVICE_OPTION,
     ) -> None:
         """Simulate a data set of X-ray images with labels (manifest.jsonl + samples/*.npz).
@@ -50,6 +57,7 @@ def register(app: typer.Typer) -> None:
             image_size=size,
             seed=seed,
             device=str(resolve_device(device)),
+            max_projected_ab_mm=max_projected_ab_mm,
         )
         rows = simulate_dataset(out, n, spec, scheduler=scheduler, workers=workers)
         typer.echo(f"{len(rows)} new samples; data set in {out}/ (manifest.jsonl, contact_sheet.png)")

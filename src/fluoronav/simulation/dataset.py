@@ -51,6 +51,8 @@ class DatasetSpec:
         seed: run seed.
         device: torch device name for rendering.
         phantom_spacing_mm: voxel size of the procedural phantoms (1 mm; coarser only for fast tests).
+        max_projected_ab_mm: keep only foreshortened views, whose landmarks A and B project at most
+            this far apart on the detector (mm); None: the paper's distribution as it is.
     """
 
     cts: tuple[str, ...] = ("phantom",)
@@ -60,6 +62,12 @@ class DatasetSpec:
     seed: int = 0
     device: str = "cpu"
     phantom_spacing_mm: float = 1.0
+    max_projected_ab_mm: float | None = None
+
+    @property
+    def sampling(self) -> SceneSampling:
+        """The scene sampler of this data set."""
+        return SceneSampling(max_projected_ab_mm=self.max_projected_ab_mm)
 
     def anatomies(self) -> list[tuple[str, int]]:
         """(ct spec, phantom seed) pairs; the phantom seeds come from the run seed."""
@@ -134,7 +142,7 @@ def _make_sample(sample_id: int, seed: int, *, spec: DatasetSpec, out_dir: str) 
     anatomies = spec.anatomies()
     ct, phantom_seed = anatomies[int(rng.integers(len(anatomies)))]
     sim = _simulator(ct, phantom_seed, spec.image_size, spec.device, spec.phantom_spacing_mm)
-    scene = sample_scene(sim.volume, rng, sampling=SceneSampling(), with_cm=spec.with_cm)
+    scene = sample_scene(sim.volume, rng, sampling=spec.sampling, with_cm=spec.with_cm)
     image = sim.simulate(scene, seed=int(rng.integers(2**62)))
     return write_sample(Path(out_dir), sample_id, image, seed=seed, ct_name=_volume_name(sim.volume, ct))
 
@@ -171,7 +179,7 @@ def simulate_dataset(
             resolve_ct(ct)
     out_dir.mkdir(parents=True, exist_ok=True)
     meta_path = out_dir / "dataset.json"
-    sampling = SceneSampling()
+    sampling = spec.sampling
     sim_config = SimulationConfig(image_size=spec.image_size)
     binning = sampling.detector.cols / spec.image_size
     meta = {
@@ -192,7 +200,9 @@ def simulate_dataset(
     }
     if meta_path.exists():
         old = json.loads(meta_path.read_text(encoding="utf-8"))
-        if old.get("spec") != json.loads(json.dumps(meta["spec"])):  # tuples come back as lists
+        # fields added later take their defaults in a data set written before them
+        old_spec = {**json.loads(json.dumps(dataclasses.asdict(DatasetSpec()))), **old.get("spec", {})}
+        if old_spec != json.loads(json.dumps(meta["spec"])):  # tuples come back as lists
             raise InputError(
                 meta_path,
                 "this directory holds a data set made with other settings "

@@ -15,13 +15,15 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 
 from fluoronav.anatomy.volume import Volume
 from fluoronav.geometry.camera import CIOS_FUSION, Camera, DetectorSpec
 from fluoronav.geometry.carm import carm_camera_from_world
 from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.kinematics import CMKinematics
 
-__all__ = ["Scene", "SceneSampling", "cm_pose_along", "place_cm_in_bone", "sample_scene"]
+__all__ = ["Scene", "SceneSampling", "cm_pose_along", "place_cm_in_bone", "projected_ab_mm", "sample_scene"]
 
 #: HU above which a voxel counts as bone when placing a CM in an unlabelled CT
 BONE_HU = 200.0
@@ -41,6 +43,12 @@ class SceneSampling:
     #: tilt of the CM axis away from the entry → femoral head line, degrees
     axis_tilt_deg: float = 10.0
     detector: DetectorSpec = CIOS_FUSION
+    #: keep only scenes whose landmarks A and B project at most this far apart on the detector, mm
+    #: (None: every scene). Foreshortened views (the CM seen nearly along its axis) are about a sixth
+    #: of the paper's distribution and most of the detector's errors; a training set can hold more.
+    max_projected_ab_mm: float | None = None
+    #: draws allowed to find a scene within ``max_projected_ab_mm`` before giving up
+    max_draws: int = 10_000
 
 
 @dataclass(frozen=True, eq=False)
@@ -139,9 +147,42 @@ def sample_scene(
     with_cm: bool = True,
     cm_config: CMConfig | None = None,
 ) -> Scene:
-    """Sample one scene with the paper's data set distribution (see module docstring)."""
+    """Sample one scene with the paper's data set distribution (see module docstring).
+
+    With ``sampling.max_projected_ab_mm`` set, scenes are drawn until the projected A–B distance is
+    within it (rejection sampling: the paper's distribution restricted to foreshortened views).
+    """
     sampling = sampling or SceneSampling()
     cm_config = cm_config or CMConfig()
+    limit = sampling.max_projected_ab_mm
+    if limit is None:
+        return _draw_scene(volume, rng, sampling, with_cm, cm_config)
+    if limit <= 0:
+        raise ValueError(f"max_projected_ab_mm must be positive, got {limit}")
+    kin = CMKinematics(cm_config)
+    for _ in range(sampling.max_draws):
+        scene = _draw_scene(volume, rng, sampling, with_cm, cm_config)
+        if projected_ab_mm(scene, kin) <= limit:
+            return scene
+    raise ValueError(
+        f"no scene with landmarks A and B within {limit} mm on the detector in {sampling.max_draws} draws"
+    )
+
+
+def projected_ab_mm(scene: Scene, kinematics: CMKinematics | None = None) -> float:
+    """Distance of the projected landmarks A and B on the detector, mm (at the detector plane)."""
+    kin = kinematics or CMKinematics(scene.cm_config)
+    ab_cm = kin.landmarks_cm(torch.as_tensor(np.asarray(scene.control_points_deg, dtype=np.float64)))
+    ab_world = ab_cm.numpy() @ scene.world_from_cm[:3, :3].T + scene.world_from_cm[:3, 3]
+    uv = scene.camera.project(ab_world)
+    if scene.camera.pixel_spacing_mm is None:
+        raise ValueError("the scene's camera has no pixel spacing")
+    return float(np.linalg.norm(uv[1] - uv[0]) * scene.camera.pixel_spacing_mm)
+
+
+def _draw_scene(
+    volume: Volume, rng: np.random.Generator, sampling: SceneSampling, with_cm: bool, cm_config: CMConfig
+) -> Scene:
     world_from_cm, side = place_cm_in_bone(volume, rng, sampling)
     cp = rng.uniform(*sampling.control_point_range_deg, size=cm_config.n_control_points)
     # isocentre: the middle of the CM (so it is in the field of view), shifted like the volume
