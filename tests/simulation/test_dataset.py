@@ -128,9 +128,7 @@ def test_same_seed_same_samples_with_two_workers(reference: Path, tmp_path: Path
 
 
 def test_foreshortened_data_set(tmp_path: Path) -> None:
-    spec = DatasetSpec(
-        n_phantoms=1, image_size=64, seed=31, phantom_spacing_mm=2.0, max_projected_ab_mm=20.0
-    )
+    spec = DatasetSpec(n_phantoms=1, image_size=64, seed=31, phantom_spacing_mm=2.0, max_projected_ab_mm=20.0)
     simulate_dataset(tmp_path, 3, spec, workers=0, contact_sheet_png=False)
     assert check_dataset(tmp_path, n=3) == []
     for r in _rows(tmp_path).values():

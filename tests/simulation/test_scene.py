@@ -101,14 +101,16 @@ def test_foreshortened_sampling_keeps_only_short_projections(phantom: Volume) ->
     plain = [projected_ab_mm(sample_scene(phantom, np.random.default_rng(k))) for k in range(40)]
     assert max(plain) > 45  # the paper's distribution is mostly CMs across the view
     short = SceneSampling(max_projected_ab_mm=25.0)
-    kept = [projected_ab_mm(sample_scene(phantom, np.random.default_rng(k), sampling=short)) for k in range(20)]
+    kept = [
+        projected_ab_mm(sample_scene(phantom, np.random.default_rng(k), sampling=short)) for k in range(20)
+    ]
     assert max(kept) <= 25.0
     assert min(kept) < 15  # not only the threshold's edge: the tail below it is there too
     # reproducible for a seed, like every draw
     a = sample_scene(phantom, np.random.default_rng(3), sampling=short)
     b = sample_scene(phantom, np.random.default_rng(3), sampling=short)
     np.testing.assert_array_equal(a.camera.camera_from_world, b.camera.camera_from_world)
-    with pytest.raises(ValueError, match="within 0.01 mm"):
+    with pytest.raises(ValueError, match=r"within 0\.01 mm"):
         sample_scene(
             phantom, np.random.default_rng(0), sampling=SceneSampling(max_projected_ab_mm=0.01, max_draws=50)
         )
