@@ -146,7 +146,9 @@ def test_batched_cost_equals_loop_and_reference() -> None:
     extracted = torch.as_tensor(centerline[::3])
     batched = centerline_cost(K, T_t, model, extracted, chunk_size=4)  # chunks of 4, 4, 1
     loop = torch.cat([centerline_cost(K, T_t[i : i + 1], model, extracted) for i in range(9)])
-    torch.testing.assert_close(batched, loop, rtol=1e-12, atol=1e-12)
+    # atol 1e-7 px: at the true pose (index 0) distances are ~0, and sqrt turns the ~1e-16 px² round-off
+    # of a different summation order (it depends on the CPU's BLAS kernel) into ~1e-8 px
+    torch.testing.assert_close(batched, loop, rtol=1e-12, atol=1e-7)
     for i in range(9):  # independent numpy reference of the symmetric trimmed-mean cost
         proj = camera.with_pose(T[i]).project(model.numpy())
         ref = 0.5 * (
