@@ -44,8 +44,9 @@ class SceneSampling:
     axis_tilt_deg: float = 10.0
     detector: DetectorSpec = CIOS_FUSION
     #: keep only scenes whose landmarks A and B project at most this far apart on the detector, mm
-    #: (None: every scene). Foreshortened views (the CM seen nearly along its axis) are about a sixth
-    #: of the paper's distribution and most of the detector's errors; a training set can hold more.
+    #: (None: every scene). Foreshortened views (the CM seen nearly along its axis: a quarter of the
+    #: paper's views project A–B shorter than 33 mm) made most of the detector's errors; a training
+    #: set can hold more of them.
     max_projected_ab_mm: float | None = None
     #: draws allowed to find a scene within ``max_projected_ab_mm`` before giving up
     max_draws: int = 10_000
