@@ -8,12 +8,19 @@ import numpy as np
 import pytest
 from det_synthetic import write_dataset
 
-from fluoronav.detection.augment import AugmentConfig, apply_affine, augment_geometric, view_affine
+from fluoronav.detection.augment import (
+    AugmentConfig,
+    apply_affine,
+    augment_geometric,
+    lower_dose,
+    view_affine,
+)
 from fluoronav.detection.dataset import (
     CMDetectionDataset,
     Sample,
     load_sample,
     make_view,
+    photons_per_pixel_of,
     read_manifest,
     split_of,
 )
@@ -155,3 +162,44 @@ def test_simulate_layout_int_ids_subdir_and_nan_landmarks(tmp_path: Path) -> Non
     assert len(ds) == 2  # the truncated last line (a crash while writing) is skipped
     assert ds.sample(0).landmarks_px is not None and ds.sample(0).pixel_spacing_mm == pytest.approx(1.164)
     assert ds.sample(1).landmarks_px is None and bool(ds[0]["positive"]) and not bool(ds[1]["positive"])
+
+
+@pytest.mark.parametrize("dose_fraction", [0.25, 0.5])
+def test_lower_dose_matches_a_poisson_image_taken_at_that_dose(dose_fraction: float) -> None:
+    # the reference is physics, not the formula: log images of Poisson counts at N0 and at f·N0
+    # (down to ~23 photons at f·N0 where p = 4; the log-normal approximation is for counts ≫ 1)
+    rng = np.random.default_rng(11)
+    n0 = 5000.0
+    p = np.repeat(np.array([0.5, 2.0, 4.0], np.float32), 40_000).reshape(3, -1)  # line integrals
+
+    def log_image(photons: float) -> np.ndarray:
+        counts = np.maximum(rng.poisson(photons * np.exp(-p)), 1)
+        return -np.log(counts / photons).astype(np.float32)
+
+    lowered = lower_dose(rng, log_image(n0), photons_per_pixel=n0, dose_fraction=dose_fraction)
+    direct = log_image(n0 * dose_fraction)
+    np.testing.assert_allclose(lowered.std(axis=1), direct.std(axis=1), rtol=0.05)
+    np.testing.assert_allclose(lowered.mean(axis=1), direct.mean(axis=1), atol=0.02)
+    assert np.array_equal(lower_dose(rng, p, photons_per_pixel=n0, dose_fraction=1.0), p)
+    with pytest.raises(ValueError, match="dose_fraction"):
+        lower_dose(rng, p, photons_per_pixel=n0, dose_fraction=0.0)
+
+
+def test_low_dose_augmentation_needs_the_data_sets_photon_count(data_dir: Path, tmp_path: Path) -> None:
+    s = load_sample(data_dir, next(r for r in read_manifest(data_dir) if r.get("landmarks_px")))
+    view = full_view(s.image.shape, CFG.input_size)
+    # every other augmentation off: the view differs from the plain one only by the added noise
+    only_dose = AugmentConfig(
+        p_flip=0.0, p_rot90=0.0, max_angle_deg=0.0, gamma=(1.0, 1.0), contrast=(1.0, 1.0),
+        brightness=0.0, noise_std=0.0, p_blur=0.0, p_low_dose=1.0, min_dose_fraction=0.05,
+    )  # fmt: skip
+    plain = make_view(s, view, CFG)[0]
+    same = make_view(s, view, CFG, rng=np.random.default_rng(0), augment=only_dose)[0]
+    noisy = make_view(s, view, CFG, rng=np.random.default_rng(0), augment=only_dose, photons_per_pixel=100.0)[
+        0
+    ]
+    np.testing.assert_allclose(same, plain, atol=1e-6)  # no photon count: no dose augmentation
+    assert np.abs(noisy - plain).mean() > 0.01
+    assert photons_per_pixel_of(data_dir) is None
+    (tmp_path / "dataset.json").write_text('{"storage": {"photons_per_pixel": 45000.0}}')
+    assert photons_per_pixel_of(tmp_path) == 45000.0

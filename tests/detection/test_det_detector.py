@@ -107,7 +107,39 @@ def test_dihedral_tta_maps_every_transform_back(tta: int) -> None:
         )
 
 
+def test_fine_scales_map_every_scaled_view_back() -> None:
+    # an equivariant stage run on ROIs 0.8×–1.25× the size (other pixel grids and sizes) must give
+    # the single-scale landmarks and mask: a scaled view mapped back with the wrong window would not
+    img = drawn_cm()[0]
+    results = []
+    for scales in ((1.0,), (0.8, 1.0, 1.25), (0.9, 1.12)):
+        net = DetectorNet(dataclasses.replace(TINY, fine_scales=scales))
+        net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+        results.append(Detector(net, device="cpu").detect(img))
+    ref = results[0]
+    for res in results[1:]:
+        assert res.found
+        # the oracle's markers are 5 px squares: their argmax may move by a pixel between grids
+        np.testing.assert_allclose(res.landmarks_px, ref.landmarks_px, atol=1.5)
+        assert 2 * np.logical_and(res.mask, ref.mask).sum() / (res.mask.sum() + ref.mask.sum()) > 0.97
+
+
+def test_scaled_view_keeps_the_centre() -> None:
+    v = detector_module.View(x0=-13, y0=40, side=101, size=64)
+    for f in (0.8, 1.0, 1.25, 2.0):
+        s = detector_module._scaled_view(v, f)
+        assert s.size == v.size and abs(s.side - f * v.side) <= 0.5
+        np.testing.assert_allclose(s.x0 + s.side / 2, v.x0 + v.side / 2, atol=0.5)
+        np.testing.assert_allclose(s.y0 + s.side / 2, v.y0 + v.side / 2, atol=0.5)
+
+
 def test_tta_setting_is_validated_and_old_files_read() -> None:
+    for bad in ((), (0.1,), (1.0, 5.0)):
+        with pytest.raises(ValueError, match="fine_scales"):
+            DetectorConfig(fine_scales=bad)
+    cfg = DetectorConfig(fine_scales=(0.8, 1.0, 1.25))
+    assert DetectorConfig.from_dict(cfg.to_dict()) == cfg
+    assert DetectorConfig.from_dict({}).fine_scales == (1.0,)  # files before the ROI scales
     with pytest.raises(ValueError, match="fine_tta"):
         DetectorConfig(fine_tta=3)
     assert DetectorConfig.from_dict({"fine_flip_tta": True}).fine_tta == 2

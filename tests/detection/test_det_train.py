@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -79,3 +80,20 @@ def test_init_starts_from_a_model_files_weights(tmp_path: Path) -> None:
     (tmp_path / "bad.pt").write_bytes(b"not a model")
     with pytest.raises(InputError, match=r"bad\.pt"):
         train(data, tmp_path / "x.pt", config=cfg, init=tmp_path / "bad.pt", progress=False)
+
+
+def test_training_one_stage_leaves_the_other_untouched(tmp_path: Path) -> None:
+    data = write_dataset(tmp_path / "data", 6, size=64, seed=7, negative_every=3)
+    cfg = TrainConfig(epochs=1, batch_size=2, max_steps_per_epoch=2, device="cpu", val_fraction=0.3, seed=8)
+    first = tmp_path / "first.pt"
+    train(data, first, config=cfg, model_config=TINY, progress=False)
+    w0 = torch.load(first, weights_only=True)["state_dict"]
+    tuned = tmp_path / "fine_only.pt"
+    train(data, tuned, config=dataclasses.replace(cfg, stages=("fine",)), init=first, progress=False)
+    w1 = torch.load(tuned, weights_only=True)["state_dict"]
+    # the coarse stage is not run at all: weights and batch-norm statistics stay bit-identical
+    assert all(torch.equal(w0[k], w1[k]) for k in w0 if k.startswith("coarse."))
+    assert any(not torch.equal(w0[k], w1[k]) for k in w0 if k.startswith("fine."))
+    assert json.loads(sidecar_path(tuned).read_text())["train"]["stages"] == ["fine"]
+    with pytest.raises(ValueError, match="stages"):
+        TrainConfig(stages=("middle",))

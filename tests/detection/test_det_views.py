@@ -53,6 +53,15 @@ def test_paste_inverts_resample_of_a_window() -> None:
     assert inside.side == 10
 
 
+def test_paste_into_a_box_is_that_part_of_the_full_grid() -> None:
+    vals = np.random.default_rng(2).normal(size=(16, 16)).astype(np.float32)
+    view = View(x0=-6, y0=20, side=40, size=16)  # partly left of the image
+    full = paste(vals, view, (70, 80), fill=-3.0)
+    for box in ((0, 0, 80, 70), (5, 18, 50, 66), (40, 0, 80, 10)):  # overlapping, inside, disjoint
+        x0, y0, x1, y1 = box
+        np.testing.assert_array_equal(paste(vals, view, (70, 80), fill=-3.0, box=box), full[y0:y1, x0:x1])
+
+
 def test_window_partly_outside_repeats_the_edge_and_normalisation_is_robust() -> None:
     img = np.arange(100, dtype=np.float32).reshape(10, 10)
     out = resample(img, View(-5, -5, 10, 10))

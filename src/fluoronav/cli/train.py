@@ -34,6 +34,11 @@ def train_command(
         "--init",
         help="Start from the weights of this model file (fine-tuning; fresh optimiser and schedule).",
     ),
+    stage: list[str] = typer.Option(
+        ["coarse", "fine"],
+        "--stage",
+        help="Stage to train (repeatable: coarse, fine); the others keep their weights and are not run.",
+    ),
     seed: int = SEED_OPTION,
     device: str = DEVICE_OPTION,
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
@@ -41,6 +46,8 @@ def train_command(
     """Train the two-stage detector (segmentation + landmark heatmaps) and write MODEL."""
     from fluoronav.detection.train import TrainConfig, train
 
+    if not stage or not set(stage) <= {"coarse", "fine"}:
+        raise typer.BadParameter(f"--stage takes coarse and/or fine, got {', '.join(stage) or 'nothing'}")
     config = TrainConfig(
         epochs=epochs,
         batch_size=batch_size,
@@ -49,6 +56,7 @@ def train_command(
         seed=seed,
         device=device,
         workers=workers,
+        stages=tuple(dict.fromkeys(stage)),
     )
     metrics = train(data, out, config=config, resume=resume, init=init, progress=progress)
     typer.echo(json.dumps(metrics))

@@ -2,7 +2,8 @@
 
 Geometric: one affine about the view centre combining a flip, a rotation by a multiple of 90° and a
 small rotation; the landmarks keep their identity (A stays A). Photometric (on the normalised image):
-blur, gamma, contrast/brightness and Gaussian noise.
+blur, gamma, contrast/brightness and Gaussian noise. Dose (on the log image before resampling, when
+the data set records its photons per pixel): the quantum noise of a lower dose (:func:`lower_dose`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,9 @@ class AugmentConfig:
         brightness: range ± of the offset (normalised units).
         noise_std: upper bound of the Gaussian noise std (normalised units).
         blur_sigma_px: upper bound of the Gaussian blur σ (pixels), applied with probability p_blur.
+        p_low_dose: probability of re-imaging the sample at a lower dose (:func:`lower_dose`; only
+            for data sets that record their photons per pixel).
+        min_dose_fraction: the dose fraction is log-uniform in [min_dose_fraction, 1].
     """
 
     p_flip: float = 0.5
@@ -37,6 +41,8 @@ class AugmentConfig:
     noise_std: float = 0.05
     blur_sigma_px: float = 1.0
     p_blur: float = 0.3
+    p_low_dose: float = 0.3
+    min_dose_fraction: float = 0.25
 
 
 def view_affine(size: int, *, flip: bool, angle_deg: float) -> np.ndarray:
@@ -98,3 +104,29 @@ def augment_photometric(rng: np.random.Generator, image: np.ndarray, config: Aug
     if noise > 0:
         img = img + rng.normal(0.0, noise, size=img.shape)
     return img.astype(np.float32)
+
+
+def lower_dose(
+    rng: np.random.Generator, log_image: np.ndarray, *, photons_per_pixel: float, dose_fraction: float
+) -> np.ndarray:
+    """The log image ``p = −ln(N/N0)`` as if taken with ``dose_fraction`` of the photons.
+
+    Counts N ~ Poisson(N0·e^−p) have a log image of variance ≈ e^p / N0 per pixel; at the dose
+    fraction f it is e^p / (f·N0), so Gaussian noise of variance e^p·(1/f − 1)/N0 is added (the
+    sample's own noise supplies the rest). Where the added std would exceed 1 (fewer than about one
+    photon) it is capped there, as the simulator clips counts at 1 photon.
+
+    Args:
+        rng: random generator.
+        log_image: (rows, cols) log image at the data set's stored pixels (not resampled).
+        photons_per_pixel: N0, flat-field photons per stored pixel of the data set.
+        dose_fraction: f in (0, 1].
+    """
+    if not 0.0 < dose_fraction <= 1.0:
+        raise ValueError(f"dose_fraction must be in (0, 1], got {dose_fraction}")
+    img = np.asarray(log_image, dtype=np.float32)
+    if dose_fraction == 1.0:
+        return img
+    var = np.exp(np.clip(img, None, 30.0)) * (1.0 / dose_fraction - 1.0) / photons_per_pixel
+    std = np.minimum(np.sqrt(var), 1.0)
+    return (img + std * rng.standard_normal(img.shape)).astype(np.float32)

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from fluoronav.detection.augment import AugmentConfig, augment_geometric, augment_photometric
+from fluoronav.detection.augment import AugmentConfig, augment_geometric, augment_photometric, lower_dose
 from fluoronav.detection.model import DetectorConfig
 from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
 from fluoronav.errors import InputError
@@ -68,6 +68,17 @@ def pixel_spacing_of(record: dict) -> float | None:
     if ps is None:
         return None
     return float(np.mean(np.asarray(ps, dtype=np.float64)))
+
+
+def photons_per_pixel_of(root: str | Path) -> float | None:
+    """Flat-field photons per stored pixel recorded in ``root/dataset.json`` (``simulate`` writes
+    ``storage.photons_per_pixel``), or None (no record, or noise-free)."""
+    path = Path(root) / "dataset.json"
+    try:
+        value = json.loads(path.read_text(encoding="utf-8")).get("storage", {}).get("photons_per_pixel")
+    except (OSError, json.JSONDecodeError, AttributeError):
+        return None
+    return float(value) if isinstance(value, (int, float)) and value > 0 else None
 
 
 @dataclass(frozen=True)
@@ -144,11 +155,26 @@ def make_view(
     *,
     rng: np.random.Generator | None = None,
     augment: AugmentConfig | None = None,
+    photons_per_pixel: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Normalised image (S, S), soft mask (S, S) and landmarks (2, 2) (NaN if absent) in view pixels."""
-    image = normalize_intensity(
-        resample(sample.image, view), low_pct=config.low_pct, high_pct=config.high_pct
-    )
+    """Normalised image (S, S), soft mask (S, S) and landmarks (2, 2) (NaN if absent) in view pixels.
+
+    ``photons_per_pixel`` (the data set's flat-field photons per stored pixel) enables the low-dose
+    augmentation, applied to the window at the stored pixels before it is resampled.
+    """
+    if (
+        augment is not None
+        and rng is not None
+        and photons_per_pixel is not None
+        and rng.random() < augment.p_low_dose
+    ):
+        window = resample(sample.image, View(view.x0, view.y0, view.side, view.side))
+        f = float(np.exp(rng.uniform(np.log(augment.min_dose_fraction), 0.0)))
+        window = lower_dose(rng, window, photons_per_pixel=photons_per_pixel, dose_fraction=f)
+        raw = resample(window, View(0, 0, view.side, view.size))
+    else:
+        raw = resample(sample.image, view)
+    image = normalize_intensity(raw, low_pct=config.low_pct, high_pct=config.high_pct)
     mask = resample(sample.mask.astype(np.float32), view)
     lm = None if sample.landmarks_px is None else view.from_input(sample.landmarks_px)
     if augment is not None and rng is not None:
@@ -195,6 +221,7 @@ class CMDetectionDataset(Dataset):
             pixels = sum(int(r.get("rows", 0)) * int(r.get("cols", 0)) for r in self.records)
             cache = 0 < pixels * 5 <= CACHE_BUDGET_BYTES
         self._cache: dict[int, Sample] | None = {} if cache else None
+        self.photons_per_pixel = photons_per_pixel_of(self.root)
 
     def __len__(self) -> int:
         return len(self.records)
@@ -216,8 +243,9 @@ class CMDetectionDataset(Dataset):
         rng = np.random.default_rng([self.seed, self.epoch, index]) if self.augment is not None else None
         cv = full_view(s.image.shape, self.config.input_size)
         fv = fine_view_for(s, self.config, rng)
-        ci, cm, cl = make_view(s, cv, self.config, rng=rng, augment=self.augment)
-        fi, fm, fl = make_view(s, fv, self.config, rng=rng, augment=self.augment)
+        n0 = self.photons_per_pixel
+        ci, cm, cl = make_view(s, cv, self.config, rng=rng, augment=self.augment, photons_per_pixel=n0)
+        fi, fm, fl = make_view(s, fv, self.config, rng=rng, augment=self.augment, photons_per_pixel=n0)
         return {
             "coarse_image": torch.from_numpy(ci)[None],
             "coarse_mask": torch.from_numpy(cm)[None],

@@ -33,7 +33,7 @@ import torch
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.heatmaps import decode_landmarks
 from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet
-from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
+from fluoronav.detection.views import View, full_view, normalize_intensity, paste, resample, roi_view
 from fluoronav.device import resolve_device
 from fluoronav.errors import FluoronavError, InputError
 
@@ -176,25 +176,27 @@ class Detector:
 
     @torch.no_grad()
     def _run(
-        self, net: torch.nn.Module, view_image: np.ndarray, *, tta: int = 1
+        self, net: torch.nn.Module, view_images: np.ndarray, *, tta: int = 1
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(S, S) normalised image → seg logit (S, S), landmarks (2, 2) view px, confidences (2,).
+        """(N, S, S) normalised views → seg logits (N, S, S), landmarks (N, 2, 2) view px, confidences (N, 2).
 
-        ``tta`` > 1 averages the logits over that many dihedral transforms of the input (each mapped
-        back, all in one batch): the network's small orientation biases cancel, which sharpens mask
-        edges and landmarks.
+        All views and their transforms go through the network in one batch. ``tta`` > 1 averages the
+        logits over that many dihedral transforms of each view (each mapped back): the network's small
+        orientation biases cancel, which sharpens mask edges and landmarks.
         """
-        x = torch.from_numpy(view_image)[None, None].to(self.device)
+        x = torch.from_numpy(np.ascontiguousarray(view_images, dtype=np.float32))[:, None].to(self.device)
         transforms = DIHEDRAL[:tta]
-        batch = torch.cat([_dihedral(x, k, f) for k, f in transforms])
-        outs = net(batch)
+        outs = net(torch.cat([_dihedral(x, k, f) for k, f in transforms]))
+        n = x.shape[0]
         out = (
-            torch.stack([_dihedral_inverse(outs[i : i + 1], k, f)[0] for i, (k, f) in enumerate(transforms)])
+            torch.stack(
+                [_dihedral_inverse(outs[i * n : (i + 1) * n], k, f) for i, (k, f) in enumerate(transforms)]
+            )
             .mean(0)
             .float()
-        )
-        pts, conf = decode_landmarks(out[None, 1:], mode=self.config.heatmap, sigma_px=self.config.sigma_px)
-        return out[0].cpu().numpy(), pts[0].cpu().numpy().astype(np.float64), conf[0].cpu().numpy()
+        )  # (N, 3, S, S)
+        pts, conf = decode_landmarks(out[:, 1:], mode=self.config.heatmap, sigma_px=self.config.sigma_px)
+        return out[:, 0].cpu().numpy(), pts.cpu().numpy().astype(np.float64), conf.cpu().numpy()
 
     def _view_input(self, image: np.ndarray, view: View) -> np.ndarray:
         cfg = self.config
@@ -203,13 +205,20 @@ class Detector:
     def coarse(self, image: np.ndarray) -> tuple[View, np.ndarray, np.ndarray, np.ndarray]:
         """Coarse stage: view, seg logit (S, S), landmarks (2, 2) in input px, confidences (2,)."""
         cv = full_view(image.shape, self.config.input_size)
-        logit, pts, conf = self._run(self.net.coarse, self._view_input(image, cv))
-        return cv, logit, cv.to_input(pts), conf
+        logit, pts, conf = self._run(self.net.coarse, self._view_input(image, cv)[None])
+        return cv, logit[0], cv.to_input(pts[0]), conf[0]
 
     def fine(self, image: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fine stage on a ROI: seg logit (R, R), landmarks (2, 2) in input px, confidences (2,)."""
-        logit, pts, conf = self._run(self.net.fine, self._view_input(image, view), tta=self.config.fine_tta)
-        return logit, view.to_input(pts), conf
+        logits, pts, conf = self.fine_views(image, [view])
+        return logits[0], pts[0], conf[0]
+
+    def fine_views(self, image: np.ndarray, views: list[View]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Fine stage on several ROIs in one batch: seg logits (N, R, R), landmarks (N, 2, 2) in input
+        px, confidences (N, 2)."""
+        stack = np.stack([self._view_input(image, v) for v in views])
+        logits, pts, conf = self._run(self.net.fine, stack, tta=self.config.fine_tta)
+        return logits, np.stack([v.to_input(p) for v, p in zip(views, pts, strict=True)]), conf
 
     def detect(self, image: np.ndarray, *, pixel_spacing_mm: float | None = None) -> Detection:
         """Detect the CM in a (rows, cols) log image (bright = attenuating).
@@ -220,7 +229,7 @@ class Detector:
         img = _check_image(image, "image")
         cfg = self.config
         shape = img.shape
-        thr_logit = float(np.log(cfg.mask_threshold / (1.0 - cfg.mask_threshold)))
+        thr_logit = cfg.mask_threshold_logit
         empty = Detection(False, None, np.zeros(2), np.zeros(shape, bool), None, pixel_spacing_mm)
         cv, c_logit, c_pts, c_conf = self.coarse(img)
         c_mask = c_logit > thr_logit
@@ -229,18 +238,33 @@ class Detector:
         confident = c_conf >= cfg.min_confidence
         c_mask = _component_at(c_mask, cv.from_input(c_pts[confident]))
         fv = self._roi(cv, c_mask, c_pts[confident])
-        for k in range(max(cfg.fine_passes, 1)):
-            f_logit, f_pts, f_conf = self.fine(img, fv)
-            roi_mask = f_logit > thr_logit
-            if k + 1 < cfg.fine_passes and roi_mask.any():
-                # again on a ROI fitted to this pass's result: its scale matches training more closely
-                sure = f_pts[f_conf >= cfg.min_confidence]
-                fv = self._roi(fv, _component_at(roi_mask, fv.from_input(sure)), sure)
-        mask = self._mask_at_input(f_logit, fv, shape, thr_logit)
+        f_pts, f_conf, mask = self.fine_stage(img, fv)
         if not mask.any() or float(f_conf.min()) < cfg.min_confidence:
             return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])
         return Detection(True, f_pts, f_conf.astype(np.float64), mask, centerline, pixel_spacing_mm)
+
+    def fine_stage(self, image: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All fine passes from a first ROI: landmarks (2, 2) in input px, confidences (2,) and the mask
+        (rows, cols) bool at the input size.
+
+        Each pass but the last refits the ROI to its result; the last runs on the ROI scaled by each of
+        ``fine_scales`` in one batch (median landmarks and confidences, mean logits).
+        """
+        cfg = self.config
+        thr_logit = cfg.mask_threshold_logit
+        for _ in range(max(cfg.fine_passes, 1) - 1):
+            f_logit, f_pts, f_conf = self.fine(image, view)
+            roi_mask = f_logit > thr_logit
+            if not roi_mask.any():
+                break
+            # again on a ROI fitted to this pass's result: its scale matches training more closely
+            sure = f_pts[f_conf >= cfg.min_confidence]
+            view = self._roi(view, _component_at(roi_mask, view.from_input(sure)), sure)
+        views = [_scaled_view(view, f) for f in cfg.fine_scales]
+        logits, pts, confs = self.fine_views(image, views)
+        mask = self._mask_at_input(logits, views, image.shape, thr_logit)
+        return np.median(pts, axis=0), np.median(confs, axis=0), mask
 
     def _roi(self, view: View, view_mask: np.ndarray, landmarks_input: np.ndarray) -> View:
         """Fine-stage ROI around a mask in ``view`` pixels and landmarks (N, 2) in input pixels."""
@@ -257,23 +281,40 @@ class Detector:
         )
 
     @staticmethod
-    def _mask_at_input(logit: np.ndarray, view: View, shape: tuple[int, int], thr_logit: float) -> np.ndarray:
-        """Threshold the ROI logits bilinearly mapped to the input grid; keep the largest component."""
+    def _mask_at_input(
+        logits: np.ndarray, views: View | list[View], shape: tuple[int, int], thr_logit: float
+    ) -> np.ndarray:
+        """Threshold the mean of ROI logits (N, R, R) (or one (R, R)) bilinearly mapped to the input
+        grid; keep the largest component. Outside a view its logits count as certain background."""
+        views = [views] if isinstance(views, View) else list(views)
+        logits = np.asarray(logits, dtype=np.float32).reshape(len(views), *np.shape(logits)[-2:])
         rows, cols = shape
         out = np.zeros(shape, dtype=bool)
-        cx0, cy0 = max(view.x0, 0), max(view.y0, 0)
-        cx1, cy1 = min(view.x0 + view.side, cols), min(view.y0 + view.side, rows)
+        # the union of the views, clipped to the image: the only place the mask can be
+        cx0, cy0 = max(min(v.x0 for v in views), 0), max(min(v.y0 for v in views), 0)
+        cx1 = min(max(v.x0 + v.side for v in views), cols)
+        cy1 = min(max(v.y0 + v.side for v in views), rows)
         if cx1 <= cx0 or cy1 <= cy0:
             return out
-        vals = (
-            logit
-            if view.side == view.size
-            else cv2.resize(logit, (view.side, view.side), interpolation=cv2.INTER_LINEAR)
-        )
-        sub = vals[cy0 - view.y0 : cy1 - view.y0, cx0 - view.x0 : cx1 - view.x0] > thr_logit
+        acc = np.zeros((cy1 - cy0, cx1 - cx0), np.float32)
+        for logit, v in zip(logits, views, strict=True):
+            acc += paste(logit, v, (rows, cols), fill=_OUTSIDE_LOGIT, box=(cx0, cy0, cx1, cy1))
+        sub = acc / len(views) > thr_logit
         if sub.any():
             out[cy0:cy1, cx0:cx1] = _largest_component(sub)
         return out
+
+
+#: logit given to input pixels outside a fine view when the views' logits are averaged
+_OUTSIDE_LOGIT = -20.0
+
+
+def _scaled_view(view: View, factor: float) -> View:
+    """The view with its side × ``factor`` about the same centre (same output size)."""
+    side = max(round(view.side * factor), 2)
+    return View(
+        round(view.x0 + (view.side - side) / 2.0), round(view.y0 + (view.side - side) / 2.0), side, view.size
+    )
 
 
 def load_image(path: str | Path) -> tuple[np.ndarray, float | None]:

@@ -16,6 +16,7 @@ heatmaps (A = CM base origin, B = distal end of the last notch), trained jointly
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
 
 import torch
@@ -48,6 +49,10 @@ class DetectorConfig:
             over this many transforms of the ROI from the dihedral group (1: none; 2: the mirror
             image; 4: + the 180° turn and its mirror; 8: all quarter turns and their mirrors). Model
             files with the older ``fine_flip_tta`` flag read it as 2 (True) or 1.
+        fine_scales: ROI side multipliers of the last fine pass (inference only; ``(1.0,)``: the
+            ROI alone). Each scaled ROI (same centre) is run in the same batch; the landmarks are
+            the median over the scales, the mask logits their mean on the input grid. Different
+            scales put the CM on different pixel grids and sizes, so their errors partly cancel.
         mask_threshold: probability above which a pixel is CM.
         min_mask_px: smallest coarse mask area (coarse pixels) counted as a detection.
         min_confidence: smallest landmark confidence (heatmap peak) counted as a detection.
@@ -65,6 +70,7 @@ class DetectorConfig:
     roi_min_side_px: float = 24.0
     fine_passes: int = 2
     fine_tta: int = 8
+    fine_scales: tuple[float, ...] = (1.0,)
     mask_threshold: float = 0.5
     min_mask_px: int = 6
     min_confidence: float = 0.3
@@ -74,10 +80,18 @@ class DetectorConfig:
     def __post_init__(self) -> None:
         if self.fine_tta not in (1, 2, 4, 8):
             raise ValueError(f"fine_tta must be 1, 2, 4 or 8, got {self.fine_tta}")
+        if not self.fine_scales or not all(0.25 <= float(f) <= 4.0 for f in self.fine_scales):
+            raise ValueError(f"fine_scales must be 1 or more factors in [0.25, 4], got {self.fine_scales}")
+
+    @property
+    def mask_threshold_logit(self) -> float:
+        """``mask_threshold`` as a logit (the networks' segmentation output)."""
+        return float(math.log(self.mask_threshold / (1.0 - self.mask_threshold)))
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["channels"], d["roi_channels"] = list(self.channels), list(self.roi_channels)
+        d["fine_scales"] = list(self.fine_scales)
         return d
 
     @classmethod
@@ -90,6 +104,8 @@ class DetectorConfig:
         for key in ("channels", "roi_channels"):
             if key in kw:
                 kw[key] = tuple(int(c) for c in kw[key])
+        if "fine_scales" in kw:
+            kw["fine_scales"] = tuple(float(f) for f in kw["fine_scales"])
         return cls(**kw)
 
 

@@ -92,21 +92,32 @@ def resample(image: np.ndarray, view: View) -> np.ndarray:
     return cv2.resize(crop, (view.size, view.size), interpolation=interp)
 
 
-def paste(values: np.ndarray, view: View, shape: tuple[int, int], *, fill: float = 0.0) -> np.ndarray:
+def paste(
+    values: np.ndarray,
+    view: View,
+    shape: tuple[int, int],
+    *,
+    fill: float = 0.0,
+    box: tuple[int, int, int, int] | None = None,
+) -> np.ndarray:
     """Inverse of :func:`resample`: bilinear map of view values (size, size) onto a (rows, cols) grid.
 
-    Pixels outside the window get ``fill``.
+    Pixels outside the window get ``fill``. With ``box`` = (x0, y0, x1, y1) (input pixels, end
+    exclusive, inside the grid) only that part of the grid is returned, (y1 − y0, x1 − x0).
     """
     rows, cols = shape
-    out = np.full((rows, cols), fill, dtype=np.float32)
-    cx0, cy0 = max(view.x0, 0), max(view.y0, 0)
-    cx1, cy1 = min(view.x0 + view.side, cols), min(view.y0 + view.side, rows)
+    bx0, by0, bx1, by1 = (0, 0, cols, rows) if box is None else box
+    out = np.full((by1 - by0, bx1 - bx0), fill, dtype=np.float32)
+    cx0, cy0 = max(view.x0, bx0), max(view.y0, by0)
+    cx1, cy1 = min(view.x0 + view.side, bx1), min(view.y0 + view.side, by1)
     if cx1 <= cx0 or cy1 <= cy0:
         return out
     vals: np.ndarray = np.asarray(values, dtype=np.float32)
     if view.side != view.size:
         vals = cv2.resize(vals, (view.side, view.side), interpolation=cv2.INTER_LINEAR)
-    out[cy0:cy1, cx0:cx1] = vals[cy0 - view.y0 : cy1 - view.y0, cx0 - view.x0 : cx1 - view.x0]
+    out[cy0 - by0 : cy1 - by0, cx0 - bx0 : cx1 - bx0] = vals[
+        cy0 - view.y0 : cy1 - view.y0, cx0 - view.x0 : cx1 - view.x0
+    ]
     return out
 
 
