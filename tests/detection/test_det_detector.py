@@ -93,7 +93,8 @@ def test_dihedral_tta_maps_every_transform_back(tta: int) -> None:
     net = DetectorNet(TINY)
     net.coarse, net.fine = IntensityOracle(), IntensityOracle()
     ref = Detector(net, device="cpu").detect(img)
-    net_tta = DetectorNet(dataclasses.replace(TINY, fine_tta=tta))
+    first = {1: 8, 2: 4, 4: 2, 8: 1}[tta]  # the passes before the last with another number
+    net_tta = DetectorNet(dataclasses.replace(TINY, fine_tta=tta, fine_first_tta=first))
     net_tta.coarse, net_tta.fine = IntensityOracle(), IntensityOracle()
     res = Detector(net_tta, device="cpu").detect(img)
     np.testing.assert_allclose(res.landmarks_px, ref.landmarks_px, atol=1e-4)
@@ -134,6 +135,9 @@ def test_scaled_view_keeps_the_centre() -> None:
 
 
 def test_tta_setting_is_validated_and_old_files_read() -> None:
+    with pytest.raises(ValueError, match="fine_first_tta"):
+        DetectorConfig(fine_first_tta=3)
+    assert DetectorConfig.from_dict({}).fine_first_tta is None  # files before it: every pass as fine_tta
     for bad in ((), (0.1,), (1.0, 5.0)):
         with pytest.raises(ValueError, match="fine_scales"):
             DetectorConfig(fine_scales=bad)

@@ -213,11 +213,14 @@ class Detector:
         logits, pts, conf = self.fine_views(image, [view])
         return logits[0], pts[0], conf[0]
 
-    def fine_views(self, image: np.ndarray, views: list[View]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def fine_views(
+        self, image: np.ndarray, views: list[View], *, tta: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fine stage on several ROIs in one batch: seg logits (N, R, R), landmarks (N, 2, 2) in input
-        px, confidences (N, 2)."""
+        px, confidences (N, 2). ``tta``: dihedral transforms per view (None: ``fine_tta``)."""
         stack = np.stack([self._view_input(image, v) for v in views])
-        logits, pts, conf = self._run(self.net.fine, stack, tta=self.config.fine_tta)
+        tta = self.config.fine_tta if tta is None else tta
+        logits, pts, conf = self._run(self.net.fine, stack, tta=tta)
         return logits, np.stack([v.to_input(p) for v, p in zip(views, pts, strict=True)]), conf
 
     def detect(self, image: np.ndarray, *, pixel_spacing_mm: float | None = None) -> Detection:
@@ -253,8 +256,10 @@ class Detector:
         """
         cfg = self.config
         thr_logit = cfg.mask_threshold_logit
+        first_tta = cfg.fine_tta if cfg.fine_first_tta is None else cfg.fine_first_tta
         for _ in range(max(cfg.fine_passes, 1) - 1):
-            f_logit, f_pts, f_conf = self.fine(image, view)
+            logits, pts, confs = self.fine_views(image, [view], tta=first_tta)
+            f_logit, f_pts, f_conf = logits[0], pts[0], confs[0]
             roi_mask = f_logit > thr_logit
             if not roi_mask.any():
                 break

@@ -49,6 +49,8 @@ class DetectorConfig:
             over this many transforms of the ROI from the dihedral group (1: none; 2: the mirror
             image; 4: + the 180° turn and its mirror; 8: all quarter turns and their mirrors). Model
             files with the older ``fine_flip_tta`` flag read it as 2 (True) or 1.
+        fine_first_tta: the dihedral transforms of the fine passes before the last (they only place
+            the last pass's ROI); None: ``fine_tta``.
         fine_scales: ROI side multipliers of the last fine pass (inference only; ``(1.0,)``: the
             ROI alone). Each scaled ROI (same centre) is run in the same batch; the landmarks are
             the median over the scales, the mask logits their mean on the input grid. Different
@@ -70,6 +72,7 @@ class DetectorConfig:
     roi_min_side_px: float = 24.0
     fine_passes: int = 2
     fine_tta: int = 8
+    fine_first_tta: int | None = None
     fine_scales: tuple[float, ...] = (1.0,)
     mask_threshold: float = 0.5
     min_mask_px: int = 6
@@ -78,8 +81,10 @@ class DetectorConfig:
     high_pct: float = 99.0
 
     def __post_init__(self) -> None:
-        if self.fine_tta not in (1, 2, 4, 8):
-            raise ValueError(f"fine_tta must be 1, 2, 4 or 8, got {self.fine_tta}")
+        for name in ("fine_tta", "fine_first_tta"):
+            value = getattr(self, name)
+            if value not in (1, 2, 4, 8) and not (name == "fine_first_tta" and value is None):
+                raise ValueError(f"{name} must be 1, 2, 4 or 8, got {value}")
         if not self.fine_scales or not all(0.25 <= float(f) <= 4.0 for f in self.fine_scales):
             raise ValueError(f"fine_scales must be 1 or more factors in [0.25, 4], got {self.fine_scales}")
 
