@@ -55,12 +55,21 @@ def test_resume_without_checkpoint_is_an_input_error(tmp_path: Path) -> None:
         )
 
 
-def test_init_starts_from_a_model_files_weights(tmp_path: Path) -> None:
-    data = write_dataset(tmp_path / "data", 6, size=64, seed=4, negative_every=3)
-    cfg = TrainConfig(epochs=1, batch_size=2, max_steps_per_epoch=1, device="cpu", val_fraction=0.3, seed=5)
+def _first_model(
+    tmp_path: Path, *, seed: int, steps: int
+) -> tuple[Path, TrainConfig, Path, dict[str, torch.Tensor]]:
+    """A small data set, its training settings, a TINY model trained on it and that model's weights."""
+    data = write_dataset(tmp_path / "data", 6, size=64, seed=seed, negative_every=3)
+    cfg = TrainConfig(
+        epochs=1, batch_size=2, max_steps_per_epoch=steps, device="cpu", val_fraction=0.3, seed=seed + 1
+    )
     first = tmp_path / "first.pt"
     train(data, first, config=cfg, model_config=TINY, progress=False)
-    w0 = torch.load(first, weights_only=True)["state_dict"]
+    return data, cfg, first, torch.load(first, weights_only=True)["state_dict"]
+
+
+def test_init_starts_from_a_model_files_weights(tmp_path: Path) -> None:
+    data, cfg, first, w0 = _first_model(tmp_path, seed=4, steps=1)
     # lr 0: the fine-tuned model keeps the initial weights exactly (BatchNorm statistics aside)
     tuned = tmp_path / "tuned.pt"
     zero_lr = TrainConfig(**{**cfg.__dict__, "lr": 0.0})
@@ -83,11 +92,7 @@ def test_init_starts_from_a_model_files_weights(tmp_path: Path) -> None:
 
 
 def test_training_one_stage_leaves_the_other_untouched(tmp_path: Path) -> None:
-    data = write_dataset(tmp_path / "data", 6, size=64, seed=7, negative_every=3)
-    cfg = TrainConfig(epochs=1, batch_size=2, max_steps_per_epoch=2, device="cpu", val_fraction=0.3, seed=8)
-    first = tmp_path / "first.pt"
-    train(data, first, config=cfg, model_config=TINY, progress=False)
-    w0 = torch.load(first, weights_only=True)["state_dict"]
+    data, cfg, first, w0 = _first_model(tmp_path, seed=7, steps=2)
     tuned = tmp_path / "fine_only.pt"
     train(data, tuned, config=dataclasses.replace(cfg, stages=("fine",)), init=first, progress=False)
     w1 = torch.load(tuned, weights_only=True)["state_dict"]
