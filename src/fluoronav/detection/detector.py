@@ -208,9 +208,12 @@ class Detector:
         logit, pts, conf = self._run(self.net.coarse, self._view_input(image, cv)[None])
         return cv, logit[0], cv.to_input(pts[0]), conf[0]
 
-    def fine(self, image: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Fine stage on a ROI: seg logit (R, R), landmarks (2, 2) in input px, confidences (2,)."""
-        logits, pts, conf = self.fine_views(image, [view])
+    def fine(
+        self, image: np.ndarray, view: View, *, tta: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Fine stage on a ROI: seg logit (R, R), landmarks (2, 2) in input px, confidences (2,).
+        ``tta``: dihedral transforms (None: ``fine_tta``)."""
+        logits, pts, conf = self.fine_views(image, [view], tta=tta)
         return logits[0], pts[0], conf[0]
 
     def fine_views(
@@ -258,8 +261,7 @@ class Detector:
         thr_logit = cfg.mask_threshold_logit
         first_tta = cfg.fine_tta if cfg.fine_first_tta is None else cfg.fine_first_tta
         for _ in range(max(cfg.fine_passes, 1) - 1):
-            logits, pts, confs = self.fine_views(image, [view], tta=first_tta)
-            f_logit, f_pts, f_conf = logits[0], pts[0], confs[0]
+            f_logit, f_pts, f_conf = self.fine(image, view, tta=first_tta)
             roi_mask = f_logit > thr_logit
             if not roi_mask.any():
                 break
@@ -287,12 +289,10 @@ class Detector:
 
     @staticmethod
     def _mask_at_input(
-        logits: np.ndarray, views: View | list[View], shape: tuple[int, int], thr_logit: float
+        logits: np.ndarray, views: list[View], shape: tuple[int, int], thr_logit: float
     ) -> np.ndarray:
-        """Threshold the mean of ROI logits (N, R, R) (or one (R, R)) bilinearly mapped to the input
-        grid; keep the largest component. Outside a view its logits count as certain background."""
-        views = [views] if isinstance(views, View) else list(views)
-        logits = np.asarray(logits, dtype=np.float32).reshape(len(views), *np.shape(logits)[-2:])
+        """Threshold the mean of the views' logits (N, R, R) bilinearly mapped to the input grid; keep
+        the largest component. Outside a view its logits count as certain background."""
         rows, cols = shape
         out = np.zeros(shape, dtype=bool)
         # the union of the views, clipped to the image: the only place the mask can be
