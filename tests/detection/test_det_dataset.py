@@ -7,17 +7,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 from det_synthetic import write_dataset
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fluoronav.detection.augment import (
     AugmentConfig,
     apply_affine,
     augment_geometric,
+    collimation_window,
     lower_dose,
     view_affine,
 )
 from fluoronav.detection.dataset import (
     CMDetectionDataset,
     Sample,
+    collimate,
+    crop_sample,
     load_sample,
     make_view,
     photons_per_pixel_of,
@@ -203,3 +208,76 @@ def test_low_dose_augmentation_needs_the_data_sets_photon_count(data_dir: Path, 
     assert photons_per_pixel_of(data_dir) is None
     (tmp_path / "dataset.json").write_text('{"storage": {"photons_per_pixel": 45000.0}}')
     assert photons_per_pixel_of(tmp_path) == 45000.0
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    rows=st.integers(40, 300),
+    cols=st.integers(40, 300),
+    box=st.tuples(*(st.floats(0.0, 1.0),) * 4),
+    min_frac=st.floats(0.1, 1.0),
+)
+def test_collimation_window_keeps_the_cm_inside_the_image(
+    seed: int, rows: int, cols: int, box: tuple[float, ...], min_frac: float
+) -> None:
+    u0, u1 = sorted((box[0] * (cols - 1), box[2] * (cols - 1)))
+    v0, v1 = sorted((box[1] * (rows - 1), box[3] * (rows - 1)))
+    margin = 4.0
+    x0, y0, x1, y1 = collimation_window(
+        np.random.default_rng(seed), (rows, cols), (u0, v0, u1, v1), min_field_frac=min_frac, margin_px=margin
+    )
+    assert 0 <= x0 < x1 <= cols and 0 <= y0 < y1 <= rows
+    # the CM's box with its margin (clipped to the image) is inside the window
+    assert x0 <= max(u0 - margin, 0.0) and x1 >= min(u1 + margin + 1.0, cols)
+    assert y0 <= max(v0 - margin, 0.0) and y1 >= min(v1 + margin + 1.0, rows)
+    # no window is smaller than the drawn field or the CM's box needs, whichever is larger
+    assert x1 - x0 >= min(round(min_frac * cols), cols - 1) - 1 or x1 - x0 >= u1 - u0 + 1
+    assert y1 - y0 >= min(round(min_frac * rows), rows - 1) - 1 or y1 - y0 >= v1 - v0 + 1
+
+
+def test_collimation_window_without_a_cm_is_a_random_field() -> None:
+    rng = np.random.default_rng(3)
+    sides = [collimation_window(rng, (100, 200), None, min_field_frac=0.4) for _ in range(200)]
+    w = np.array([x1 - x0 for x0, _, x1, _ in sides])
+    h = np.array([y1 - y0 for _, y0, _, y1 in sides])
+    assert w.min() >= 80 and w.max() <= 200 and h.min() >= 40 and h.max() <= 100
+    assert w.std() > 20 and len({(x0, y0) for x0, y0, _, _ in sides}) > 150  # it varies
+
+
+def test_collimated_sample_keeps_the_whole_cm_and_its_landmarks(data_dir: Path) -> None:
+    s = load_sample(data_dir, read_manifest(data_dir)[0])
+    shapes = set()
+    for seed in range(20):
+        c = collimate(s, np.random.default_rng(seed), min_field_frac=0.2)
+        shapes.add(c.image.shape)
+        assert c.mask.sum() == s.mask.sum() and c.landmarks_px is not None
+        # the same pixels under the same landmarks
+        off = s.landmarks_px - c.landmarks_px
+        x0, y0 = (round(o) for o in off[0])
+        np.testing.assert_allclose(off, [[x0, y0], [x0, y0]], atol=1e-9)
+        np.testing.assert_array_equal(
+            c.image, s.image[y0 : y0 + c.image.shape[0], x0 : x0 + c.image.shape[1]]
+        )
+    assert len(shapes) > 5
+    # a window that misses the CM makes a negative
+    uu = np.nonzero(s.mask)[1]
+    x_far = int(uu.max()) + 1
+    far = crop_sample(s, (x_far, 0, s.image.shape[1], s.image.shape[0]))
+    assert far.landmarks_px is None and not far.mask.any()
+
+
+def test_dataset_items_of_collimated_samples_stay_consistent(data_dir: Path) -> None:
+    ds = CMDetectionDataset(data_dir, config=CFG, split="all", augment=AugmentConfig(p_collimate=1.0), seed=2)
+    plain = CMDetectionDataset(
+        data_dir, config=CFG, split="all", augment=AugmentConfig(p_collimate=0.0), seed=2
+    )
+    scales = []
+    for i in (0, 1, 2):
+        item = ds[i]
+        mask, lm = item["coarse_mask"][0].numpy(), item["coarse_landmarks"].numpy()
+        for k in range(2):
+            assert _near_mask(mask, lm[k], 1.5) > 0.3
+        scales.append(float(item["coarse_scale"]))
+        assert float(plain[i]["coarse_scale"]) == 96 / 64
+    assert min(scales) < 96 / 64  # a smaller field: the CM is larger in the coarse view

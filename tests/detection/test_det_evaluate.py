@@ -52,3 +52,30 @@ def test_evaluate_counts_found_and_false_positives(tmp_path: Path) -> None:
         ]
     )
     assert json.loads(out.read_text())["samples"] == 8
+
+
+def test_evaluate_on_collimated_fields_crops_every_image_reproducibly(tmp_path: Path) -> None:
+    data = write_dataset(tmp_path / "d", 6, size=96, seed=2, negative_every=3)
+    images: list[np.ndarray] = []
+
+    class Recording(Detector):
+        def detect(self, image: np.ndarray, *, pixel_spacing_mm: float | None = None):  # type: ignore[no-untyped-def]
+            images.append(image)
+            return super().detect(image, pixel_spacing_mm=pixel_spacing_mm)
+
+    det = Recording(empty_net(), device="cpu")
+    summary = evaluate(det, data, split="all", progress=False, field_frac=0.5, seed=4)
+    assert summary["field_frac"] == 0.5 and summary["seed"] == 4
+    first = [im.copy() for im in images]
+    # each side is half the image's unless the CM needs more; every crop is a part of the image
+    assert all(im.shape[0] < 96 and im.shape[1] < 96 for im in first)
+    assert sum(im.shape == (48, 48) for im in first) >= 3
+    images.clear()
+    evaluate(det, data, split="all", progress=False, field_frac=0.5, seed=4)
+    assert all(np.array_equal(a, b) for a, b in zip(first, images, strict=True))
+    images.clear()
+    evaluate(det, data, split="all", progress=False, field_frac=0.5, seed=5)
+    assert not all(np.array_equal(a, b) for a, b in zip(first, images, strict=True))
+    with pytest.raises(SystemExit) as exc:
+        main(["evaluate", "--data", str(data), "--field-frac", "1.5", "--no-progress"])
+    assert exc.value.code != 0

@@ -10,6 +10,7 @@ import pytest
 import torch
 from det_synthetic import write_dataset
 
+from fluoronav.detection.augment import AugmentConfig
 from fluoronav.detection.detector import Detector
 from fluoronav.detection.model import DetectorConfig
 from fluoronav.detection.train import TrainConfig, checkpoint_path, log_path, sidecar_path, train
@@ -94,11 +95,17 @@ def test_init_starts_from_a_model_files_weights(tmp_path: Path) -> None:
 def test_training_one_stage_leaves_the_other_untouched(tmp_path: Path) -> None:
     data, cfg, first, w0 = _first_model(tmp_path, seed=7, steps=2)
     tuned = tmp_path / "fine_only.pt"
-    train(data, tuned, config=dataclasses.replace(cfg, stages=("fine",)), init=first, progress=False)
+    fine_cfg = dataclasses.replace(cfg, stages=("fine",), collimate_prob=0.5)
+    train(data, tuned, config=fine_cfg, init=first, progress=False)
     w1 = torch.load(tuned, weights_only=True)["state_dict"]
     # the coarse stage is not run at all: weights and batch-norm statistics stay bit-identical
     assert all(torch.equal(w0[k], w1[k]) for k in w0 if k.startswith("coarse."))
     assert any(not torch.equal(w0[k], w1[k]) for k in w0 if k.startswith("fine."))
-    assert json.loads(sidecar_path(tuned).read_text())["train"]["stages"] == ["fine"]
+    side = json.loads(sidecar_path(tuned).read_text())["train"]
+    assert side["stages"] == ["fine"]
+    assert side["augmentation"]["p_collimate"] == 0.5 and side["collimate_prob"] == 0.5
+    assert AugmentConfig().p_collimate == 0.0  # off unless asked for (--collimate-prob)
+    with pytest.raises(ValueError, match="collimate_prob"):
+        TrainConfig(collimate_prob=1.5)
     with pytest.raises(ValueError, match="stages"):
         TrainConfig(stages=("middle",))

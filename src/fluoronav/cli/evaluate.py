@@ -17,6 +17,12 @@ def evaluate_command(
     split: str = typer.Option("val", "--split", help="train, val (held out by id hash) or all."),
     device: str = DEVICE_OPTION,
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
+    field_frac: float | None = typer.Option(
+        None,
+        "--field-frac",
+        help="Crop each image to a collimated field of this fraction of its sides (keeping the CM) first.",
+    ),
+    seed: int = typer.Option(0, "--seed", help="Seed of the fields' places (with --field-frac)."),
 ) -> None:
     """Dice, landmark error (px, mm), found rate and false-positive rate of a detector."""
     from fluoronav.detection.detector import Detector
@@ -25,7 +31,16 @@ def evaluate_command(
 
     if split not in ("train", "val", "all"):
         raise InputError("--split", f"unknown split {split!r}; use train, val or all")
-    summary = evaluate(Detector.load(model, device=device), data, split=split, progress=progress)
+    if field_frac is not None and not 0.0 < field_frac <= 1.0:
+        raise InputError("--field-frac", f"must be in (0, 1], got {field_frac}")
+    summary = evaluate(
+        Detector.load(model, device=device),
+        data,
+        split=split,
+        progress=progress,
+        field_frac=field_frac,
+        seed=seed,
+    )
     text = json.dumps(summary, indent=1)
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -39,6 +39,13 @@ def train_command(
         "--stage",
         help="Stage to train (repeatable: coarse, fine); the others keep their weights and are not run.",
     ),
+    collimate_prob: float = typer.Option(
+        0.0,
+        "--collimate-prob",
+        min=0.0,
+        max=1.0,
+        help="Probability of cropping a training sample to a random collimated field first.",
+    ),
     seed: int = SEED_OPTION,
     device: str = DEVICE_OPTION,
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
@@ -57,6 +64,7 @@ def train_command(
         device=device,
         workers=workers,
         stages=tuple(dict.fromkeys(stage)),
+        collimate_prob=collimate_prob,
     )
     metrics = train(data, out, config=config, resume=resume, init=init, progress=progress)
     typer.echo(json.dumps(metrics))

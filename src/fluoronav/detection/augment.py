@@ -4,6 +4,9 @@ Geometric: one affine about the view centre combining a flip, a rotation by a mu
 small rotation; the landmarks keep their identity (A stays A). Photometric (on the normalised image):
 blur, gamma, contrast/brightness and Gaussian noise. Dose (on the log image before resampling, when
 the data set records its photons per pixel): the quantum noise of a lower dose (:func:`lower_dose`).
+Field of view (on the whole sample, before its views are made): a collimated window of the detector
+(:func:`collimation_window`), so that the coarse stage sees images without air around the body and
+CMs at other sizes relative to the image.
 """
 
 from __future__ import annotations
@@ -30,6 +33,9 @@ class AugmentConfig:
         p_low_dose: probability of re-imaging the sample at a lower dose (:func:`lower_dose`; only
             for data sets that record their photons per pixel).
         min_dose_fraction: the dose fraction is log-uniform in [min_dose_fraction, 1].
+        p_collimate: probability of cropping the sample to a collimated window
+            (:func:`collimation_window`) before its views are made.
+        min_field_frac: each side of that window is at least this fraction of the image's side.
     """
 
     p_flip: float = 0.5
@@ -43,6 +49,51 @@ class AugmentConfig:
     p_blur: float = 0.3
     p_low_dose: float = 0.3
     min_dose_fraction: float = 0.25
+    p_collimate: float = 0.0
+    min_field_frac: float = 0.35
+
+
+def collimation_window(
+    rng: np.random.Generator,
+    shape: tuple[int, int],
+    keep_box: tuple[float, float, float, float] | None,
+    *,
+    min_field_frac: float,
+    max_field_frac: float = 1.0,
+    margin_px: float = 4.0,
+) -> tuple[int, int, int, int]:
+    """A random rectangular field of view ``(x0, y0, x1, y1)`` (pixel edges, x1/y1 exclusive).
+
+    Each side is uniform in [``min_field_frac``, ``max_field_frac``] of the image's side (equal
+    bounds: a fixed field, as ``fluoronav evaluate --field-frac``) and the window lies inside
+    the image; it contains ``keep_box`` (u0, v0, u1, v1) in pixels (the CM's mask and landmarks)
+    with ``margin_px`` around it, widened where it would not fit.
+
+    Real fluoroscopy is often collimated to a part of the detector; then there is no air in the
+    image, its percentiles (and so the normalised intensities) differ from a full view, and the
+    CM covers more of it.
+    """
+    rows, cols = shape
+    out: list[int] = []
+    for n, lo_keep, hi_keep in (
+        (cols, None if keep_box is None else keep_box[0], None if keep_box is None else keep_box[2]),
+        (rows, None if keep_box is None else keep_box[1], None if keep_box is None else keep_box[3]),
+    ):
+        side = max(round(rng.uniform(min_field_frac, max_field_frac) * n), 1)
+        lo_min, hi_max = 0, n - side  # range of the window's start
+        if lo_keep is not None and hi_keep is not None:
+            need_lo = int(np.ceil(max(hi_keep + margin_px + 1.0 - side, 0.0)))
+            need_hi = int(np.floor(min(lo_keep - margin_px, float(n))))
+            if need_lo > need_hi:  # the CM does not fit: widen the window to its box
+                start = int(np.clip(np.floor(lo_keep - margin_px), 0, n - 1))
+                stop = int(np.clip(np.ceil(hi_keep + margin_px + 1.0), start + 1, n))
+                out += [start, stop]
+                continue
+            lo_min, hi_max = max(lo_min, need_lo), min(hi_max, need_hi)
+        start = int(rng.integers(lo_min, max(hi_max, lo_min) + 1))
+        out += [start, min(start + side, n)]
+    x0, x1, y0, y1 = out
+    return x0, y0, x1, y1
 
 
 def view_affine(size: int, *, flip: bool, angle_deg: float) -> np.ndarray:

@@ -10,6 +10,7 @@ of each sample's id (SHA-1), so it does not depend on the order or size of the m
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -20,7 +21,13 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from fluoronav.detection.augment import AugmentConfig, augment_geometric, augment_photometric, lower_dose
+from fluoronav.detection.augment import (
+    AugmentConfig,
+    augment_geometric,
+    augment_photometric,
+    collimation_window,
+    lower_dose,
+)
 from fluoronav.detection.model import DetectorConfig
 from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
 from fluoronav.errors import InputError
@@ -148,6 +155,33 @@ def fine_view_for(
     )
 
 
+def crop_sample(sample: Sample, window: tuple[int, int, int, int]) -> Sample:
+    """The sample inside ``window`` (x0, y0, x1, y1) in pixels: image, mask and landmarks moved.
+    A sample whose CM leaves no mask pixel in the window becomes a negative."""
+    x0, y0, x1, y1 = window
+    mask = sample.mask[y0:y1, x0:x1]
+    lm = None
+    if sample.landmarks_px is not None and mask.any():
+        lm = sample.landmarks_px - np.array([x0, y0], dtype=np.float64)
+    return dataclasses.replace(sample, image=sample.image[y0:y1, x0:x1], mask=mask, landmarks_px=lm)
+
+
+def collimate(
+    sample: Sample, rng: np.random.Generator, *, min_field_frac: float, max_field_frac: float = 1.0
+) -> Sample:
+    """The sample cropped to a random collimated field of view that keeps its whole CM
+    (:func:`~fluoronav.detection.augment.collimation_window`)."""
+    box = None
+    if sample.landmarks_px is not None:
+        vv, uu = np.nonzero(sample.mask)
+        pts = np.concatenate([np.stack([uu, vv], axis=1).astype(np.float64), sample.landmarks_px])
+        box = (*pts.min(axis=0), *pts.max(axis=0))
+    window = collimation_window(
+        rng, sample.image.shape, box, min_field_frac=min_field_frac, max_field_frac=max_field_frac
+    )
+    return crop_sample(sample, window)
+
+
 def make_view(
     sample: Sample,
     view: View,
@@ -241,6 +275,8 @@ class CMDetectionDataset(Dataset):
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         s = self.sample(index)
         rng = np.random.default_rng([self.seed, self.epoch, index]) if self.augment is not None else None
+        if rng is not None and self.augment is not None and rng.random() < self.augment.p_collimate:
+            s = collimate(s, rng, min_field_frac=self.augment.min_field_frac)
         cv = full_view(s.image.shape, self.config.input_size)
         fv = fine_view_for(s, self.config, rng)
         n0 = self.photons_per_pixel

@@ -63,6 +63,8 @@ class TrainConfig:
         augment: augment the training samples.
         stages: the stages trained (``("coarse", "fine")``, or one of them): the others keep their
             weights and are not run, so fine-tuning only the fine stage costs about half a step.
+        collimate_prob: probability that a training sample is cropped to a collimated field of view
+            first (:func:`~fluoronav.detection.augment.collimation_window`, ``p_collimate``).
     """
 
     epochs: int = 10
@@ -80,10 +82,13 @@ class TrainConfig:
     max_steps_per_epoch: int | None = None
     augment: bool = True
     stages: tuple[str, ...] = ("coarse", "fine")
+    collimate_prob: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.stages or not set(self.stages) <= {"coarse", "fine"}:
             raise ValueError(f"stages must be 'coarse' and/or 'fine', got {self.stages}")
+        if not 0.0 <= self.collimate_prob <= 1.0:
+            raise ValueError(f"collimate_prob must be in [0, 1], got {self.collimate_prob}")
 
 
 #: the model configuration fields fixed by trained weights (the rest only steer decoding)
@@ -297,7 +302,7 @@ def train(
         torch.set_rng_state(ckpt["torch_rng"])
         logger.info("resuming from %s at epoch %d", ckpt_file, start_epoch)
 
-    aug = AugmentConfig() if tcfg.augment else None
+    aug = AugmentConfig(p_collimate=tcfg.collimate_prob) if tcfg.augment else None
     dirs = [data_dir] if isinstance(data_dir, (str, Path)) else list(data_dir)
     train_parts = [
         CMDetectionDataset(
@@ -383,6 +388,8 @@ def train(
                 "data": [str(d) for d in dirs],
                 "samples": len(train_ds),
                 "init": None if init is None else str(init),
+                # the augmentation ranges (None: off), so that a model file says how it was trained
+                "augmentation": None if aug is None else asdict(aug),
             },
             "metrics": metrics,
         }
