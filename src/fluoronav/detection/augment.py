@@ -74,11 +74,12 @@ def collimation_window(
     CM covers more of it.
     """
     rows, cols = shape
+    # per axis: image size, then the CM's first and last pixel along it (None: no CM to keep)
+    axes: list[tuple[int, float | None, float | None]] = [(cols, None, None), (rows, None, None)]
+    if keep_box is not None:
+        axes = [(cols, keep_box[0], keep_box[2]), (rows, keep_box[1], keep_box[3])]
     out: list[int] = []
-    for n, lo_keep, hi_keep in (
-        (cols, None if keep_box is None else keep_box[0], None if keep_box is None else keep_box[2]),
-        (rows, None if keep_box is None else keep_box[1], None if keep_box is None else keep_box[3]),
-    ):
+    for n, lo_keep, hi_keep in axes:
         side = max(round(rng.uniform(min_field_frac, max_field_frac) * n), 1)
         lo_min, hi_max = 0, n - side  # range of the window's start
         if lo_keep is not None and hi_keep is not None:

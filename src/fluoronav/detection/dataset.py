@@ -120,6 +120,14 @@ def load_sample(root: str | Path, record: dict) -> Sample:
     return Sample(str(record["id"]), image, mask, lm, pixel_spacing_of(record))
 
 
+def _cm_extent_points(mask: np.ndarray, landmarks_px: np.ndarray) -> np.ndarray:
+    """The points (4, 2) (u, v) that a view of the CM must contain: its mask's bounding-box corners
+    and the two landmarks."""
+    vv, uu = np.nonzero(mask)
+    corners = np.array([[uu.min(), vv.min()], [uu.max(), vv.max()]], dtype=np.float64)
+    return np.concatenate([corners, landmarks_px])
+
+
 def fine_view_for(
     sample: Sample,
     config: DetectorConfig,
@@ -133,13 +141,7 @@ def fine_view_for(
         side = float(r.uniform(0.1, 0.5)) * max(rows, cols)
         centre = r.uniform([0, 0], [cols, rows])
         return roi_view(centre[None], config.roi_size, margin_frac=0.0, min_side_px=max(side, 2.0))
-    vv, uu = np.nonzero(sample.mask)
-    pts = np.concatenate(
-        [
-            np.array([[uu.min(), vv.min()], [uu.max(), vv.max()]], dtype=np.float64),
-            sample.landmarks_px,
-        ]
-    )
+    pts = _cm_extent_points(sample.mask, sample.landmarks_px)
     if rng is None:
         return roi_view(
             pts, config.roi_size, margin_frac=config.roi_margin_frac, min_side_px=config.roi_min_side_px
@@ -173,8 +175,7 @@ def collimate(
     (:func:`~fluoronav.detection.augment.collimation_window`)."""
     box = None
     if sample.landmarks_px is not None:
-        vv, uu = np.nonzero(sample.mask)
-        pts = np.concatenate([np.stack([uu, vv], axis=1).astype(np.float64), sample.landmarks_px])
+        pts = _cm_extent_points(sample.mask, sample.landmarks_px)
         box = (*pts.min(axis=0), *pts.max(axis=0))
     window = collimation_window(
         rng, sample.image.shape, box, min_field_frac=min_field_frac, max_field_frac=max_field_frac
