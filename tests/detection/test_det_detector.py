@@ -125,6 +125,60 @@ def test_fine_scales_map_every_scaled_view_back() -> None:
         assert 2 * np.logical_and(res.mask, ref.mask).sum() / (res.mask.sum() + ref.mask.sum()) > 0.97
 
 
+class NearSightedOracle(nn.Module):
+    """A coarse stage that sees only the left ``frac`` of its view (a CM found only in part)."""
+
+    def __init__(self, frac: float) -> None:
+        super().__init__()
+        self.frac = frac
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        keep = torch.zeros_like(x)
+        keep[..., : int(x.shape[-1] * self.frac)] = 1.0
+        return IntensityOracle()(x * keep)
+
+
+def _dice(a: np.ndarray, b: np.ndarray) -> float:
+    return float(2 * np.logical_and(a, b).sum() / (a.sum() + b.sum()))
+
+
+def test_extra_passes_grow_the_roi_until_the_cm_fits() -> None:
+    # the coarse stage finds only the bar's left end (A); the fine stage's mask then reaches the edge
+    # of its ROI, and only with spare passes does the ROI grow to hold the whole bar and B
+    img, bar, lm = drawn_cm()
+    results = {}
+    for max_passes in (0, 6):
+        net = DetectorNet(dataclasses.replace(TINY, fine_max_passes=max_passes))
+        net.coarse, net.fine = NearSightedOracle(0.45), IntensityOracle()
+        results[max_passes] = Detector(net, device="cpu").detect(img)
+    cut, grown = results[0], results[6]
+    assert not cut.found and cut.landmark_confidence[1] < 0.2 and _dice(cut.mask, bar) < 0.8  # B unseen
+    assert grown.found and _dice(grown.mask, bar) > 0.9
+    np.testing.assert_allclose(grown.landmarks_px, lm, atol=2.0)
+    # a CM that fits its first ROI takes no extra pass: the same result as without spare passes
+    net = DetectorNet(dataclasses.replace(TINY, fine_max_passes=6))
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    ref_net = DetectorNet(TINY)
+    ref_net.coarse, ref_net.fine = IntensityOracle(), IntensityOracle()
+    same, ref = Detector(net, device="cpu").detect(img), Detector(ref_net, device="cpu").detect(img)
+    np.testing.assert_array_equal(same.landmarks_px, ref.landmarks_px)
+    np.testing.assert_array_equal(same.mask, ref.mask)
+
+
+def test_reaches_edge_counts_only_edges_inside_the_image() -> None:
+    view = detector_module.View(x0=-20, y0=10, side=40, size=40)  # 20 px hang over the left edge
+    shape = (100, 100)
+    inner = np.zeros((40, 40), bool)
+    inner[10:30, 10:30] = True
+    assert not detector_module._reaches_edge(inner, view, shape)
+    right = inner.copy()
+    right[15:20, 30:] = True  # the view's right edge lies inside the image
+    assert detector_module._reaches_edge(right, view, shape)
+    left = inner.copy()
+    left[15:20, :10] = True  # its left edge is outside the image: the CM may end at the image's edge
+    assert not detector_module._reaches_edge(left, view, shape)
+
+
 def test_scaled_view_keeps_the_centre() -> None:
     v = detector_module.View(x0=-13, y0=40, side=101, size=64)
     for f in (0.8, 1.0, 1.25, 2.0):
@@ -144,6 +198,9 @@ def test_tta_setting_is_validated_and_old_files_read() -> None:
     cfg = DetectorConfig(fine_scales=(0.8, 1.0, 1.25))
     assert DetectorConfig.from_dict(cfg.to_dict()) == cfg
     assert DetectorConfig.from_dict({}).fine_scales == (1.0,)  # files before the ROI scales
+    assert DetectorConfig.from_dict({}).fine_max_passes == 0  # files before it: no extra passes
+    with pytest.raises(ValueError, match="fine_max_passes"):
+        DetectorConfig(fine_max_passes=-1)
     with pytest.raises(ValueError, match="fine_tta"):
         DetectorConfig(fine_tta=3)
     assert DetectorConfig.from_dict({"fine_flip_tta": True}).fine_tta == 2

@@ -255,23 +255,53 @@ class Detector:
         (rows, cols) bool at the input size.
 
         Each pass but the last refits the ROI to its result; the last runs on the ROI scaled by each of
-        ``fine_scales`` in one batch (median landmarks and confidences, mean logits).
+        ``fine_scales`` in one batch (median landmarks and confidences, mean logits). While a pass's mask
+        reaches the edge of its ROI inside the image (the CM goes on beyond it: the coarse stage found
+        only part of it), passes are added, up to ``fine_max_passes`` in all, each on a ROI refitted
+        to the larger mask.
         """
         cfg = self.config
         thr_logit = cfg.mask_threshold_logit
         first_tta = cfg.fine_tta if cfg.fine_first_tta is None else cfg.fine_first_tta
-        for _ in range(max(cfg.fine_passes, 1) - 1):
+        spare = max(cfg.fine_max_passes - max(cfg.fine_passes, 1), 0)
+        planned, done = max(cfg.fine_passes, 1) - 1, 0
+        while done < planned:
             f_logit, f_pts, f_conf = self.fine(image, view, tta=first_tta)
-            roi_mask = f_logit > thr_logit
-            if not roi_mask.any():
+            refit = self._refit(image, view, f_logit, f_pts, f_conf)
+            if refit is None:
                 break
-            # again on a ROI fitted to this pass's result: its scale matches training more closely
-            sure = f_pts[f_conf >= cfg.min_confidence]
-            view = self._roi(view, _component_at(roi_mask, view.from_input(sure)), sure)
-        views = [_scaled_view(view, f) for f in cfg.fine_scales]
-        logits, pts, confs = self.fine_views(image, views)
-        mask = self._mask_at_input(logits, views, image.shape, thr_logit)
-        return np.median(pts, axis=0), np.median(confs, axis=0), mask
+            view, reached = refit
+            if reached and spare > 0:
+                spare, planned = spare - 1, planned + 1
+            done += 1
+        while True:
+            views = [_scaled_view(view, f) for f in cfg.fine_scales]
+            logits, pts, confs = self.fine_views(image, views)
+            f_pts, f_conf = np.median(pts, axis=0), np.median(confs, axis=0)
+            if spare > 0:
+                # the unscaled (or first) view decides whether the CM goes on beyond the ROI
+                k = int(np.argmin([abs(f - 1.0) for f in cfg.fine_scales]))
+                refit = self._refit(image, views[k], logits[k], pts[k], confs[k])
+                if refit is not None and refit[1]:
+                    spare -= 1
+                    view = refit[0]
+                    continue
+            mask = self._mask_at_input(logits, views, image.shape, thr_logit)
+            return f_pts, f_conf, mask
+
+    def _refit(
+        self, image: np.ndarray, view: View, logit: np.ndarray, pts: np.ndarray, conf: np.ndarray
+    ) -> tuple[View, bool] | None:
+        """The ROI fitted to one pass's result (seg logit (R, R), landmarks (2, 2) input px,
+        confidences (2,)) and whether its mask reached the old ROI's edge; None if the mask is empty."""
+        cfg = self.config
+        roi_mask = logit > cfg.mask_threshold_logit
+        if not roi_mask.any():
+            return None
+        sure = pts[conf >= cfg.min_confidence]
+        component = _component_at(roi_mask, view.from_input(sure))
+        # again on a ROI fitted to this pass's result: its scale matches training more closely
+        return self._roi(view, component, sure), _reaches_edge(component, view, image.shape)
 
     def _roi(self, view: View, view_mask: np.ndarray, landmarks_input: np.ndarray) -> View:
         """Fine-stage ROI around a mask in ``view`` pixels and landmarks (N, 2) in input pixels."""
@@ -312,6 +342,20 @@ class Detector:
 
 #: logit given to input pixels outside a fine view when the views' logits are averaged
 _OUTSIDE_LOGIT = -20.0
+
+
+def _reaches_edge(view_mask: np.ndarray, view: View, shape: tuple[int, int], *, ring_px: int = 2) -> bool:
+    """Whether a mask (S, S) in ``view`` pixels has pixels in the view's outer ring of ``ring_px``
+    view pixels that lie inside the image ``shape`` (rows, cols) (not counting the image's own edge)."""
+    ring = view_mask.copy()
+    ring[ring_px:-ring_px, ring_px:-ring_px] = False
+    vv, uu = np.nonzero(ring)
+    if vv.size == 0:
+        return False
+    uv = view.to_input(np.stack([uu, vv], axis=1).astype(np.float64))
+    rows, cols = shape
+    inside = (uv[:, 0] >= 1.0) & (uv[:, 0] <= cols - 2.0) & (uv[:, 1] >= 1.0) & (uv[:, 1] <= rows - 2.0)
+    return bool(inside.any())
 
 
 def _scaled_view(view: View, factor: float) -> View:

@@ -45,6 +45,9 @@ class DetectorConfig:
         roi_margin_frac: ROI margin on each side as a fraction of the detected extent.
         roi_min_side_px: smallest ROI side in input pixels.
         fine_passes: fine-stage passes; each pass after the first uses a ROI fitted to the previous one.
+        fine_max_passes: passes allowed in all when a pass's mask reaches the edge of its ROI (the CM
+            goes on beyond it); each extra pass refits the ROI to the larger mask. Values below
+            ``fine_passes`` (the default 0) add none.
         fine_tta: test-time augmentation of the fine stage (inference only): its logits averaged
             over this many transforms of the ROI from the dihedral group (1: none; 2: the mirror
             image; 4: + the 180° turn and its mirror; 8: all quarter turns and their mirrors). Model
@@ -71,6 +74,7 @@ class DetectorConfig:
     roi_margin_frac: float = 0.2
     roi_min_side_px: float = 24.0
     fine_passes: int = 2
+    fine_max_passes: int = 0
     fine_tta: int = 8
     fine_first_tta: int | None = None
     fine_scales: tuple[float, ...] = (1.0,)
@@ -85,6 +89,8 @@ class DetectorConfig:
             value = getattr(self, name)
             if value not in (1, 2, 4, 8) and not (name == "fine_first_tta" and value is None):
                 raise ValueError(f"{name} must be 1, 2, 4 or 8, got {value}")
+        if self.fine_max_passes < 0:
+            raise ValueError(f"fine_max_passes must be 0 or more, got {self.fine_max_passes}")
         if not self.fine_scales or not all(0.25 <= float(f) <= 4.0 for f in self.fine_scales):
             raise ValueError(f"fine_scales must be 1 or more factors in [0.25, 4], got {self.fine_scales}")
 
