@@ -279,7 +279,7 @@ class Detector:
             logits, pts, confs = self.fine_views(image, views)
             f_pts, f_conf = np.median(pts, axis=0), np.median(confs, axis=0)
             if spare > 0:
-                # the unscaled (or first) view decides whether the CM goes on beyond the ROI
+                # the view of the scale nearest 1 decides whether the CM goes on beyond the ROI
                 k = int(np.argmin([abs(f - 1.0) for f in cfg.fine_scales]))
                 refit = self._refit(image, views[k], logits[k], pts[k], confs[k])
                 if refit is not None and refit[1]:
