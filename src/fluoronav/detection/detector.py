@@ -264,16 +264,16 @@ class Detector:
         thr_logit = cfg.mask_threshold_logit
         first_tta = cfg.fine_tta if cfg.fine_first_tta is None else cfg.fine_first_tta
         spare = max(cfg.fine_max_passes - max(cfg.fine_passes, 1), 0)
-        planned, done = max(cfg.fine_passes, 1) - 1, 0
-        while done < planned:
+        remaining = max(cfg.fine_passes, 1) - 1  # single passes before the last
+        while remaining > 0:
             f_logit, f_pts, f_conf = self.fine(image, view, tta=first_tta)
             refit = self._refit(image, view, f_logit, f_pts, f_conf)
             if refit is None:
                 break
             view, reached = refit
+            remaining -= 1
             if reached and spare > 0:
-                spare, planned = spare - 1, planned + 1
-            done += 1
+                spare, remaining = spare - 1, remaining + 1
         while True:
             views = [_scaled_view(view, f) for f in cfg.fine_scales]
             logits, pts, confs = self.fine_views(image, views)
