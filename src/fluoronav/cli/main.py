@@ -90,10 +90,19 @@ def main(argv: list[str] | None = None) -> None:
     except KeyboardInterrupt:
         typer.echo("interrupted; finished results are kept on disk", err=True)
         sys.exit(130)
-    except Exception as exc:  # click usage errors
-        import click
-
-        if isinstance(exc, click.ClickException):
-            exc.show()
-            sys.exit(exc.exit_code)
+    except Exception as exc:
+        if isinstance(exc, _usage_errors()):
+            exc.show()  # type: ignore[attr-defined]
+            sys.exit(exc.exit_code)  # type: ignore[attr-defined]
         raise
+
+
+def _usage_errors() -> tuple[type[Exception], ...]:
+    """Usage-error classes: click's, and those of the click copy that typer >= 0.2x carries."""
+    import click
+
+    errors: list[type[Exception]] = [click.ClickException]
+    typer_error = getattr(typer, "TyperException", None)
+    if isinstance(typer_error, type) and hasattr(typer_error, "exit_code"):
+        errors.append(typer_error)
+    return tuple(errors)
