@@ -101,8 +101,5 @@ def _usage_errors() -> tuple[type[Exception], ...]:
     """Usage-error classes: click's, and those of the click copy that typer >= 0.2x carries."""
     import click
 
-    errors: list[type[Exception]] = [click.ClickException]
-    typer_error = getattr(typer, "TyperException", None)
-    if isinstance(typer_error, type) and hasattr(typer_error, "exit_code"):
-        errors.append(typer_error)
-    return tuple(errors)
+    typer_error = getattr(typer, "TyperException", None)  # absent before typer carried click
+    return (click.ClickException,) if typer_error is None else (click.ClickException, typer_error)
