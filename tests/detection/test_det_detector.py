@@ -206,6 +206,13 @@ def test_tta_setting_is_validated_and_old_files_read() -> None:
     assert DetectorConfig.from_dict({"fine_flip_tta": True}).fine_tta == 2
     assert DetectorConfig.from_dict({"fine_flip_tta": False}).fine_tta == 1
     assert DetectorConfig.from_dict({"fine_tta": 8, "fine_flip_tta": True}).fine_tta == 8
+    assert DetectorConfig.from_dict({}).fine_min_separation_px == 0.0  # files before it: no constraint
+    assert DetectorConfig.from_dict({}).mask_join_frac == 0.0  # files before it: the largest component
+    with pytest.raises(ValueError, match="mask_join_frac"):
+        DetectorConfig(mask_join_frac=-0.1)
+    for bad_sep in (-1.0, 128.0):
+        with pytest.raises(ValueError, match="fine_min_separation_px"):
+            DetectorConfig(roi_size=128, fine_min_separation_px=bad_sep)
 
 
 def test_blank_image_gives_no_detection() -> None:
@@ -297,3 +304,24 @@ def test_write_detection_files(tmp_path: Path) -> None:
     assert len(data["landmark_confidence"]) == 2 and np.asarray(data["centerline_px"]).shape[1] == 2
     png = cv2.imread(str(tmp_path / "out" / "img_mask.png"), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(png > 0, det.mask)
+
+
+def test_mask_fragments_along_the_landmarks_are_joined_and_a_distant_blob_is_not() -> None:
+    rows, cols = 80, 120
+    vv, uu = np.mgrid[0:rows, 0:cols]
+    a, b = np.array([10.0, 20.0]), np.array([100.0, 50.0])
+    d = b - a
+    t = np.clip(((uu - a[0]) * d[0] + (vv - a[1]) * d[1]) / (d @ d), 0, 1)
+    tube = np.hypot(uu - (a[0] + t * d[0]), vv - (a[1] + t * d[1])) <= 4.0
+    cut = tube & ~((t > 0.55) & (t < 0.6))  # noise cuts the tube: 55 % and 40 % pieces
+    blob = np.hypot(uu - 100, vv - 10) <= 6  # a bright blob away from the CM, larger than nothing
+    mask = cut | blob
+    joined = detector_module._cm_components(mask, np.stack([a, b]), join_frac=0.15)
+    np.testing.assert_array_equal(joined, cut)
+    largest = detector_module._cm_components(mask, np.stack([a, b]), join_frac=0.0)
+    assert largest.sum() < 0.6 * tube.sum() and not (largest & blob).any()
+    assert (largest <= cut).all()
+    # one component: returned as it is
+    np.testing.assert_array_equal(
+        detector_module._cm_components(tube, np.stack([a, b]), join_frac=0.15), tube
+    )

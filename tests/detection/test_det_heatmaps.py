@@ -81,3 +81,54 @@ def test_heatmap_cross_entropy_is_minimal_at_the_target_and_skips_absent() -> No
     assert float((est[0, 0] - pts[0, 0]).abs().max()) < 0.1
     none = heatmap_cross_entropy(torch.zeros(1, 2, 8, 8), torch.full((1, 2, 2), float("nan")), sigma_px=1.5)
     assert float(none) == 0.0
+
+
+def _gauss_logits(
+    centres: list[tuple[float, float, float]], shape: tuple[int, int], sigma: float
+) -> torch.Tensor:
+    """log of a mixture of Gaussians [(u, v, weight)] on a (rows, cols) grid."""
+    v, u = torch.meshgrid(torch.arange(float(shape[0])), torch.arange(float(shape[1])), indexing="ij")
+    parts = [np.log(w) - ((u - cu) ** 2 + (v - cv) ** 2) / (2 * sigma**2) for cu, cv, w in centres]
+    return torch.logsumexp(torch.stack(parts), dim=0)
+
+
+@pytest.mark.parametrize("mode", ["softmax", "gaussian"])
+def test_min_separation_moves_the_landmark_that_costs_less(mode: str) -> None:
+    from fluoronav.detection.heatmaps import decode_landmarks
+
+    sigma = 2.0
+    # both maps peak on one end (30.2, 20.6); B also has a weaker mode at the other end (70.4, 50.3),
+    # A only a much weaker one at (60.0, 10.0): B should move, to its second mode
+    a = _gauss_logits([(30.2, 20.6, 1.0), (60.0, 10.0, 0.05)], (64, 96), sigma)
+    b = _gauss_logits([(30.2, 20.6, 1.0), (70.4, 50.3, 0.6)], (64, 96), sigma)
+    logits = torch.stack([a, b])[None]
+    maps = logits if mode == "softmax" else torch.exp(logits - logits.amax(dim=(-2, -1), keepdim=True))
+    plain, _ = decode_landmarks(maps, mode=mode, sigma_px=sigma)
+    assert float((plain[0, 1] - torch.tensor([30.2, 20.6])).abs().max()) < 0.05  # collapsed on one end
+    est, conf = decode_landmarks(maps, mode=mode, sigma_px=sigma, min_separation_px=8.0)
+    assert float((est[0, 0] - torch.tensor([30.2, 20.6])).abs().max()) < 0.05  # A kept
+    assert float((est[0, 1] - torch.tensor([70.4, 50.3])).abs().max()) < 0.05  # B at its own end
+    if mode == "softmax":
+        # B's confidence is its mass there in the whole map: 0.6 / 1.6 of its Gaussians' 0.86
+        assert abs(float(conf[0, 1]) - 0.6 / 1.6 * (1 - np.exp(-2.0))) < 0.03
+    # the same with the roles exchanged: A moves
+    est_swapped, _ = decode_landmarks(maps.flip(1), mode=mode, sigma_px=sigma, min_separation_px=8.0)
+    torch.testing.assert_close(est_swapped, est.flip(1))
+
+
+def test_min_separation_leaves_separate_peaks_alone() -> None:
+    from fluoronav.detection.heatmaps import decode_landmarks, separation_exclusion
+
+    sigma = 2.0
+    a = _gauss_logits([(20.0, 20.0, 1.0)], (48, 48), sigma)
+    b = _gauss_logits([(31.5, 20.0, 1.0), (20.0, 21.0, 0.9)], (48, 48), sigma)
+    logits = torch.stack([a, b])[None]
+    assert not separation_exclusion(logits, min_separation_px=11.0).any()  # 11.5 px apart
+    torch.testing.assert_close(
+        decode_landmarks(logits, mode="softmax", sigma_px=sigma, min_separation_px=11.0),
+        decode_landmarks(logits, mode="softmax", sigma_px=sigma),
+    )
+    assert separation_exclusion(logits, min_separation_px=12.0)[0, 1].any()  # 11.5 < 12: B moves
+    assert not separation_exclusion(logits, min_separation_px=0.0).any()
+    with pytest.raises(ValueError, match="B, 2"):
+        separation_exclusion(logits[:, :1], min_separation_px=4.0)

@@ -69,14 +69,6 @@ class Detection:
     pixel_spacing_mm: float | None = None
 
 
-def _largest_component(mask: np.ndarray) -> np.ndarray:
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if n <= 2:
-        return mask.astype(bool)
-    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    return labels == best
-
-
 def _component_at(mask: np.ndarray, seeds_uv: np.ndarray) -> np.ndarray:
     """The connected components of ``mask`` within 2 px of any seed (N, 2) (u, v); the largest if none."""
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
@@ -176,13 +168,14 @@ class Detector:
 
     @torch.no_grad()
     def _run(
-        self, net: torch.nn.Module, view_images: np.ndarray, *, tta: int = 1
+        self, net: torch.nn.Module, view_images: np.ndarray, *, tta: int = 1, min_separation_px: float = 0.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N, S, S) normalised views → seg logits (N, S, S), landmarks (N, 2, 2) view px, confidences (N, 2).
 
         All views and their transforms go through the network in one batch. ``tta`` > 1 averages the
         logits over that many dihedral transforms of each view (each mapped back): the network's small
-        orientation biases cancel, which sharpens mask edges and landmarks.
+        orientation biases cancel, which sharpens mask edges and landmarks. ``min_separation_px``: see
+        :func:`~fluoronav.detection.heatmaps.separation_exclusion`.
         """
         x = torch.from_numpy(np.ascontiguousarray(view_images, dtype=np.float32))[:, None].to(self.device)
         transforms = DIHEDRAL[:tta]
@@ -195,7 +188,12 @@ class Detector:
             .mean(0)
             .float()
         )  # (N, 3, S, S)
-        pts, conf = decode_landmarks(out[:, 1:], mode=self.config.heatmap, sigma_px=self.config.sigma_px)
+        pts, conf = decode_landmarks(
+            out[:, 1:],
+            mode=self.config.heatmap,
+            sigma_px=self.config.sigma_px,
+            min_separation_px=min_separation_px,
+        )
         return out[:, 0].cpu().numpy(), pts.cpu().numpy().astype(np.float64), conf.cpu().numpy()
 
     def _view_input(self, image: np.ndarray, view: View) -> np.ndarray:
@@ -223,7 +221,8 @@ class Detector:
         px, confidences (N, 2). ``tta``: dihedral transforms per view (None: ``fine_tta``)."""
         stack = np.stack([self._view_input(image, v) for v in views])
         tta = self.config.fine_tta if tta is None else tta
-        logits, pts, conf = self._run(self.net.fine, stack, tta=tta)
+        sep = self.config.fine_min_separation_px
+        logits, pts, conf = self._run(self.net.fine, stack, tta=tta, min_separation_px=sep)
         return logits, np.stack([v.to_input(p) for v, p in zip(views, pts, strict=True)]), conf
 
     def detect(self, image: np.ndarray, *, pixel_spacing_mm: float | None = None) -> Detection:
@@ -286,7 +285,9 @@ class Detector:
                     spare -= 1
                     view = refit[0]
                     continue
-            mask = self._mask_at_input(logits, views, image.shape, thr_logit)
+            mask = self._mask_at_input(
+                logits, views, image.shape, thr_logit, f_pts, join_frac=cfg.mask_join_frac
+            )
             return f_pts, f_conf, mask
 
     def _refit(
@@ -319,10 +320,17 @@ class Detector:
 
     @staticmethod
     def _mask_at_input(
-        logits: np.ndarray, views: list[View], shape: tuple[int, int], thr_logit: float
+        logits: np.ndarray,
+        views: list[View],
+        shape: tuple[int, int],
+        thr_logit: float,
+        landmarks_px: np.ndarray,
+        *,
+        join_frac: float = 0.0,
     ) -> np.ndarray:
         """Threshold the mean of the views' logits (N, R, R) bilinearly mapped to the input grid; keep
-        the largest component. Outside a view its logits count as certain background."""
+        the largest component and, with ``join_frac`` > 0, the fragments along the landmarks (2, 2)
+        (:func:`_cm_components`). Outside a view its logits count as certain background."""
         rows, cols = shape
         out = np.zeros(shape, dtype=bool)
         # the union of the views, clipped to the image: the only place the mask can be
@@ -336,8 +344,35 @@ class Detector:
             acc += paste(logit, v, (rows, cols), fill=_OUTSIDE_LOGIT, box=(cx0, cy0, cx1, cy1))
         sub = acc / len(views) > thr_logit
         if sub.any():
-            out[cy0:cy1, cx0:cx1] = _largest_component(sub)
+            local = np.asarray(landmarks_px, dtype=np.float64) - np.array([cx0, cy0], dtype=np.float64)
+            out[cy0:cy1, cx0:cx1] = _cm_components(sub, local, join_frac=join_frac)
         return out
+
+
+def _cm_components(mask: np.ndarray, landmarks_px: np.ndarray, *, join_frac: float) -> np.ndarray:
+    """The CM's part of a thresholded mask (rows, cols): its largest connected component and, with
+    ``join_frac`` > 0, every other component that comes within max(3, ``join_frac`` · |AB|) pixels of
+    the segment between the landmarks (2, 2) (u, v).
+
+    Noise or a crossing bone can cut the mask of one tube into pieces; the pieces between its two
+    ends belong to it, a blob elsewhere does not. The margin covers the bend of the CM away from the
+    chord A–B (≲ 0.09 · |AB| at the sampled curvatures) and the tube's radius in end-on views.
+    """
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if n <= 2:
+        return mask.astype(bool)
+    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    if join_frac <= 0.0:
+        return labels == largest
+    a, b = np.asarray(landmarks_px, dtype=np.float64).reshape(2, 2)
+    ab = b - a
+    margin = max(3.0, join_frac * float(np.hypot(*ab)))
+    vv, uu = np.nonzero(labels)
+    p = np.stack([uu, vv], axis=1).astype(np.float64)
+    t = np.clip((p - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    near = np.hypot(*(p - (a + t[:, None] * ab)).T) <= margin
+    keep = {largest, *np.unique(labels[vv[near], uu[near]]).tolist()}
+    return np.isin(labels, sorted(keep))
 
 
 #: logit given to input pixels outside a fine view when the views' logits are averaged

@@ -47,6 +47,7 @@ def decode_heatmaps(
     *,
     method: str = "gaussian",
     window: int = 3,
+    exclude: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Sub-pixel peak positions and confidences of heatmaps.
 
@@ -59,6 +60,7 @@ def decode_heatmaps(
         heatmaps: (B, K, rows, cols).
         method: ``"gaussian"`` or ``"softargmax"``.
         window: half-width in pixels of the soft-argmax window.
+        exclude: optional (B, K, rows, cols) bool: pixels that cannot be the peak (taken as 0).
 
     Returns:
         points (B, K, 2) (u, v) in pixels, and confidences (B, K): the peak value clipped to [0, 1].
@@ -66,6 +68,8 @@ def decode_heatmaps(
     if heatmaps.ndim != 4:
         raise ValueError(f"heatmaps must be (B, K, rows, cols), got {tuple(heatmaps.shape)}")
     B, K, rows, cols = heatmaps.shape
+    if exclude is not None:
+        heatmaps = heatmaps.masked_fill(exclude, 0.0)
     h = heatmaps.reshape(B * K, rows, cols).to(torch.float32)
     flat = h.reshape(B * K, -1)
     peak, idx = flat.max(dim=1)
@@ -137,7 +141,11 @@ def heatmap_cross_entropy(
 
 
 def decode_logit_heatmaps(
-    logits: torch.Tensor, *, sigma_px: float, radius_sigmas: float = 2.0
+    logits: torch.Tensor,
+    *,
+    sigma_px: float,
+    radius_sigmas: float = 2.0,
+    exclude: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Sub-pixel peaks and confidences of spatial-softmax heatmaps (see :func:`heatmap_cross_entropy`).
 
@@ -150,6 +158,8 @@ def decode_logit_heatmaps(
         logits: (B, K, rows, cols).
         sigma_px: the training targets' σ in pixels.
         radius_sigmas: confidence radius in units of σ.
+        exclude: optional (B, K, rows, cols) bool: pixels that cannot be the peak (the confidence is
+            still the mass of the whole distribution around the peak found elsewhere).
 
     Returns:
         points (B, K, 2) (u, v) pixels, confidences (B, K) in [0, 1].
@@ -158,8 +168,11 @@ def decode_logit_heatmaps(
         raise ValueError(f"logits must be (B, K, rows, cols), got {tuple(logits.shape)}")
     B, K, rows, cols = logits.shape
     z = logits.float() - logits.float().amax(dim=(-2, -1), keepdim=True)
-    pts, _ = decode_heatmaps(torch.exp(z))
     p = torch.softmax(z.reshape(B, K, -1), dim=-1).reshape(B, K, rows, cols)
+    if exclude is not None:
+        z = z.masked_fill(exclude, _EXCLUDED_LOGIT)
+        z = z - z.amax(dim=(-2, -1), keepdim=True)
+    pts, _ = decode_heatmaps(torch.exp(z))
     idx = z.reshape(B, K, -1).argmax(dim=-1)
     iv, iu = (idx // cols).float(), (idx % cols).float()
     v = torch.arange(rows, device=z.device, dtype=z.dtype)
@@ -171,12 +184,66 @@ def decode_logit_heatmaps(
     return pts, conf.clamp(0.0, 1.0)
 
 
+#: log-probability given to excluded pixels (exp underflows to 0 in float32)
+_EXCLUDED_LOGIT = -1e4
+
+
+def separation_exclusion(log_scores: torch.Tensor, *, min_separation_px: float) -> torch.Tensor:
+    """Pixels to exclude so that the peaks of two landmark maps lie ``min_separation_px`` apart.
+
+    A and B are distinct points of the CM, but where one end is unclear (a CM seen nearly end-on, or
+    in heavy noise) both maps can peak on the same end. Where the two argmax pixels are closer than
+    ``min_separation_px``, one map keeps its peak and the other is taken at its best pixel outside
+    that disk around it: of the two choices, the one with the higher joint log-score
+    ``log pA(a) + log pB(b)`` (the most probable pair that satisfies the constraint, up to the
+    second-best peak of the map that moves).
+
+    Args:
+        log_scores: (B, 2, rows, cols) log-probabilities up to a constant per map (spatial-softmax
+            logits, or the log of peak-1 heatmaps).
+        min_separation_px: smallest A–B distance in pixels (0: no constraint).
+
+    Returns:
+        (B, 2, rows, cols) bool: the disk around the kept peak, in the map that moves; else False.
+    """
+    if log_scores.ndim != 4 or log_scores.shape[1] != 2:
+        raise ValueError(f"log_scores must be (B, 2, rows, cols), got {tuple(log_scores.shape)}")
+    B, _, rows, cols = log_scores.shape
+    exclude = torch.zeros(log_scores.shape, dtype=torch.bool, device=log_scores.device)
+    if min_separation_px <= 0.0:
+        return exclude
+    z = log_scores.float() - torch.logsumexp(log_scores.float().reshape(B, 2, -1), -1)[..., None, None]
+    best, idx = z.reshape(B, 2, -1).max(dim=-1)  # (B, 2)
+    iv, iu = (idx // cols).float(), (idx % cols).float()
+    close = (iu[:, 0] - iu[:, 1]) ** 2 + (iv[:, 0] - iv[:, 1]) ** 2 < min_separation_px**2
+    if not bool(close.any()):
+        return exclude
+    v = torch.arange(rows, device=z.device, dtype=z.dtype)[None, :, None]
+    u = torch.arange(cols, device=z.device, dtype=z.dtype)[None, None, :]
+    # disks[:, k]: the pixels within the separation of map k's peak
+    disks = (v[:, None] - iv[..., None, None]) ** 2 + (u[:, None] - iu[..., None, None]) ** 2 < (
+        min_separation_px**2
+    )
+    # the best of each map outside the other map's disk
+    alt = z.masked_fill(disks.flip(1), -torch.inf).reshape(B, 2, -1).amax(dim=-1)  # (B, 2)
+    move_b = best[:, 0] + alt[:, 1] >= alt[:, 0] + best[:, 1]
+    exclude[:, 1] = disks[:, 0] & (close & move_b)[:, None, None]
+    exclude[:, 0] = disks[:, 1] & (close & ~move_b)[:, None, None]
+    return exclude
+
+
 def decode_landmarks(
-    heatmaps: torch.Tensor, *, mode: str, sigma_px: float
+    heatmaps: torch.Tensor, *, mode: str, sigma_px: float, min_separation_px: float = 0.0
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Decode a stage's heatmap channels (B, K, rows, cols) by the model's ``heatmap`` mode."""
+    """Decode a stage's heatmap channels (B, K, rows, cols) by the model's ``heatmap`` mode; with two
+    channels and ``min_separation_px`` > 0 their peaks are kept that far apart
+    (:func:`separation_exclusion`)."""
+    if mode not in ("softmax", "gaussian"):
+        raise ValueError(f"unknown heatmap mode {mode!r}")
+    exclude = None
+    if min_separation_px > 0.0 and heatmaps.shape[1] == 2:
+        scores = heatmaps if mode == "softmax" else torch.log(heatmaps.float().clamp_min(1e-8))
+        exclude = separation_exclusion(scores, min_separation_px=min_separation_px)
     if mode == "softmax":
-        return decode_logit_heatmaps(heatmaps, sigma_px=sigma_px)
-    if mode == "gaussian":
-        return decode_heatmaps(heatmaps)
-    raise ValueError(f"unknown heatmap mode {mode!r}")
+        return decode_logit_heatmaps(heatmaps, sigma_px=sigma_px, exclude=exclude)
+    return decode_heatmaps(heatmaps, exclude=exclude)

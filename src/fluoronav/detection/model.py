@@ -58,7 +58,15 @@ class DetectorConfig:
             ROI alone). Each scaled ROI (same centre) is run in the same batch; the landmarks are
             the median over the scales, the mask logits their mean on the input grid. Different
             scales put the CM on different pixel grids and sizes, so their errors partly cancel.
+        fine_min_separation_px: smallest distance between the fine stage's A and B peaks, in ROI
+            pixels (0: none). Where both heatmaps peak on the same end of the CM, the one whose best
+            peak outside that disk keeps the higher joint probability moves there
+            (:func:`~fluoronav.detection.heatmaps.separation_exclusion`). The fitted ROI puts A and B
+            ≥ 13 ROI pixels apart in every training image, also the CMs seen nearly end-on.
         mask_threshold: probability above which a pixel is CM.
+        mask_join_frac: the final mask is its largest connected component plus, when this is > 0,
+            the components within max(3 px, this · |AB|) of the segment A–B (a tube's mask cut into
+            pieces by noise or a crossing bone); 0: the largest component only.
         min_mask_px: smallest coarse mask area (coarse pixels) counted as a detection.
         min_confidence: smallest landmark confidence (heatmap peak) counted as a detection.
         low_pct, high_pct: percentiles mapped to 0 and 1 by the intensity normalisation.
@@ -78,7 +86,9 @@ class DetectorConfig:
     fine_tta: int = 8
     fine_first_tta: int | None = None
     fine_scales: tuple[float, ...] = (1.0,)
+    fine_min_separation_px: float = 0.0
     mask_threshold: float = 0.5
+    mask_join_frac: float = 0.0
     min_mask_px: int = 6
     min_confidence: float = 0.3
     low_pct: float = 1.0
@@ -93,6 +103,12 @@ class DetectorConfig:
             raise ValueError(f"fine_max_passes must be 0 or more, got {self.fine_max_passes}")
         if not self.fine_scales or not all(0.25 <= float(f) <= 4.0 for f in self.fine_scales):
             raise ValueError(f"fine_scales must be 1 or more factors in [0.25, 4], got {self.fine_scales}")
+        if not 0.0 <= self.mask_join_frac <= 1.0:
+            raise ValueError(f"mask_join_frac must be in [0, 1], got {self.mask_join_frac}")
+        if not 0.0 <= self.fine_min_separation_px < self.roi_size:
+            raise ValueError(
+                f"fine_min_separation_px must be in [0, roi_size), got {self.fine_min_separation_px}"
+            )
 
     @property
     def mask_threshold_logit(self) -> float:
