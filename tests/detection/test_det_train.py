@@ -101,7 +101,10 @@ def test_training_one_stage_leaves_the_other_untouched(tmp_path: Path) -> None:
     # the coarse stage is not run at all: weights and batch-norm statistics stay bit-identical
     assert all(torch.equal(w0[k], w1[k]) for k in w0 if k.startswith("coarse."))
     assert any(not torch.equal(w0[k], w1[k]) for k in w0 if k.startswith("fine."))
-    side = json.loads(sidecar_path(tuned).read_text())["train"]
+    meta = json.loads(sidecar_path(tuned).read_text())
+    first_meta = json.loads(sidecar_path(first).read_text())
+    assert meta["parameters"] == first_meta["parameters"]  # the whole model, not the stage trained
+    side = meta["train"]
     assert side["stages"] == ["fine"]
     assert side["augmentation"]["p_collimate"] == 0.5 and side["collimate_prob"] == 0.5
     assert AugmentConfig().p_collimate == 0.0  # off unless asked for (--collimate-prob)

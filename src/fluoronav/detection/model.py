@@ -188,6 +188,6 @@ def _init_head(stage: nn.Module) -> None:
             last.bias[0] = -4.0
 
 
-def count_parameters(module: nn.Module) -> int:
-    """Number of trainable parameters."""
-    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+def count_parameters(module: nn.Module, *, trainable_only: bool = True) -> int:
+    """Number of parameters: those that train (``requires_grad``), or all of them."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad or not trainable_only)

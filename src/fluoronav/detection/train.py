@@ -178,7 +178,8 @@ def save_model(path: Path, net: DetectorNet, *, extra: dict) -> None:
         "fluoronav_version": __version__,
         "config": cfg.to_dict(),
         "normalization": {"method": "percentile", "low_pct": cfg.low_pct, "high_pct": cfg.high_pct},
-        "parameters": count_parameters(net),
+        # the whole model's size, also when one stage was frozen for this run
+        "parameters": count_parameters(net, trainable_only=False),
         **extra,
     }
     state = {k: v.detach().cpu() for k, v in net.state_dict().items()}
@@ -327,7 +328,7 @@ def train(
     if not resume and log_file.exists():
         log_file.unlink()
     logger.info(
-        "training on %d samples (%d val), %d parameters, device %s",
+        "training on %d samples (%d val), %d trainable parameters, device %s",
         len(train_ds),
         len(val_ds),
         count_parameters(net),
