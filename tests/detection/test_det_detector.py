@@ -228,6 +228,46 @@ def test_blank_image_gives_no_detection() -> None:
         assert np.all(res.landmark_confidence == 0.0)
 
 
+@pytest.mark.parametrize(
+    ("weak_mask_px", "weak_min_confidence", "found"),
+    [
+        (0, 0.15, False),  # off: a coarse mask under min_mask_px is no detection
+        (200, 0.15, False),  # the mask (117 coarse px) is under weak_mask_px too
+        (100, 0.15, True),  # weak, and the fine landmarks (0.90, 0.93) are sure enough
+        (100, 0.95, False),  # weak, and they are not
+    ],
+)
+def test_weak_coarse_mask_needs_sure_fine_landmarks(
+    weak_mask_px: int, weak_min_confidence: float, found: bool
+) -> None:
+    img, _, lm = drawn_cm()
+    config = dataclasses.replace(
+        TINY, min_mask_px=400, weak_mask_px=weak_mask_px, weak_min_confidence=weak_min_confidence
+    )
+    net = DetectorNet(config)
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    det = Detector(net, device="cpu")
+    _, logit, _, _ = det.coarse(img)
+    assert int((logit > 0.0).sum()) == 117
+    res = det.detect(img)
+    assert res.found is found
+    if found:
+        np.testing.assert_allclose(res.landmarks_px, lm, atol=2.0)
+    else:
+        assert res.landmarks_px is None and res.centerline_px is None
+    # a mask of min_mask_px or more needs only min_confidence
+    sure = Detector(net, device="cpu")
+    sure.config = dataclasses.replace(config, min_mask_px=100, weak_mask_px=0)
+    assert sure.detect(img).found
+
+
+def test_weak_mask_settings_are_validated() -> None:
+    with pytest.raises(ValueError, match="weak_mask_px"):
+        dataclasses.replace(TINY, min_mask_px=10, weak_mask_px=11)
+    with pytest.raises(ValueError, match="weak_min_confidence"):
+        dataclasses.replace(TINY, weak_min_confidence=1.5)
+
+
 def test_model_file_roundtrip_and_bad_files(tmp_path: Path) -> None:
     path = tmp_path / "m.pt"
     save_model(path, empty_net(), extra={})

@@ -229,7 +229,8 @@ class Detector:
         """Detect the CM in a (rows, cols) log image (bright = attenuating).
 
         Returns a :class:`Detection` in the input's pixels; ``found`` is False when the coarse mask is
-        smaller than ``min_mask_px`` or a landmark confidence is below ``min_confidence``.
+        smaller than ``min_mask_px`` or a landmark confidence is below ``min_confidence`` (a weak coarse
+        mask, between ``weak_mask_px`` and ``min_mask_px``, needs ``weak_min_confidence`` instead).
         """
         img = _check_image(image, "image")
         cfg = self.config
@@ -238,13 +239,17 @@ class Detector:
         empty = Detection(False, None, np.zeros(2), np.zeros(shape, bool), None, pixel_spacing_mm)
         cv, c_logit, c_pts, c_conf = self.coarse(img)
         c_mask = c_logit > thr_logit
-        if int(c_mask.sum()) < cfg.min_mask_px:
+        c_area = int(c_mask.sum())
+        weak = c_area < cfg.min_mask_px
+        if c_area < (cfg.weak_mask_px or cfg.min_mask_px):
             return empty
         confident = c_conf >= cfg.min_confidence
         c_mask = _component_at(c_mask, cv.from_input(c_pts[confident]))
         fv = self._roi(cv, c_mask, c_pts[confident])
         f_pts, f_conf, mask = self.fine_stage(img, fv)
-        if not mask.any() or float(f_conf.min()) < cfg.min_confidence:
+        # false alarms on CM-free images mostly start as small coarse masks: those need surer landmarks
+        need = max(cfg.weak_min_confidence, cfg.min_confidence) if weak else cfg.min_confidence
+        if not mask.any() or float(f_conf.min()) < need:
             return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])
         return Detection(True, f_pts, f_conf.astype(np.float64), mask, centerline, pixel_spacing_mm)

@@ -69,6 +69,11 @@ class DetectorConfig:
             pieces by noise or a crossing bone); 0: the largest component only.
         min_mask_px: smallest coarse mask area (coarse pixels) counted as a detection.
         min_confidence: smallest landmark confidence (heatmap peak) counted as a detection.
+        weak_mask_px: with 0 < this < ``min_mask_px``, coarse masks of this many coarse pixels or
+            more but fewer than ``min_mask_px`` (a small or faint CM, or a false alarm) go on to the
+            fine stage too, and count as a detection only if both fine landmark confidences are at
+            least ``weak_min_confidence``; 0: off (such masks are no detection).
+        weak_min_confidence: the fine landmark confidence a weak coarse mask needs.
         low_pct, high_pct: percentiles mapped to 0 and 1 by the intensity normalisation.
     """
 
@@ -91,6 +96,8 @@ class DetectorConfig:
     mask_join_frac: float = 0.0
     min_mask_px: int = 6
     min_confidence: float = 0.3
+    weak_mask_px: int = 0
+    weak_min_confidence: float = 0.15
     low_pct: float = 1.0
     high_pct: float = 99.0
 
@@ -105,6 +112,10 @@ class DetectorConfig:
             raise ValueError(f"fine_scales must be 1 or more factors in [0.25, 4], got {self.fine_scales}")
         if not 0.0 <= self.mask_join_frac <= 1.0:
             raise ValueError(f"mask_join_frac must be in [0, 1], got {self.mask_join_frac}")
+        if not 0 <= self.weak_mask_px <= self.min_mask_px:
+            raise ValueError(f"weak_mask_px must be in [0, min_mask_px], got {self.weak_mask_px}")
+        if not 0.0 <= self.weak_min_confidence <= 1.0:
+            raise ValueError(f"weak_min_confidence must be in [0, 1], got {self.weak_min_confidence}")
         if not 0.0 <= self.fine_min_separation_px < self.roi_size:
             raise ValueError(
                 f"fine_min_separation_px must be in [0, roi_size), got {self.fine_min_separation_px}"
