@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 import fluoronav.detection.detector as detector_module
-from fluoronav.detection.detector import Detector, load_image, write_detection
+from fluoronav.detection.detector import Detector, load_image, truncated_landmarks, write_detection
 from fluoronav.detection.model import DetectorConfig, DetectorNet
 from fluoronav.detection.train import save_model
 from fluoronav.errors import FluoronavError, InputError
@@ -342,8 +342,36 @@ def test_write_detection_files(tmp_path: Path) -> None:
     assert data["found"] is True and data["mask"] == "img_mask.png"
     assert np.asarray(data["landmarks_px"]).shape == (2, 2)
     assert len(data["landmark_confidence"]) == 2 and np.asarray(data["centerline_px"]).shape[1] == 2
+    assert data["landmark_truncated"] == [False, False]
     png = cv2.imread(str(tmp_path / "out" / "img_mask.png"), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(png > 0, det.mask)
+
+
+def test_truncated_landmarks_sit_where_the_mask_meets_the_border() -> None:
+    mask = np.zeros((60, 80), bool)
+    mask[20:30, 0:50] = True  # a bar cut by the left border
+    assert truncated_landmarks(mask, np.array([[0.5, 25.0], [49.0, 25.0]])).tolist() == [True, False]
+    # the same point, but the mask meets the border 20 px away from it
+    assert truncated_landmarks(mask, np.array([[0.5, 50.0], [49.0, 25.0]])).tolist() == [False, False]
+    # near the right, top and bottom borders, where the mask does not reach them
+    assert not truncated_landmarks(mask, np.array([[79.0, 25.0], [40.0, 0.5]])).any()
+    mask[20:60, 60:70] = True  # a second bar down to the bottom border
+    assert truncated_landmarks(mask, np.array([[40.0, 25.0], [64.0, 58.5]])).tolist() == [False, True]
+
+
+def test_a_cm_cut_by_the_image_border_is_found_and_not_usable() -> None:
+    net = DetectorNet(TINY)
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    detector = Detector(net, device="cpu")
+    img = drawn_cm()[0][:, 64:].copy()  # A (u = 60) is outside: the bar leaves by the left border
+    img[72:78, 0:4] = 4.0  # the detector's A: where the bar leaves the image
+    det = detector.detect(img)
+    assert det.found and det.landmarks_px is not None
+    assert det.landmarks_px[0, 0] < 3.0
+    assert det.landmark_truncated.tolist() == [True, False]
+    assert not det.usable and det.unusable_reason == "the CM leaves the image at landmark A"
+    whole = detector.detect(drawn_cm()[0])
+    assert whole.usable and whole.unusable_reason is None
 
 
 def test_mask_fragments_along_the_landmarks_are_joined_and_a_distant_blob_is_not() -> None:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
@@ -59,6 +59,9 @@ class Detection:
         mask: (rows, cols) bool segmentation at the input size.
         centerline_px: (P, 2) ordered A → B, or None.
         pixel_spacing_mm: detector pixel spacing of the input when known (passed through).
+        landmark_truncated: (2,) bool, True for a landmark on the image border where the mask meets
+            that border: the CM goes on outside the image and the point is where it leaves, not the
+            landmark (:func:`truncated_landmarks`).
     """
 
     found: bool
@@ -67,6 +70,50 @@ class Detection:
     mask: np.ndarray
     centerline_px: np.ndarray | None
     pixel_spacing_mm: float | None = None
+    landmark_truncated: np.ndarray = field(default_factory=lambda: np.zeros(2, dtype=bool))
+
+    @property
+    def usable(self) -> bool:
+        """Found, with both landmarks inside the image: what a registration may start from."""
+        return self.unusable_reason is None
+
+    @property
+    def unusable_reason(self) -> str | None:
+        """Why the detection cannot give a registration its landmarks (None: it can)."""
+        if not self.found or self.landmarks_px is None:
+            return "no CM found"
+        cut = [name for name, t in zip("AB", self.landmark_truncated, strict=True) if t]
+        if cut:
+            return f"the CM leaves the image at landmark {' and '.join(cut)}"
+        return None
+
+
+def truncated_landmarks(
+    mask: np.ndarray, landmarks_px: np.ndarray, *, edge_px: float = 3.0, reach_px: float = 10.0
+) -> np.ndarray:
+    """Which landmarks (2, 2) (u, v) sit where a mask (rows, cols) is cut by the image border → (2,) bool.
+
+    A landmark counts as truncated when it lies within ``edge_px`` of a border and the mask has pixels
+    on that border within ``reach_px`` of it: the CM leaves the field there, and the detector, which
+    only sees the image, puts the landmark at the cut.
+    """
+    rows, cols = mask.shape
+    out = np.zeros(2, dtype=bool)
+    for k, (u, v) in enumerate(np.asarray(landmarks_px, dtype=np.float64).reshape(2, 2)):
+        # (distance to the border, the mask's border line, the landmark's position along it)
+        borders = (
+            (u, mask[:, 0], v),
+            (cols - 1 - u, mask[:, -1], v),
+            (v, mask[0, :], u),
+            (rows - 1 - v, mask[-1, :], u),
+        )
+        for dist, line, along in borders:
+            if dist > edge_px:
+                continue
+            idx = np.flatnonzero(line)
+            if idx.size and float(np.min(np.abs(idx - along))) <= reach_px:
+                out[k] = True
+    return out
 
 
 def _component_at(mask: np.ndarray, seeds_uv: np.ndarray) -> np.ndarray:
@@ -252,7 +299,8 @@ class Detector:
         if not mask.any() or float(f_conf.min()) < need:
             return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])
-        return Detection(True, f_pts, f_conf.astype(np.float64), mask, centerline, pixel_spacing_mm)
+        cut = truncated_landmarks(mask, f_pts)
+        return Detection(True, f_pts, f_conf.astype(np.float64), mask, centerline, pixel_spacing_mm, cut)
 
     def fine_stage(self, image: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All fine passes from a first ROI: landmarks (2, 2) in input px, confidences (2,) and the mask
@@ -495,6 +543,7 @@ def detection_to_dict(det: Detection, mask_file: str) -> dict:
         "rows": int(det.mask.shape[0]),
         "cols": int(det.mask.shape[1]),
         "pixel_spacing_mm": det.pixel_spacing_mm,
+        "landmark_truncated": [bool(x) for x in det.landmark_truncated],
     }
 
 

@@ -156,7 +156,7 @@ def _landmarks(
     images: list[Any], cfg: DemoConfig, rng: np.random.Generator, names: list[str] | None = None
 ) -> list[dict[str, Any] | None]:
     """Per view: landmarks (2, 2), centreline (P, 2), mask, confidence (detector or oracle); None
-    where the detector found no CM."""
+    where the detector found no CM or one cut by the image border."""
     from fluoronav.detection.centerline import extract_centerline
 
     out: list[dict[str, Any] | None] = []
@@ -177,8 +177,11 @@ def _landmarks(
         from fluoronav.studies.pipeline import _detector
 
         det = _detector(cfg.device).detect(sim.image, pixel_spacing_mm=sim.camera.pixel_spacing_mm)
-        if not det.found or det.landmarks_px is None or det.centerline_px is None:
-            log.warning("the detector found no CM in the %s image", names[i] if names else f"#{i}")
+        if not det.usable or det.centerline_px is None:
+            # a CM cut by the image border has a landmark at the cut: the registration then starts
+            # from its initial pose in this view, as with no detection
+            why = det.unusable_reason or "no centreline"
+            log.warning("detector: %s in the %s image; not used", why, names[i] if names else f"#{i}")
             out.append(None)
             continue
         out.append(

@@ -290,8 +290,9 @@ def _detect_landmarks(image: np.ndarray, source: str) -> np.ndarray:
         raise InputError(
             source, f"no landmarks given and the detector is unavailable ({exc.problem})"
         ) from None
-    if not det.found:
-        raise InputError(source, "no landmarks given and the detector found no CM; add 'landmarks_px'")
+    if not det.usable:
+        why = det.unusable_reason
+        raise InputError(source, f"no landmarks given and the detector: {why}; add 'landmarks_px'")
     return np.asarray(det.landmarks_px, dtype=np.float64)
 
 

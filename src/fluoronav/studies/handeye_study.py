@@ -446,8 +446,8 @@ def _landmarks(
             out.append(oracle)
             continue
         d = det.detect(im.image, pixel_spacing_mm=im.camera.pixel_spacing_mm)
-        if not d.found or d.landmarks_px is None:
-            raise _TrialFailure("detector found no CM in a hand-eye image")
+        if not d.usable:
+            raise _TrialFailure(f"detector: {d.unusable_reason} in a hand-eye image")
         out.append(np.asarray(d.landmarks_px, np.float64))
     return out, "oracle" if det is None else "detector"
 

@@ -118,7 +118,8 @@ def _full_to_image_px(uv_full: np.ndarray, binning: int) -> np.ndarray:
 def _landmarks_and_centerline(
     images: list[Any], trial: Any, cfg: StudyConfig, binning: int
 ) -> tuple[list[np.ndarray | None], list[np.ndarray | None], list[np.ndarray], list[np.ndarray | None]]:
-    """Per image: landmarks (2, 2) and centreline, or None where the detector found no CM, the
+    """Per image: landmarks (2, 2) and centreline, or None where the detector found no CM or one cut
+    by the image border (:attr:`~fluoronav.detection.detector.Detection.usable`), the
     landmarks' confidences (2,) (1 for oracle landmarks, 0 where nothing was found), and the CM
     segmentation (None where nothing was found)."""
     from fluoronav.detection.centerline import extract_centerline
@@ -136,7 +137,7 @@ def _landmarks_and_centerline(
         else:
             det = _detector(cfg.device).detect(sim.image, pixel_spacing_mm=sim.camera.pixel_spacing_mm)
             confs.append(np.asarray(det.landmark_confidence, dtype=np.float64))
-            if not det.found or det.landmarks_px is None:
+            if not det.usable:  # no CM, or a CM cut by the image border (a landmark at the cut)
                 # the view still counts in the registration (ROI at the initial pose's projection);
                 # the initialisation needs view 0 (one-view workflows) or two views (multi-view)
                 lms.append(None)
@@ -313,7 +314,7 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                 raise _TrialFailure(f"the detector found the CM in {len(found)} of {len(lms)} views (need 2)")
             init = None
         elif lms[0] is None or cls[0] is None:
-            raise _TrialFailure("detector found no CM in image 0")
+            raise _TrialFailure("detector found no usable CM in image 0 (none, or cut by the border)")
         else:
             init_seed = int(rng.integers(2**31))  # drawn either way: the trial's later draws stay put
             init = None
