@@ -26,7 +26,10 @@ def detect_command(
         det = detector.detect(image, pixel_spacing_mm=spacing)
         json_path = write_detection(det, out, path.stem)
         conf = ", ".join(f"{c:.2f}" for c in det.landmark_confidence)
-        typer.echo(f"{path}: {'found' if det.found else 'no CM'} (confidence {conf}) -> {json_path}")
+        state = "found" if det.found else "no CM"
+        if det.found and not det.usable:
+            state += f"; {det.unusable_reason}"
+        typer.echo(f"{path}: {state} (confidence {conf}) -> {json_path}")
 
 
 def register(app: typer.Typer) -> None:
