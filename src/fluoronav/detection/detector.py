@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
@@ -59,9 +59,6 @@ class Detection:
         mask: (rows, cols) bool segmentation at the input size.
         centerline_px: (P, 2) ordered A → B, or None.
         pixel_spacing_mm: detector pixel spacing of the input when known (passed through).
-        landmark_truncated: (2,) bool, True for a landmark on the image border where the mask meets
-            that border: the CM goes on outside the image and the point is where it leaves, not the
-            landmark (:func:`truncated_landmarks`).
     """
 
     found: bool
@@ -70,7 +67,15 @@ class Detection:
     mask: np.ndarray
     centerline_px: np.ndarray | None
     pixel_spacing_mm: float | None = None
-    landmark_truncated: np.ndarray = field(default_factory=lambda: np.zeros(2, dtype=bool))
+
+    @property
+    def landmark_truncated(self) -> np.ndarray:
+        """(2,) bool, True for a landmark on the image border where the mask meets that border: the
+        CM goes on outside the image and the point is where it leaves, not the landmark
+        (:func:`truncated_landmarks`). All False when nothing was found."""
+        if not self.found or self.landmarks_px is None:
+            return np.zeros(2, dtype=bool)
+        return truncated_landmarks(self.mask, self.landmarks_px)
 
     @property
     def usable(self) -> bool:
@@ -299,8 +304,7 @@ class Detector:
         if not mask.any() or float(f_conf.min()) < need:
             return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])
-        cut = truncated_landmarks(mask, f_pts)
-        return Detection(True, f_pts, f_conf.astype(np.float64), mask, centerline, pixel_spacing_mm, cut)
+        return Detection(True, f_pts, f_conf.astype(np.float64), mask, centerline, pixel_spacing_mm)
 
     def fine_stage(self, image: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All fine passes from a first ROI: landmarks (2, 2) in input px, confidences (2,) and the mask
