@@ -11,7 +11,8 @@ from det_synthetic import write_dataset
 from test_det_detector import empty_net
 
 from fluoronav.cli.main import main
-from fluoronav.detection.detector import Detector
+from fluoronav.detection.dataset import load_sample, read_manifest
+from fluoronav.detection.detector import Detection, Detector
 from fluoronav.detection.evaluate import dice_score, evaluate
 from fluoronav.detection.train import save_model
 
@@ -79,3 +80,67 @@ def test_evaluate_on_collimated_fields_crops_every_image_reproducibly(tmp_path: 
     with pytest.raises(SystemExit) as exc:
         main(["evaluate", "--data", str(data), "--field-frac", "1.5", "--no-progress"])
     assert exc.value.code != 0
+
+
+class _KnownErrors(Detector):
+    """Returns each positive's true mask and landmarks with A moved by (6, 8) px (10 px = 5 mm at the
+    synthetic set's 0.5 mm pixels); finds nothing in the images listed in ``miss`` (by order)."""
+
+    def __init__(self, data: Path, miss: set[int]) -> None:
+        super().__init__(empty_net(), device="cpu")
+        self.samples = [load_sample(data, r) for r in read_manifest(data)]
+        self.miss = miss
+        self.calls = 0
+
+    def detect(self, image: np.ndarray, *, pixel_spacing_mm: float | None = None) -> Detection:
+        s = self.samples[self.calls]
+        self.calls += 1
+        assert np.array_equal(image, s.image)
+        if s.landmarks_px is None or self.calls - 1 in self.miss:
+            return Detection(False, None, np.zeros(2), np.zeros(image.shape, bool), None, pixel_spacing_mm)
+        lm = s.landmarks_px + np.array([[6.0, 8.0], [0.0, 0.0]])
+        return Detection(True, lm, np.array([0.9, 0.8]), s.mask.copy(), None, pixel_spacing_mm)
+
+
+def test_evaluate_per_sample_records_and_foreshortening_classes(tmp_path: Path) -> None:
+    data = write_dataset(tmp_path / "d", 9, size=64, seed=3, negative_every=3)
+    per_sample = tmp_path / "out" / "samples.jsonl"
+    summary = evaluate(_KnownErrors(data, miss={1}), data, split="all", progress=False, per_sample=per_sample)
+    rows = [json.loads(line) for line in per_sample.read_text().splitlines()]
+    assert [r["id"] for r in rows] == [str(r["id"]) for r in read_manifest(data)]
+    pos = [r for r in rows if r["positive"]]
+    assert len(pos) == summary["positives"] == 6 and summary["negatives"] == 3
+    missed = rows[1]
+    assert missed["positive"] and not missed["found"] and not missed["usable"]
+    assert missed["dice"] == 0.0 and missed["landmark_px"] is None
+    for r in pos:
+        if r is missed:
+            continue
+        assert r["found"] and r["dice"] == 1.0 and r["confidence"] == pytest.approx([0.9, 0.8])
+        assert r["landmark_px"] == pytest.approx([10.0, 0.0]) and r["landmark_mm"] == pytest.approx(
+            [5.0, 0.0]
+        )
+        assert r["ab_mm"] == pytest.approx(0.5 * r["ab_px"])
+    # every found A is 5 mm off: a gross error; every B is exact
+    assert summary["landmark_gross"] == {"threshold_mm": 3.0, "count": 5, "of": 10}
+    assert summary["landmark_mm"]["mean"] == pytest.approx(2.5)
+    classes = summary["by_projected_ab"]
+    assert sum(c["positives"] for c in classes) == 6
+    for c in classes:
+        lo, hi = c["ab_mm"]
+        inside = [r for r in pos if lo <= r["ab_mm"] < (hi if hi is not None else np.inf)]
+        assert c["positives"] == len(inside)
+        if inside:
+            assert c["dice_mean"] == pytest.approx(np.mean([r["dice"] for r in inside]))
+            assert c["found_rate"] == pytest.approx(np.mean([r["found"] for r in inside]))
+    # the CLI writes the same file
+    model = tmp_path / "m.pt"
+    save_model(model, empty_net(), extra={})
+    cli_rows = tmp_path / "cli.jsonl"
+    main(
+        [
+            *("evaluate", "--data", str(data), "--model", str(model), "--split", "all"),
+            *("--device", "cpu", "--no-progress", "--per-sample", str(cli_rows)),
+        ]
+    )
+    assert len(cli_rows.read_text().splitlines()) == 9

@@ -23,6 +23,11 @@ def evaluate_command(
         help="Crop each image to a collimated field of this fraction of its sides (keeping the CM) first.",
     ),
     seed: int = typer.Option(0, "--seed", help="Seed of the fields' places (with --field-frac)."),
+    per_sample: Path | None = typer.Option(
+        None,
+        "--per-sample",
+        help="Also write one JSON line per image here as it is scored (errors, Dice, confidences).",
+    ),
 ) -> None:
     """Dice, landmark error (px, mm), found rate and false-positive rate of a detector."""
     from fluoronav.detection.detector import Detector
@@ -40,6 +45,7 @@ def evaluate_command(
         progress=progress,
         field_frac=field_frac,
         seed=seed,
+        per_sample=per_sample,
     )
     text = json.dumps(summary, indent=1)
     if out is not None:

@@ -5,13 +5,20 @@ the detector plane (``pixel_spacing_mm`` of each manifest record), the found rat
 the false-positive rate on negatives. With ``field_frac`` each image is first cropped to a collimated
 field of that fraction of its sides (at a random place that keeps the whole CM; seeded per sample):
 real fluoroscopy is often collimated, and then the image has no air around the body.
+
+The summary also splits the positives by how long the CM projects (the true A–B distance on the
+detector, mm): CMs seen nearly along their axis are the hard cases, and a test set's mix of them moves
+the means. ``per_sample`` writes one JSON line per image as it is scored, to find the failures.
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -41,6 +48,36 @@ def _stats(values: list[float]) -> dict[str, float | None]:
     }
 
 
+#: upper edges (mm, true A–B distance on the detector) of the foreshortening classes of the summary:
+#: nearly end-on, the paper's shortest quarter (< 33 mm), mid, and the rest
+AB_CLASS_EDGES_MM = (17.0, 33.0, 50.0, math.inf)
+
+#: a landmark further than this from the truth is counted as a gross error in the summary
+GROSS_ERROR_MM = 3.0
+
+
+def _ab_classes(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Positives grouped by true projected A–B length (rows of :func:`evaluate`'s per-sample records)."""
+    out = []
+    lo = 0.0
+    for hi in AB_CLASS_EDGES_MM:
+        sel = [r for r in rows if r["ab_mm"] is not None and lo <= r["ab_mm"] < hi]
+        found = [r for r in sel if r["found"]]
+        errs = [e for r in found if r["landmark_mm"] is not None for e in r["landmark_mm"]]
+        out.append(
+            {
+                "ab_mm": [lo, None if math.isinf(hi) else hi],
+                "positives": len(sel),
+                "dice_mean": float(np.mean([r["dice"] for r in sel])) if sel else None,
+                "found_rate": len(found) / len(sel) if sel else None,
+                "landmark_mm_mean": float(np.mean(errs)) if errs else None,
+                "landmark_mm_median": float(np.median(errs)) if errs else None,
+            }
+        )
+        lo = hi
+    return out
+
+
 def evaluate(
     detector: Detector,
     data_dir: str | Path,
@@ -50,6 +87,7 @@ def evaluate(
     progress: bool = True,
     field_frac: float | None = None,
     seed: int = 0,
+    per_sample: str | Path | None = None,
 ) -> dict:
     """Run the detector on every sample of ``split`` (``train``/``val``/``all``) and summarise.
 
@@ -59,6 +97,12 @@ def evaluate(
 
     The landmark error is the Euclidean distance per landmark (A and B pooled) on positives where the
     CM was found; Dice is computed on every positive (0 where nothing was found).
+
+    ``per_sample``: a JSON Lines file written as the images are scored (overwritten), one record per
+    image: ``id``, ``positive``, ``found``, ``usable`` (:attr:`Detection.usable`), ``confidence``
+    (A, B), ``detect_ms`` and, on positives, ``dice``, ``ab_px`` / ``ab_mm`` (the true projected A–B
+    distance) and, where found, ``landmark_px`` / ``landmark_mm`` (A, B errors). mm values are None
+    where the record has no pixel spacing.
     """
     if field_frac is not None and not 0.0 < field_frac <= 1.0:
         raise ValueError(f"field_frac must be in (0, 1], got {field_frac}")
@@ -66,27 +110,54 @@ def evaluate(
     if split != "all":
         records = [r for r in records if split_of(str(r["id"]), val_fraction) == split]
     dices, err_px, err_mm, seconds = [], [], [], []
+    positives: list[dict[str, Any]] = []
     n_pos = n_neg = found_pos = found_neg = 0
-    for i, rec in enumerate(tqdm(records, desc="evaluate", disable=not progress)):
-        s = load_sample(data_dir, rec)
-        if field_frac is not None:
-            rng = np.random.default_rng([seed, i])
-            s = collimate(s, rng, min_field_frac=field_frac, max_field_frac=field_frac)
-        t0 = time.perf_counter()
-        det = detector.detect(s.image, pixel_spacing_mm=s.pixel_spacing_mm)
-        seconds.append(time.perf_counter() - t0)
-        if s.landmarks_px is None:
-            n_neg += 1
-            found_neg += int(det.found)
-            continue
-        n_pos += 1
-        dices.append(dice_score(det.mask, s.mask) if det.found else 0.0)
-        if det.found and det.landmarks_px is not None:
-            found_pos += 1
-            e = np.linalg.norm(det.landmarks_px - s.landmarks_px, axis=1)
-            err_px.extend(e.tolist())
-            if s.pixel_spacing_mm is not None:
-                err_mm.extend((e * s.pixel_spacing_mm).tolist())
+    sink = None
+    if per_sample is not None:
+        Path(per_sample).parent.mkdir(parents=True, exist_ok=True)
+        sink = open(per_sample, "w", encoding="utf-8")  # noqa: SIM115 (closed in the finally below)
+    try:
+        for i, rec in enumerate(tqdm(records, desc="evaluate", disable=not progress)):
+            s = load_sample(data_dir, rec)
+            if field_frac is not None:
+                rng = np.random.default_rng([seed, i])
+                s = collimate(s, rng, min_field_frac=field_frac, max_field_frac=field_frac)
+            t0 = time.perf_counter()
+            det = detector.detect(s.image, pixel_spacing_mm=s.pixel_spacing_mm)
+            seconds.append(time.perf_counter() - t0)
+            sp = s.pixel_spacing_mm
+            row: dict[str, Any] = {
+                "id": s.id,
+                "positive": s.landmarks_px is not None,
+                "found": bool(det.found),
+                "usable": det.usable,
+                "confidence": [float(c) for c in det.landmark_confidence],
+                "detect_ms": 1e3 * seconds[-1],
+            }
+            if s.landmarks_px is None:
+                n_neg += 1
+                found_neg += int(det.found)
+            else:
+                n_pos += 1
+                dices.append(dice_score(det.mask, s.mask) if det.found else 0.0)
+                ab_px = float(np.linalg.norm(s.landmarks_px[1] - s.landmarks_px[0]))
+                row |= {"dice": dices[-1], "ab_px": ab_px, "ab_mm": None if sp is None else ab_px * sp}
+                row |= {"landmark_px": None, "landmark_mm": None}
+                if det.found and det.landmarks_px is not None:
+                    found_pos += 1
+                    e = np.linalg.norm(det.landmarks_px - s.landmarks_px, axis=1)
+                    err_px.extend(e.tolist())
+                    row["landmark_px"] = e.tolist()
+                    if sp is not None:
+                        err_mm.extend((e * sp).tolist())
+                        row["landmark_mm"] = (e * sp).tolist()
+                positives.append(row)
+            if sink is not None:
+                sink.write(json.dumps(row) + "\n")
+                sink.flush()
+    finally:
+        if sink is not None:
+            sink.close()
     return {
         "data": str(data_dir),
         "split": split,
@@ -96,6 +167,12 @@ def evaluate(
         "dice": _stats(dices),
         "landmark_px": _stats(err_px),
         "landmark_mm": _stats(err_mm),
+        "landmark_gross": {
+            "threshold_mm": GROSS_ERROR_MM,
+            "count": int(np.sum(np.asarray(err_mm) > GROSS_ERROR_MM)),
+            "of": len(err_mm),
+        },
+        "by_projected_ab": _ab_classes(positives),
         "found_rate": found_pos / n_pos if n_pos else None,
         "false_positive_rate": found_neg / n_neg if n_neg else None,
         "detect_ms": _stats([1e3 * x for x in seconds]),
