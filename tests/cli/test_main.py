@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from fluoronav.cli.main import main
@@ -23,3 +25,19 @@ def test_usage_error_is_short(args: list[str], message: str, capsys: pytest.Capt
     assert message in err
     assert "Traceback" not in err
     assert len(err.strip().splitlines()) <= 4
+
+
+def test_an_os_error_on_a_named_file_is_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import fluoronav.cli.main as cli_main
+
+    def fail(*args: object, **kwargs: object) -> None:
+        raise PermissionError(13, "Permission denied", str(tmp_path / "out.json"))
+
+    monkeypatch.setattr(cli_main, "app", fail)
+    with pytest.raises(SystemExit) as exc:
+        main(["anything"])
+    assert exc.value.code == 1
+    err = capsys.readouterr().err.strip()
+    assert err == f"error: {tmp_path / 'out.json'}: Permission denied"

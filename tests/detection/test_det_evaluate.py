@@ -144,3 +144,32 @@ def test_evaluate_per_sample_records_and_foreshortening_classes(tmp_path: Path) 
         ]
     )
     assert len(cli_rows.read_text().splitlines()) == 9
+
+
+def test_evaluate_refuses_an_unwritable_output_before_scoring(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = write_dataset(tmp_path / "d", 2, size=48, seed=1)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    for option in ("--out", "--per-sample"):
+        with pytest.raises(SystemExit) as exc:
+            main(
+                [
+                    "evaluate",
+                    "--data",
+                    str(data),
+                    "--split",
+                    "all",
+                    "--no-progress",
+                    option,
+                    str(blocker / "x.json"),
+                ]
+            )
+        assert exc.value.code == 2
+        out, err = capsys.readouterr()
+        assert out == ""  # no summary: nothing was scored
+        assert (
+            err.strip().startswith(f"error: {blocker / 'x.json'}: cannot write here")
+            and "\n" not in err.strip()
+        )

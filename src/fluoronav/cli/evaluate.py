@@ -38,6 +38,18 @@ def evaluate_command(
         raise InputError("--split", f"unknown split {split!r}; use train, val or all")
     if field_frac is not None and not 0.0 < field_frac <= 1.0:
         raise InputError("--field-frac", f"must be in (0, 1], got {field_frac}")
+    # fail before the run, not after it: both outputs must be writable
+    for path in (out, per_sample):
+        if path is not None:
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                with open(path, "a", encoding="utf-8"):
+                    pass
+            except OSError as exc:
+                why = exc.strerror or str(exc)
+                if exc.filename is not None and Path(exc.filename) != path:
+                    why = f"{exc.filename}: {why}"
+                raise InputError(path, f"cannot write here ({why})") from exc
     summary = evaluate(
         Detector.load(model, device=device),
         data,
@@ -49,7 +61,6 @@ def evaluate_command(
     )
     text = json.dumps(summary, indent=1)
     if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(text + "\n", encoding="utf-8")
     typer.echo(text)
 

@@ -87,6 +87,11 @@ def main(argv: list[str] | None = None) -> None:
     except typer.Abort:
         typer.echo("aborted", err=True)
         sys.exit(130)
+    except OSError as exc:
+        # a file the user named could not be read or written: say which, in one line
+        where = exc.filename if exc.filename is not None else "file"
+        typer.echo(f"error: {where}: {exc.strerror or exc}", err=True)
+        sys.exit(1)
     except KeyboardInterrupt:
         typer.echo("interrupted; finished results are kept on disk", err=True)
         sys.exit(130)
