@@ -145,3 +145,26 @@ def test_foreshortened_data_set(tmp_path: Path) -> None:
     assert simulate_dataset(old, 1, dataclasses.replace(spec, max_projected_ab_mm=None), workers=0) == []
     with pytest.raises(InputError):  # but not with the option switched on
         simulate_dataset(old, 1, spec, workers=0)
+
+
+def test_shaft_length_reaches_the_images(tmp_path: Path) -> None:
+    spec = DatasetSpec(n_phantoms=1, image_size=64, seed=77, phantom_spacing_mm=2.0)
+    long_spec = dataclasses.replace(spec, shaft_length_mm=250.0)
+    simulate_dataset(tmp_path / "short", 2, spec, workers=0, contact_sheet_png=False)
+    simulate_dataset(tmp_path / "long", 2, long_spec, workers=0, contact_sheet_png=False)
+    assert json.loads((tmp_path / "long" / "dataset.json").read_text())["spec"]["shaft_length_mm"] == 250.0
+    short, long = _rows(tmp_path / "short"), _rows(tmp_path / "long")
+    extra = []
+    for key, row in short.items():
+        # the same scenes and labels (the shaft is not the CM); more metal where the longer shaft
+        # is in the field (it may run out of the field next to the CM)
+        assert row["landmarks_px"] == long[key]["landmarks_px"]
+        a = np.load(tmp_path / "short" / row["file"])
+        b = np.load(tmp_path / "long" / long[key]["file"])
+        assert np.array_equal(a["mask"], b["mask"])
+        extra.append(float(b["image"].sum()) - float(a["image"].sum()))
+    assert min(extra) >= 0.0 and max(extra) > 10.0
+    with pytest.raises(InputError):  # a data set directory keeps its shaft
+        simulate_dataset(tmp_path / "short", 2, long_spec, workers=0)
+    with pytest.raises(ValueError, match="shaft_length_mm"):
+        DatasetSpec(shaft_length_mm=-1.0)

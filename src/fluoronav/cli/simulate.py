@@ -36,6 +36,13 @@ def register(app: typer.Typer) -> None:
             help="Keep only foreshortened views: landmarks A and B at most this far apart on the "
             "detector (mm; a CM across the view projects ~60 mm). For training sets rich in hard views.",
         ),
+        shaft_length_mm: float = typer.Option(
+            50.0,
+            "--shaft-length-mm",
+            min=0.0,
+            help="Length of the rigid tube the CM is mounted on (0: the bare CM). The default tube "
+            "ends in the field; a robot's shaft that leaves the field is ~200 mm or more.",
+        ),
         device: str = DEVICE_OPTION,
     ) -> None:
         """Simulate a data set of X-ray images with labels (manifest.jsonl + samples/*.npz).
@@ -58,6 +65,7 @@ def register(app: typer.Typer) -> None:
             seed=seed,
             device=str(resolve_device(device)),
             max_projected_ab_mm=max_projected_ab_mm,
+            shaft_length_mm=shaft_length_mm,
         )
         rows = simulate_dataset(out, n, spec, scheduler=scheduler, workers=workers)
         typer.echo(f"{len(rows)} new samples; data set in {out}/ (manifest.jsonl, contact_sheet.png)")

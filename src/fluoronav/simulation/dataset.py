@@ -53,6 +53,9 @@ class DatasetSpec:
         phantom_spacing_mm: voxel size of the procedural phantoms (1 mm; coarser only for fast tests).
         max_projected_ab_mm: keep only foreshortened views, whose landmarks A and B project at most
             this far apart on the detector (mm); None: the paper's distribution as it is.
+        shaft_length_mm: length of the rigid tube the CM is mounted on
+            (:attr:`SimulationConfig.shaft_length_mm`; 0: the bare CM). The default 50 mm tube ends
+            in the field; a robot's shaft that runs out of the field is ~200 mm or more.
     """
 
     cts: tuple[str, ...] = ("phantom",)
@@ -63,6 +66,11 @@ class DatasetSpec:
     device: str = "cpu"
     phantom_spacing_mm: float = 1.0
     max_projected_ab_mm: float | None = None
+    shaft_length_mm: float = 50.0
+
+    def __post_init__(self) -> None:
+        if not self.shaft_length_mm >= 0.0:
+            raise ValueError(f"shaft_length_mm must be >= 0, got {self.shaft_length_mm}")
 
     @property
     def sampling(self) -> SceneSampling:
@@ -82,7 +90,12 @@ class DatasetSpec:
 
 @functools.lru_cache(maxsize=4)
 def _simulator(
-    ct: str, phantom_seed: int, image_size: int, device: str, phantom_spacing_mm: float = 1.0
+    ct: str,
+    phantom_seed: int,
+    image_size: int,
+    device: str,
+    phantom_spacing_mm: float = 1.0,
+    shaft_length_mm: float = 50.0,
 ) -> XraySimulator:
     """One simulator per anatomy and worker process (building one costs seconds; kept for reuse)."""
     from fluoronav.anatomy.io import resolve_ct
@@ -92,7 +105,8 @@ def _simulator(
         volume = hip_phantom(seed=phantom_seed, spacing_mm=phantom_spacing_mm)
     else:
         volume = resolve_ct(ct, seed=phantom_seed)
-    return XraySimulator(volume, config=SimulationConfig(image_size=image_size), device=device)
+    config = SimulationConfig(image_size=image_size, shaft_length_mm=shaft_length_mm)
+    return XraySimulator(volume, config=config, device=device)
 
 
 def _volume_name(volume: Volume, ct: str) -> str:
@@ -141,7 +155,9 @@ def _make_sample(sample_id: int, seed: int, *, spec: DatasetSpec, out_dir: str) 
     rng = np.random.default_rng(seed)
     anatomies = spec.anatomies()
     ct, phantom_seed = anatomies[int(rng.integers(len(anatomies)))]
-    sim = _simulator(ct, phantom_seed, spec.image_size, spec.device, spec.phantom_spacing_mm)
+    sim = _simulator(
+        ct, phantom_seed, spec.image_size, spec.device, spec.phantom_spacing_mm, spec.shaft_length_mm
+    )
     scene = sample_scene(sim.volume, rng, sampling=spec.sampling, with_cm=spec.with_cm)
     image = sim.simulate(scene, seed=int(rng.integers(2**62)))
     return write_sample(Path(out_dir), sample_id, image, seed=seed, ct_name=_volume_name(sim.volume, ct))
@@ -180,7 +196,7 @@ def simulate_dataset(
     out_dir.mkdir(parents=True, exist_ok=True)
     meta_path = out_dir / "dataset.json"
     sampling = spec.sampling
-    sim_config = SimulationConfig(image_size=spec.image_size)
+    sim_config = SimulationConfig(image_size=spec.image_size, shaft_length_mm=spec.shaft_length_mm)
     binning = sampling.detector.cols / spec.image_size
     meta = {
         "version": __version__,
@@ -206,7 +222,7 @@ def simulate_dataset(
             raise InputError(
                 meta_path,
                 "this directory holds a data set made with other settings "
-                "(seed, CTs, size or --no-cm); use another --out",
+                "(seed, CTs, size, shaft or --no-cm); use another --out",
             )
     meta_path.write_text(json.dumps(meta, indent=2), encoding="utf-8")
     task = functools.partial(_make_sample, spec=spec, out_dir=str(out_dir))
