@@ -173,3 +173,8 @@ def test_evaluate_refuses_an_unwritable_output_before_scoring(
             err.strip().startswith(f"error: {blocker / 'x.json'}: cannot write here")
             and "\n" not in err.strip()
         )
+    # a run that fails after the check (no such data set) leaves no empty output file behind
+    target = tmp_path / "new" / "summary.json"
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--data", str(tmp_path / "missing"), "--no-progress", "--out", str(target)])
+    assert not target.exists()

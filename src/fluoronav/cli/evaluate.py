@@ -38,13 +38,17 @@ def evaluate_command(
         raise InputError("--split", f"unknown split {split!r}; use train, val or all")
     if field_frac is not None and not 0.0 < field_frac <= 1.0:
         raise InputError("--field-frac", f"must be in (0, 1], got {field_frac}")
-    # fail before the run, not after it: both outputs must be writable
+    # fail before the run, not after it: both outputs must be writable (a probe file that did not
+    # exist is removed again, so that a run failing later leaves no empty output behind)
     for path in (out, per_sample):
         if path is not None:
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
+                existed = path.exists()
                 with open(path, "a", encoding="utf-8"):
                     pass
+                if not existed:
+                    path.unlink()
             except OSError as exc:
                 why = exc.strerror or str(exc)
                 if exc.filename is not None and Path(exc.filename) != path:
