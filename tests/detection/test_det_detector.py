@@ -393,3 +393,50 @@ def test_mask_fragments_along_the_landmarks_are_joined_and_a_distant_blob_is_not
     np.testing.assert_array_equal(
         detector_module._cm_components(tube, np.stack([a, b]), join_frac=0.15), tube
     )
+
+
+@pytest.mark.parametrize(
+    ("spacing_mm", "padded_min_confidence", "widened", "found"),
+    [
+        (None, 0.95, False, True),  # no spacing: the image alone, whatever the padded threshold
+        (2.0, 0.95, False, True),  # 260 px × 2 mm = 520 mm, wider than the 340 mm field: alone
+        (1.0, 0.25, True, True),  # a 260 mm image in a 340 mm field; landmarks (0.90, 0.93) sure enough
+        (1.0, 0.95, True, False),  # widened, and they are not
+    ],
+)
+def test_small_field_is_seen_at_the_coarse_scale_of_a_whole_one(
+    spacing_mm: float | None, padded_min_confidence: float, widened: bool, found: bool
+) -> None:
+    img, bar, lm = drawn_cm()  # 200 × 260 px
+    config = dataclasses.replace(TINY, coarse_min_field_mm=340.0, padded_min_confidence=padded_min_confidence)
+    net = DetectorNet(config)
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    det = Detector(net, device="cpu")
+    view = det.coarse_view(img.shape, spacing_mm)
+    if widened:
+        # 340 px centred on the 260 × 200 image: 40 px of repeated edge left and right, 70 above/below
+        assert (view.x0, view.y0, view.side, view.size) == (-40, -70, 340, 64)
+    else:
+        assert (view.x0, view.y0, view.side) == (0, 0, 260)
+    _, logit, pts, _ = det.coarse(img, pixel_spacing_mm=spacing_mm)
+    # the bar shrinks in the widened coarse view: (260/340)² of its area
+    area = int((logit > 0.0).sum())
+    full = int((det.coarse(img)[1] > 0.0).sum())
+    assert area == full if not widened else 0.45 * full < area < 0.75 * full
+    np.testing.assert_allclose(pts, lm, atol=view.scale + 1.0)  # mapped back to the input's pixels
+    res = det.detect(img, pixel_spacing_mm=spacing_mm)
+    assert res.found is found
+    if found:
+        np.testing.assert_allclose(res.landmarks_px, lm, atol=2.0)
+        assert _dice(res.mask, bar) > 0.9
+    else:
+        assert res.landmarks_px is None
+
+
+def test_padding_settings_are_validated() -> None:
+    with pytest.raises(ValueError, match="coarse_min_field_mm"):
+        dataclasses.replace(TINY, coarse_min_field_mm=-1.0)
+    with pytest.raises(ValueError, match="padded_min_confidence"):
+        dataclasses.replace(TINY, padded_min_confidence=1.5)
+    # model files without the keys read as off
+    assert DetectorConfig.from_dict({"heatmap": "softmax"}).coarse_min_field_mm == 0.0

@@ -32,6 +32,22 @@ def test_resample_of_a_linear_ramp_matches_the_mapping(side: int, size: int) -> 
     np.testing.assert_allclose(out[1:-1, 1:-1], expected[1:-1, 1:-1], atol=1e-2 * max(side / size, 1))
 
 
+def test_full_view_widened_to_a_min_side_centres_the_image_and_repeats_its_edges() -> None:
+    img = np.zeros((100, 200), np.float32)
+    img[:, :10] = 1.0  # a bright left edge, repeated to the left of the image
+    view = full_view(img.shape, 100, min_side_px=400.0)
+    assert (view.x0, view.y0, view.side) == (-100, -150, 400) and view.scale == 4.0
+    out = resample(img, view)
+    # the image's centre is the view's centre; its top-left pixel centre maps back exactly
+    np.testing.assert_allclose(view.to_input(np.array([49.5, 49.5])), [99.5, 49.5])
+    # (0 + 100 + 0.5) / 4 − 0.5 and (0 + 150 + 0.5) / 4 − 0.5
+    np.testing.assert_allclose(view.from_input(np.array([0.0, 0.0])), [24.625, 37.125])
+    assert out[50, :25].min() > 0.99  # repeated bright edge (rows inside the image)
+    assert out[50, 28:74].max() == 0.0 and out[5, 60] == 0.0  # the dark middle, above it repeated too
+    # a min side at or below the longer side changes nothing
+    assert full_view(img.shape, 100, min_side_px=200.0) == full_view(img.shape, 100)
+
+
 def test_full_view_pads_non_square_images_at_the_bottom_right() -> None:
     img = np.zeros((100, 200), np.float32)
     img[40:60, 90:110] = 1.0

@@ -252,9 +252,18 @@ class Detector:
         cfg = self.config
         return normalize_intensity(resample(image, view), low_pct=cfg.low_pct, high_pct=cfg.high_pct)
 
-    def coarse(self, image: np.ndarray) -> tuple[View, np.ndarray, np.ndarray, np.ndarray]:
+    def coarse_view(self, shape: tuple[int, int], pixel_spacing_mm: float | None = None) -> View:
+        """The coarse stage's view of a (rows, cols) image: the whole image, widened to
+        ``coarse_min_field_mm`` where the pixel spacing (mm) is known and the image is smaller."""
+        field_mm = self.config.coarse_min_field_mm
+        min_side = field_mm / pixel_spacing_mm if field_mm > 0 and pixel_spacing_mm else 0.0
+        return full_view(shape, self.config.input_size, min_side_px=min_side)
+
+    def coarse(
+        self, image: np.ndarray, *, pixel_spacing_mm: float | None = None
+    ) -> tuple[View, np.ndarray, np.ndarray, np.ndarray]:
         """Coarse stage: view, seg logit (S, S), landmarks (2, 2) in input px, confidences (2,)."""
-        cv = full_view(image.shape, self.config.input_size)
+        cv = self.coarse_view(image.shape, pixel_spacing_mm)
         logit, pts, conf = self._run(self.net.coarse, self._view_input(image, cv)[None])
         return cv, logit[0], cv.to_input(pts[0]), conf[0]
 
@@ -283,13 +292,17 @@ class Detector:
         Returns a :class:`Detection` in the input's pixels; ``found`` is False when the coarse mask is
         smaller than ``min_mask_px`` or a landmark confidence is below ``min_confidence`` (a weak coarse
         mask, between ``weak_mask_px`` and ``min_mask_px``, needs ``weak_min_confidence`` instead).
+        ``pixel_spacing_mm`` (mm per input pixel at the detector), where given, lets an image smaller
+        than ``coarse_min_field_mm`` be seen by the coarse stage at the scale of a whole field; such a
+        detection needs ``padded_min_confidence``.
         """
         img = _check_image(image, "image")
         cfg = self.config
         shape = img.shape
         thr_logit = cfg.mask_threshold_logit
         empty = Detection(False, None, np.zeros(2), np.zeros(shape, bool), None, pixel_spacing_mm)
-        cv, c_logit, c_pts, c_conf = self.coarse(img)
+        cv, c_logit, c_pts, c_conf = self.coarse(img, pixel_spacing_mm=pixel_spacing_mm)
+        padded = cv.side > max(shape)
         c_mask = c_logit > thr_logit
         c_area = int(c_mask.sum())
         weak = c_area < cfg.min_mask_px
@@ -301,6 +314,8 @@ class Detector:
         f_pts, f_conf, mask = self.fine_stage(img, fv)
         # false alarms on CM-free images mostly start as small coarse masks: those need surer landmarks
         need = max(cfg.weak_min_confidence, cfg.min_confidence) if weak else cfg.min_confidence
+        if padded:
+            need = max(need, cfg.padded_min_confidence)
         if not mask.any() or float(f_conf.min()) < need:
             return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])

@@ -75,6 +75,12 @@ class DetectorConfig:
             least ``weak_min_confidence``; 0: off (such masks are no detection).
         weak_min_confidence: the fine landmark confidence a weak coarse mask needs.
         low_pct, high_pct: percentiles mapped to 0 and 1 by the intensity normalisation.
+        coarse_min_field_mm: the coarse view covers at least this field (mm at the detector) where
+            the image's pixel spacing is known: a smaller image (a collimated field read out alone)
+            is centred in a window that wide, its edge pixels repeated, so its CM has the size in
+            coarse pixels that the whole fields of training gave it. 0: off (the image alone).
+        padded_min_confidence: the fine landmark confidence both landmarks need where the coarse
+            view was widened by ``coarse_min_field_mm`` (repeated edges can look like a tube).
     """
 
     input_size: int = 128
@@ -100,6 +106,8 @@ class DetectorConfig:
     weak_min_confidence: float = 0.15
     low_pct: float = 1.0
     high_pct: float = 99.0
+    coarse_min_field_mm: float = 0.0
+    padded_min_confidence: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("fine_tta", "fine_first_tta"):
@@ -116,6 +124,10 @@ class DetectorConfig:
             raise ValueError(f"weak_mask_px must be in [0, min_mask_px], got {self.weak_mask_px}")
         if not 0.0 <= self.weak_min_confidence <= 1.0:
             raise ValueError(f"weak_min_confidence must be in [0, 1], got {self.weak_min_confidence}")
+        if not self.coarse_min_field_mm >= 0.0:
+            raise ValueError(f"coarse_min_field_mm must be 0 or more, got {self.coarse_min_field_mm}")
+        if not 0.0 <= self.padded_min_confidence <= 1.0:
+            raise ValueError(f"padded_min_confidence must be in [0, 1], got {self.padded_min_confidence}")
         if not 0.0 <= self.fine_min_separation_px < self.roi_size:
             raise ValueError(
                 f"fine_min_separation_px must be in [0, roi_size), got {self.fine_min_separation_px}"

@@ -40,9 +40,19 @@ class View:
         return (uv - np.array([self.x0, self.y0], dtype=np.float64) + 0.5) / self.scale - 0.5
 
 
-def full_view(shape: tuple[int, int], size: int) -> View:
-    """The view of a whole (rows, cols) image: isotropic, padded at the right/bottom to a square."""
-    return View(0, 0, int(max(shape)), int(size))
+def full_view(shape: tuple[int, int], size: int, *, min_side_px: float = 0.0) -> View:
+    """The view of a whole (rows, cols) image: isotropic, padded at the right/bottom to a square.
+
+    With ``min_side_px`` above the longer side the window is that wide instead (rounded), centred on the
+    image (a small field of view shown at the scale of a larger one; outside the image the edge
+    pixels repeat, see :func:`resample`).
+    """
+    rows, cols = int(shape[0]), int(shape[1])
+    side = max(rows, cols)
+    if min_side_px > side:
+        wide = round(min_side_px)
+        return View((cols - wide) // 2, (rows - wide) // 2, wide, int(size))
+    return View(0, 0, side, int(size))
 
 
 def roi_view(

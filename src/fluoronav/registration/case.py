@@ -279,13 +279,13 @@ def _config_from(d: Any, source: str) -> CMRegistrationConfig:
         raise InputError(source, f"bad config value ({exc})") from None
 
 
-def _detect_landmarks(image: np.ndarray, source: str) -> np.ndarray:
+def _detect_landmarks(image: np.ndarray, source: str, pixel_spacing_mm: float | None = None) -> np.ndarray:
     try:
         from fluoronav.detection.detector import Detector
     except ImportError:
         raise InputError(source, "no landmarks given and no detector available; add 'landmarks_px'") from None
     try:
-        det = Detector.load().detect(image)
+        det = Detector.load().detect(image, pixel_spacing_mm=pixel_spacing_mm)
     except InputError as exc:
         raise InputError(
             source, f"no landmarks given and the detector is unavailable ({exc.problem})"
@@ -341,7 +341,7 @@ def load_case(path: str | Path) -> CMCase:
         lm = (
             _matrix(v["landmarks_px"], (2, 2), f"landmarks_px of views[{k}]", src)
             if v.get("landmarks_px") is not None
-            else _detect_landmarks(img, src)
+            else _detect_landmarks(img, src, camera.pixel_spacing_mm)
         )
         binning = v.get("binning")
         if binning is not None and (not isinstance(binning, int) or binning < 1):
