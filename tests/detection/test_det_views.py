@@ -46,6 +46,7 @@ def test_full_view_widened_to_a_min_side_centres_the_image_and_repeats_its_edges
     assert out[50, 28:74].max() == 0.0 and out[5, 60] == 0.0  # the dark middle, above it repeated too
     # a min side at or below the longer side changes nothing
     assert full_view(img.shape, 100, min_side_px=200.0) == full_view(img.shape, 100)
+    assert full_view(img.shape, 100, min_side_px=200.4) == full_view(img.shape, 100)  # rounds to 200
 
 
 def test_full_view_pads_non_square_images_at_the_bottom_right() -> None:

@@ -49,8 +49,8 @@ def full_view(shape: tuple[int, int], size: int, *, min_side_px: float = 0.0) ->
     """
     rows, cols = int(shape[0]), int(shape[1])
     side = max(rows, cols)
-    if min_side_px > side:
-        wide = round(min_side_px)
+    wide = round(min_side_px)
+    if wide > side:
         return View((cols - wide) // 2, (rows - wide) // 2, wide, int(size))
     return View(0, 0, side, int(size))
 
