@@ -37,7 +37,14 @@ def train_command(
     stage: list[str] = typer.Option(
         ["coarse", "fine"],
         "--stage",
-        help="Stage to train (repeatable: coarse, fine); the others keep their weights and are not run.",
+        help="Stage to train (repeatable: coarse, fine; or refine alone: the landmark refinement stage, "
+        "added to an --init model without one); the others keep their weights and are not run.",
+    ),
+    refine_repeats: int = typer.Option(
+        5,
+        "--refine-repeats",
+        min=1,
+        help="--stage refine: jittered patches per landmark and sample per epoch.",
     ),
     collimate_prob: float = typer.Option(
         0.0,
@@ -50,11 +57,14 @@ def train_command(
     device: str = DEVICE_OPTION,
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
 ) -> None:
-    """Train the two-stage detector (segmentation + landmark heatmaps) and write MODEL."""
+    """Train the detector (segmentation + landmark heatmaps, or the landmark refinement) and write MODEL."""
     from fluoronav.detection.train import TrainConfig, train
 
-    if not stage or not set(stage) <= {"coarse", "fine"}:
-        raise typer.BadParameter(f"--stage takes coarse and/or fine, got {', '.join(stage) or 'nothing'}")
+    stages = tuple(dict.fromkeys(stage))
+    if stages != ("refine",) and (not stages or not set(stages) <= {"coarse", "fine"}):
+        raise typer.BadParameter(
+            f"--stage takes coarse and/or fine, or refine alone, got {', '.join(stage) or 'nothing'}"
+        )
     config = TrainConfig(
         epochs=epochs,
         batch_size=batch_size,
@@ -63,8 +73,9 @@ def train_command(
         seed=seed,
         device=device,
         workers=workers,
-        stages=tuple(dict.fromkeys(stage)),
+        stages=stages,
         collimate_prob=collimate_prob,
+        refine_repeats=refine_repeats,
     )
     metrics = train(data, out, config=config, resume=resume, init=init, progress=progress)
     typer.echo(json.dumps(metrics))

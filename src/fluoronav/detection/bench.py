@@ -1,4 +1,4 @@
-"""Detection benchmark: ``detect_ms`` (the two-stage pipeline on a 1536² CIOS-size image) against
+"""Detection benchmark: ``detect_ms`` (the detection pipeline on a 1536² CIOS-size image) against
 ``detect_ms_baseline`` (the coarse network applied once at the full input resolution), both measured
 here in the same run on the same image, with the shipped weights when present (else the default
 architecture with seeded random weights: the run time does not depend on the weight values).
@@ -52,7 +52,7 @@ def _median_ms(fn: Callable[[], object], repeats: int) -> float:
 
 
 def run(quick: bool = False) -> dict[str, float]:
-    """Median detection time (ms) of the two-stage pipeline and of the full-resolution baseline."""
+    """Median detection time (ms) of the detection pipeline and of the full-resolution baseline."""
     if shipped_model_path().is_file():
         det = Detector.load(device="cpu")
     else:

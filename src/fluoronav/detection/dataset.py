@@ -29,6 +29,7 @@ from fluoronav.detection.augment import (
     lower_dose,
 )
 from fluoronav.detection.model import DetectorConfig
+from fluoronav.detection.refine import RefineJitter, training_patch
 from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
 from fluoronav.errors import InputError
 
@@ -295,3 +296,51 @@ class CMDetectionDataset(Dataset):
             "positive": torch.tensor(s.landmarks_px is not None),
             "index": torch.tensor(index),
         }
+
+
+class RefineDataset(CMDetectionDataset):
+    """Training/validation items of the landmark refinement stage: each sample ``repeats`` times per
+    epoch, each time with a patch around A and one around B, placed as the fine stage would miss them
+    (:func:`~fluoronav.detection.refine.training_patch`). Validation items have the same jitter
+    every epoch and no photometric augmentation.
+
+    Items: ``refine_image`` (2, 1, rows, cols), ``refine_landmarks`` (2, 2) (col, row) patch pixels,
+    NaN for a landmark without a patch (negatives; a CM whose mask gives no direction).
+    """
+
+    def __init__(
+        self, root: str | Path, *, repeats: int = 1, jitter: RefineJitter | None = None, **kw: object
+    ) -> None:
+        super().__init__(root, **kw)  # type: ignore[arg-type]
+        if not self.config.refine_channels:
+            raise ValueError("the model configuration has no refinement stage (refine_channels)")
+        self.repeats = int(repeats)
+        self.jitter = jitter or RefineJitter()
+
+    def __len__(self) -> int:
+        return len(self.records) * self.repeats
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        s = self.sample(index % len(self.records))
+        cfg = self.config
+        train = self.augment is not None
+        rng = np.random.default_rng([self.seed, self.epoch if train else 0, index])
+        shape = (int(cfg.refine_shape[0]), int(cfg.refine_shape[1]))
+        images = np.zeros((2, 1, *shape), np.float32)
+        targets = np.full((2, 2), np.nan, np.float32)
+        if s.landmarks_px is not None:
+            step = cfg.refine_step_mm / (s.pixel_spacing_mm or cfg.refine_assumed_spacing_mm)
+            for k in (0, 1):
+                got = training_patch(
+                    s.image,
+                    s.mask,
+                    s.landmarks_px[k],
+                    rng,
+                    step_px=step,
+                    shape=shape,
+                    jitter=self.jitter,
+                    photometric=train,
+                )
+                if got is not None:
+                    images[k, 0], targets[k] = got
+        return {"refine_image": torch.from_numpy(images), "refine_landmarks": torch.from_numpy(targets)}

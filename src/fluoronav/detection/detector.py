@@ -2,7 +2,9 @@
 
 ``Detector.load()`` reads the shipped weights (``fluoronav/data/detector.pt``) or a model file written
 by ``fluoronav train``; ``Detector.detect(image)`` runs the coarse stage on the whole image, the fine
-stage on a region of interest around the coarse detection, and extracts the centreline
+stage on a region of interest around the coarse detection, refines the landmarks on tube-aligned
+patches where the model has a refinement stage (:mod:`fluoronav.detection.refine`), and extracts the
+centreline
 (:func:`fluoronav.detection.centerline.extract_centerline`) from the final mask between the landmarks.
 
 Input images are detector images after the log transform, bone and metal bright (as ``simulate``
@@ -33,6 +35,7 @@ import torch
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.heatmaps import decode_landmarks
 from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet
+from fluoronav.detection.refine import decode_refine_logits, refine_patch
 from fluoronav.detection.views import View, full_view, normalize_intensity, paste, resample, roi_view
 from fluoronav.device import resolve_device
 from fluoronav.errors import FluoronavError, InputError
@@ -177,7 +180,7 @@ def _check_image(image: np.ndarray, source: str) -> np.ndarray:
 
 
 class Detector:
-    """The two-stage CM detector on one torch device."""
+    """The CM detector (coarse, fine and, where the model has one, refinement stage) on one torch device."""
 
     def __init__(
         self, net: DetectorNet, *, device: str | torch.device = "auto", source: str = "<memory>"
@@ -318,8 +321,49 @@ class Detector:
             need = max(need, cfg.padded_min_confidence)
         if not mask.any() or float(f_conf.min()) < need:
             return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
+        f_pts = self.refine(img, f_pts, mask, pixel_spacing_mm=pixel_spacing_mm)
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])
         return Detection(True, f_pts, f_conf.astype(np.float64), mask, centerline, pixel_spacing_mm)
+
+    @torch.no_grad()
+    def refine(
+        self,
+        image: np.ndarray,
+        landmarks_px: np.ndarray,
+        mask: np.ndarray,
+        *,
+        pixel_spacing_mm: float | None = None,
+    ) -> np.ndarray:
+        """The landmarks (2, 2) (u, v) input px refined on tube-aligned patches
+        (:mod:`fluoronav.detection.refine`); unchanged without a refinement stage, and each landmark
+        whose direction the mask does not give (a CM seen end-on) keeps its place.
+
+        Both landmarks and their mirrored patches (``refine_tta``) go through the network in one batch.
+        """
+        net, cfg = self.net.refine, self.config
+        if net is None:
+            return landmarks_px
+        spacing = pixel_spacing_mm or cfg.refine_assumed_spacing_mm
+        step = cfg.refine_step_mm / spacing
+        shape = (int(cfg.refine_shape[0]), int(cfg.refine_shape[1]))
+        patches = [refine_patch(mask, p, step_px=step, shape=shape) for p in landmarks_px]
+        todo = [k for k, fr in enumerate(patches) if fr is not None]
+        if not todo:
+            return landmarks_px
+        x = torch.from_numpy(np.stack([patches[k].sample(image) for k in todo]))[:, None]  # type: ignore[union-attr]
+        x = x.to(self.device)
+        if cfg.refine_tta == 2:
+            n = x.shape[0]
+            out = net(torch.cat([x, x.flip(-2)]))
+            out = 0.5 * (out[:n] + out[n:].flip(-2))
+        else:
+            out = net(x)
+        sel = out[torch.arange(len(todo)), torch.tensor(todo)][:, None].float().cpu()
+        pts, _ = decode_refine_logits(sel, sigma_px=cfg.refine_sigma_px, prior_px=cfg.refine_prior_px)
+        refined = np.array(landmarks_px, dtype=np.float64, copy=True)
+        for i, k in enumerate(todo):
+            refined[k] = patches[k].to_input(pts[i].numpy().astype(np.float64))  # type: ignore[union-attr]
+        return refined
 
     def fine_stage(self, image: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All fine passes from a first ROI: landmarks (2, 2) in input px, confidences (2,) and the mask

@@ -26,6 +26,9 @@ from torch import nn
 #: version of the model file layout (state_dict + config)
 MODEL_FORMAT_VERSION = 1
 
+#: channels of the landmark refinement U-Net that ``train --stage refine`` adds to a model without one
+DEFAULT_REFINE_CHANNELS = (16, 32, 64, 128)
+
 
 @dataclass(frozen=True)
 class DetectorConfig:
@@ -81,6 +84,20 @@ class DetectorConfig:
             coarse pixels that the whole fields of training gave it. 0: off (the image alone).
         padded_min_confidence: the fine landmark confidence both landmarks need where the coarse
             view was widened by ``coarse_min_field_mm`` (repeated edges can look like a tube).
+        refine_channels: feature channels per level of the landmark refinement U-Net
+            (:mod:`fluoronav.detection.refine`); empty (the default): no refinement stage.
+            ``fluoronav train --stage refine`` adds one of :data:`DEFAULT_REFINE_CHANNELS`.
+        refine_shape: (rows, cols) of the tube-aligned refinement patches (across × along the tube).
+        refine_step_mm: patch pixel size at the detector, mm (images of unknown pixel spacing are
+            taken to have ``refine_assumed_spacing_mm``).
+        refine_sigma_px: σ of the refinement heatmap targets, patch pixels.
+        refine_prior_px: σ of the Gaussian prior around the fine stage's landmark at inference, patch
+            pixels (0: none; the patch alone sometimes takes the tube's end for B or the base for A,
+            a few mm off, which the fine stage's view of the whole CM rules out).
+        refine_tta: 2: the refinement logits are averaged with those of the patch mirrored about the
+            tube's axis; 1: the patch alone.
+        refine_assumed_spacing_mm: the pixel spacing taken for images that do not give theirs (the
+            training images' 512² storage of the 1536 × 0.194 mm detector).
     """
 
     input_size: int = 128
@@ -108,6 +125,13 @@ class DetectorConfig:
     high_pct: float = 99.0
     coarse_min_field_mm: float = 0.0
     padded_min_confidence: float = 0.0
+    refine_channels: tuple[int, ...] = ()
+    refine_shape: tuple[int, int] = (48, 80)
+    refine_step_mm: float = 0.291
+    refine_sigma_px: float = 1.5
+    refine_prior_px: float = 3.0
+    refine_tta: int = 2
+    refine_assumed_spacing_mm: float = 0.582
 
     def __post_init__(self) -> None:
         for name in ("fine_tta", "fine_first_tta"):
@@ -128,6 +152,16 @@ class DetectorConfig:
             raise ValueError(f"coarse_min_field_mm must be 0 or more, got {self.coarse_min_field_mm}")
         if not 0.0 <= self.padded_min_confidence <= 1.0:
             raise ValueError(f"padded_min_confidence must be in [0, 1], got {self.padded_min_confidence}")
+        if self.refine_tta not in (1, 2):
+            raise ValueError(f"refine_tta must be 1 or 2, got {self.refine_tta}")
+        if self.refine_channels:
+            div = 2 ** (len(self.refine_channels) - 1)
+            if len(self.refine_shape) != 2 or any(int(n) <= 0 or int(n) % div for n in self.refine_shape):
+                raise ValueError(f"refine_shape must be 2 sizes divisible by {div}, got {self.refine_shape}")
+        if not (self.refine_step_mm > 0 and self.refine_sigma_px > 0 and self.refine_assumed_spacing_mm > 0):
+            raise ValueError("refine_step_mm, refine_sigma_px and refine_assumed_spacing_mm must be > 0")
+        if not self.refine_prior_px >= 0.0:
+            raise ValueError(f"refine_prior_px must be 0 or more, got {self.refine_prior_px}")
         if not 0.0 <= self.fine_min_separation_px < self.roi_size:
             raise ValueError(
                 f"fine_min_separation_px must be in [0, roi_size), got {self.fine_min_separation_px}"
@@ -142,6 +176,7 @@ class DetectorConfig:
         d = asdict(self)
         d["channels"], d["roi_channels"] = list(self.channels), list(self.roi_channels)
         d["fine_scales"] = list(self.fine_scales)
+        d["refine_channels"], d["refine_shape"] = list(self.refine_channels), list(self.refine_shape)
         return d
 
     @classmethod
@@ -151,7 +186,7 @@ class DetectorConfig:
         kw.setdefault("heatmap", "gaussian")  # files written before the softmax heatmaps
         if "fine_tta" not in kw and "fine_flip_tta" in d:  # files before the dihedral TTA
             kw["fine_tta"] = 2 if d["fine_flip_tta"] else 1
-        for key in ("channels", "roi_channels"):
+        for key in ("channels", "roi_channels", "refine_channels", "refine_shape"):
             if key in kw:
                 kw[key] = tuple(int(c) for c in kw[key])
         if "fine_scales" in kw:
@@ -181,7 +216,9 @@ def build_unet(
 
 
 class DetectorNet(nn.Module):
-    """Coarse + fine multi-task U-Nets; each maps (B, 1, S, S) → (B, 3, S, S)."""
+    """Coarse + fine multi-task U-Nets, each (B, 1, S, S) → (B, 3, S, S), and, where
+    ``refine_channels`` is set, the landmark refinement U-Net (B, 1, rows, cols) → (B, 2, rows, cols)
+    (heatmap logits of A and B; each patch uses the channel of its landmark)."""
 
     def __init__(self, config: DetectorConfig | None = None) -> None:
         super().__init__()
@@ -191,6 +228,9 @@ class DetectorNet(nn.Module):
         self.fine = build_unet(c.roi_channels, num_res_units=c.num_res_units)
         for stage in (self.coarse, self.fine):
             _init_head(stage)
+        self.refine: nn.Module | None = None
+        if c.refine_channels:
+            self.refine = build_unet(c.refine_channels, num_res_units=c.num_res_units, out_channels=2)
 
     def forward(self, coarse: torch.Tensor, fine: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, 1, input_size²), (B, 1, roi_size²) → their (B, 3, ·, ·) outputs."""

@@ -33,9 +33,16 @@ from tqdm import tqdm
 
 from fluoronav import __version__
 from fluoronav.detection.augment import AugmentConfig
-from fluoronav.detection.dataset import CMDetectionDataset
+from fluoronav.detection.dataset import CMDetectionDataset, RefineDataset
 from fluoronav.detection.heatmaps import decode_landmarks, gaussian_heatmaps, heatmap_cross_entropy
-from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet, count_parameters
+from fluoronav.detection.model import (
+    DEFAULT_REFINE_CHANNELS,
+    MODEL_FORMAT_VERSION,
+    DetectorConfig,
+    DetectorNet,
+    count_parameters,
+)
+from fluoronav.detection.refine import RefineJitter
 from fluoronav.device import resolve_device
 from fluoronav.errors import InputError
 
@@ -63,6 +70,9 @@ class TrainConfig:
         augment: augment the training samples.
         stages: the stages trained (``("coarse", "fine")``, or one of them): the others keep their
             weights and are not run, so fine-tuning only the fine stage costs about half a step.
+            ``("refine",)`` trains the landmark refinement stage alone on tube-aligned patches
+            (:class:`~fluoronav.detection.dataset.RefineDataset`), adding it to a model without one.
+        refine_repeats: patches per landmark and sample in an epoch of the refinement stage.
         collimate_prob: probability that a training sample is cropped to a collimated field of view
             first (:func:`~fluoronav.detection.augment.collimation_window`, ``p_collimate``).
     """
@@ -83,10 +93,13 @@ class TrainConfig:
     augment: bool = True
     stages: tuple[str, ...] = ("coarse", "fine")
     collimate_prob: float = 0.0
+    refine_repeats: int = 5
 
     def __post_init__(self) -> None:
-        if not self.stages or not set(self.stages) <= {"coarse", "fine"}:
-            raise ValueError(f"stages must be 'coarse' and/or 'fine', got {self.stages}")
+        if self.stages != ("refine",) and (not self.stages or not set(self.stages) <= {"coarse", "fine"}):
+            raise ValueError(f"stages must be 'coarse' and/or 'fine', or 'refine' alone, got {self.stages}")
+        if self.refine_repeats < 1:
+            raise ValueError(f"refine_repeats must be 1 or more, got {self.refine_repeats}")
         if not 0.0 <= self.collimate_prob <= 1.0:
             raise ValueError(f"collimate_prob must be in [0, 1], got {self.collimate_prob}")
 
@@ -100,7 +113,14 @@ ARCHITECTURE_FIELDS = (
     "num_res_units",
     "sigma_px",
     "heatmap",
+    "refine_channels",
+    "refine_shape",
+    "refine_step_mm",
+    "refine_sigma_px",
 )
+
+#: the architecture fields of the refinement stage
+REFINE_FIELDS = ("refine_channels", "refine_shape", "refine_step_mm", "refine_sigma_px")
 
 
 def checkpoint_path(model_path: Path) -> Path:
@@ -196,6 +216,59 @@ def run_stages(
     return {stage: getattr(net, stage)(batch[f"{stage}_image"].to(device)) for stage in stages}
 
 
+def refine_outputs(
+    net: DetectorNet, batch: dict[str, torch.Tensor], device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Refinement logits of each patch's own landmark (N, 1, rows, cols) and targets (N, 1, 2) (col, row;
+    NaN: no patch), N = 2 × the batch (A and B of each sample)."""
+    assert net.refine is not None
+    x = batch["refine_image"].to(device)  # (B, 2, 1, rows, cols)
+    b = x.shape[0]
+    out = net.refine(x.reshape(b * 2, *x.shape[2:]))
+    k = torch.arange(2, device=device).repeat(b)
+    sel = out[torch.arange(b * 2, device=device), k][:, None]
+    return sel, batch["refine_landmarks"].to(device).reshape(b * 2, 1, 2)
+
+
+def refine_loss(
+    net: DetectorNet, batch: dict[str, torch.Tensor], device: torch.device, cfg: DetectorConfig
+) -> torch.Tensor:
+    """Cross-entropy of the refinement heatmaps (:func:`heatmap_cross_entropy`) on a batch."""
+    sel, target = refine_outputs(net, batch, device)
+    return heatmap_cross_entropy(sel, target, sigma_px=cfg.refine_sigma_px)
+
+
+@torch.no_grad()
+def validate_refine(
+    net: DetectorNet, loader: DataLoader, device: torch.device, cfg: DetectorConfig
+) -> dict[str, float]:
+    """Validation loss and landmark error (input pixels) of the refinement stage from jittered starts:
+    ``val_landmark_px`` with the inference prior (``refine_prior_px``), ``val_start_px`` where the
+    patches started."""
+    from fluoronav.detection.refine import decode_refine_logits
+
+    net.eval()
+    losses, errs, starts = [], [], []
+    for batch in loader:
+        sel, target = refine_outputs(net, batch, device)
+        losses.append(float(heatmap_cross_entropy(sel, target, sigma_px=cfg.refine_sigma_px)))
+        pts, _ = decode_refine_logits(sel.cpu(), sigma_px=cfg.refine_sigma_px, prior_px=cfg.refine_prior_px)
+        t = target[:, 0].cpu()
+        ok = torch.isfinite(t).all(dim=1)
+        centre = torch.tensor([(cfg.refine_shape[1] - 1) / 2.0, (cfg.refine_shape[0] - 1) / 2.0])
+        # errors in patch pixels × input pixels per patch pixel (0.5 at the training spacing)
+        scale = cfg.refine_step_mm / cfg.refine_assumed_spacing_mm
+        errs.extend((torch.linalg.norm(pts[ok] - t[ok], dim=1) * scale).tolist())
+        starts.extend((torch.linalg.norm(centre - t[ok], dim=1) * scale).tolist())
+    net.train()
+    nan = float("nan")
+    return {
+        "val_loss": float(np.mean(losses)) if losses else nan,
+        "val_landmark_px": float(np.mean(errs)) if errs else nan,
+        "val_start_px": float(np.mean(starts)) if starts else nan,
+    }
+
+
 @torch.no_grad()
 def validate(
     net: DetectorNet,
@@ -280,18 +353,28 @@ def train(
         from fluoronav.detection.detector import Detector
 
         start = Detector.load(init, device="cpu")  # validated: one-line error on a bad file
-        arch = {f: getattr(start.config, f) for f in ARCHITECTURE_FIELDS}
+        keep: tuple[str, ...] = ARCHITECTURE_FIELDS
+        if not start.config.refine_channels:  # no refinement stage yet: this version's settings
+            keep = tuple(f for f in ARCHITECTURE_FIELDS if f not in REFINE_FIELDS)
+        arch = {f: getattr(start.config, f) for f in keep}
         model_config = dataclasses.replace(model_config or DetectorConfig(), **arch)
         init_state = start.net.state_dict()
         logger.info("starting from the weights of %s", init)
     mcfg = model_config or DetectorConfig()
+    refining = tcfg.stages == ("refine",)
+    if refining and not mcfg.refine_channels:
+        mcfg = dataclasses.replace(mcfg, refine_channels=DEFAULT_REFINE_CHANNELS)
 
     torch.manual_seed(tcfg.seed)
     net = DetectorNet(mcfg).to(device)
     if init_state is not None:
-        net.load_state_dict(init_state)
-    for name in ("coarse", "fine"):
-        getattr(net, name).requires_grad_(name in tcfg.stages)
+        missing, unexpected = net.load_state_dict(init_state, strict=False)
+        if unexpected or any(not k.startswith("refine.") for k in missing):
+            raise InputError(str(init), "weights do not match the model configuration")
+    for name in ("coarse", "fine", "refine"):
+        module = getattr(net, name)
+        if module is not None:
+            module.requires_grad_(name in tcfg.stages)
     opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=tcfg.lr)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=tcfg.lr_step_epochs, gamma=tcfg.lr_gamma)
     start_epoch = 0
@@ -305,21 +388,40 @@ def train(
 
     aug = AugmentConfig(p_collimate=tcfg.collimate_prob) if tcfg.augment else None
     dirs = [data_dir] if isinstance(data_dir, (str, Path)) else list(data_dir)
-    train_parts = [
-        CMDetectionDataset(
-            d,
-            config=mcfg,
-            split="train",
-            val_fraction=tcfg.val_fraction,
-            augment=aug,
-            seed=tcfg.seed + 7919 * i,
-        )
-        for i, d in enumerate(dirs)
-    ]
+    if refining:
+        train_parts: list[CMDetectionDataset] = [
+            RefineDataset(
+                d,
+                config=mcfg,
+                split="train",
+                val_fraction=tcfg.val_fraction,
+                augment=aug,
+                seed=tcfg.seed + 7919 * i,
+                repeats=tcfg.refine_repeats,
+            )
+            for i, d in enumerate(dirs)
+        ]
+        val_parts: list[CMDetectionDataset] = [
+            RefineDataset(d, config=mcfg, split="val", val_fraction=tcfg.val_fraction, seed=tcfg.seed)
+            for d in dirs
+        ]
+    else:
+        train_parts = [
+            CMDetectionDataset(
+                d,
+                config=mcfg,
+                split="train",
+                val_fraction=tcfg.val_fraction,
+                augment=aug,
+                seed=tcfg.seed + 7919 * i,
+            )
+            for i, d in enumerate(dirs)
+        ]
+        val_parts = [
+            CMDetectionDataset(d, config=mcfg, split="val", val_fraction=tcfg.val_fraction) for d in dirs
+        ]
     train_ds: ConcatDataset = ConcatDataset(train_parts)
-    val_ds: ConcatDataset = ConcatDataset(
-        [CMDetectionDataset(d, config=mcfg, split="val", val_fraction=tcfg.val_fraction) for d in dirs]
-    )
+    val_ds: ConcatDataset = ConcatDataset(val_parts)
     if len(train_ds) == 0:
         raise InputError(", ".join(str(d) for d in dirs), "no training samples after the train/val split")
     gen = torch.Generator().manual_seed(tcfg.seed)
@@ -357,7 +459,12 @@ def train(
         for step, batch in enumerate(loader):
             if step >= n_steps:
                 break
-            loss = detector_loss(run_stages(net, batch, tcfg.stages, device), batch, device, mcfg, tcfg, dice)
+            if refining:
+                loss = refine_loss(net, batch, device, mcfg)
+            else:
+                loss = detector_loss(
+                    run_stages(net, batch, tcfg.stages, device), batch, device, mcfg, tcfg, dice
+                )
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -370,7 +477,13 @@ def train(
         lr = opt.param_groups[0]["lr"]
         sched.step()
         val_loader = DataLoader(val_ds, batch_size=tcfg.batch_size, shuffle=False, num_workers=tcfg.workers)
-        val = validate(net, val_loader, device, mcfg, tcfg, dice) if len(val_ds) else {}
+        val: dict[str, float] = {}
+        if len(val_ds):
+            val = (
+                validate_refine(net, val_loader, device, mcfg)
+                if refining
+                else validate(net, val_loader, device, mcfg, tcfg, dice)
+            )
         metrics = {
             "epoch": epoch + 1,
             "lr": lr,
@@ -390,7 +503,7 @@ def train(
                 "samples": len(train_ds),
                 "init": None if init is None else str(init),
                 # the augmentation ranges (None: off), so that a model file says how it was trained
-                "augmentation": None if aug is None else asdict(aug),
+                "augmentation": None if aug is None else asdict(RefineJitter() if refining else aug),
             },
             "metrics": metrics,
         }
