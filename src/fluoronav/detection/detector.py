@@ -346,23 +346,23 @@ class Detector:
         spacing = pixel_spacing_mm or cfg.refine_assumed_spacing_mm
         step = cfg.refine_step_mm / spacing
         shape = (int(cfg.refine_shape[0]), int(cfg.refine_shape[1]))
-        patches = [refine_patch(mask, p, step_px=step, shape=shape) for p in landmarks_px]
-        todo = [k for k, fr in enumerate(patches) if fr is not None]
+        frames = [(k, refine_patch(mask, p, step_px=step, shape=shape)) for k, p in enumerate(landmarks_px)]
+        todo = [(k, fr) for k, fr in frames if fr is not None]
         if not todo:
             return landmarks_px
-        x = torch.from_numpy(np.stack([patches[k].sample(image) for k in todo]))[:, None]  # type: ignore[union-attr]
-        x = x.to(self.device)
+        x = torch.from_numpy(np.stack([fr.sample(image) for _, fr in todo]))[:, None].to(self.device)
         if cfg.refine_tta == 2:
             n = x.shape[0]
             out = net(torch.cat([x, x.flip(-2)]))
             out = 0.5 * (out[:n] + out[n:].flip(-2))
         else:
             out = net(x)
-        sel = out[torch.arange(len(todo)), torch.tensor(todo)][:, None].float().cpu()
+        out = out.float().cpu()
+        sel = out[torch.arange(len(todo)), torch.tensor([k for k, _ in todo])][:, None]
         pts, _ = decode_refine_logits(sel, sigma_px=cfg.refine_sigma_px, prior_px=cfg.refine_prior_px)
         refined = np.array(landmarks_px, dtype=np.float64, copy=True)
-        for i, k in enumerate(todo):
-            refined[k] = patches[k].to_input(pts[i].numpy().astype(np.float64))  # type: ignore[union-attr]
+        for (k, fr), q in zip(todo, pts.numpy().astype(np.float64), strict=True):
+            refined[k] = fr.to_input(q)
         return refined
 
     def fine_stage(self, image: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -16,6 +16,7 @@ per-epoch metrics are appended to ``MODEL.log.jsonl``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import math
@@ -388,38 +389,24 @@ def train(
 
     aug = AugmentConfig(p_collimate=tcfg.collimate_prob) if tcfg.augment else None
     dirs = [data_dir] if isinstance(data_dir, (str, Path)) else list(data_dir)
-    if refining:
-        train_parts: list[CMDetectionDataset] = [
-            RefineDataset(
-                d,
-                config=mcfg,
-                split="train",
-                val_fraction=tcfg.val_fraction,
-                augment=aug,
-                seed=tcfg.seed + 7919 * i,
-                repeats=tcfg.refine_repeats,
-            )
-            for i, d in enumerate(dirs)
-        ]
-        val_parts: list[CMDetectionDataset] = [
-            RefineDataset(d, config=mcfg, split="val", val_fraction=tcfg.val_fraction, seed=tcfg.seed)
-            for d in dirs
-        ]
-    else:
-        train_parts = [
-            CMDetectionDataset(
-                d,
-                config=mcfg,
-                split="train",
-                val_fraction=tcfg.val_fraction,
-                augment=aug,
-                seed=tcfg.seed + 7919 * i,
-            )
-            for i, d in enumerate(dirs)
-        ]
-        val_parts = [
-            CMDetectionDataset(d, config=mcfg, split="val", val_fraction=tcfg.val_fraction) for d in dirs
-        ]
+    # the refinement stage reads patches around the landmarks; the other stages whole views
+    make_ds = (
+        functools.partial(RefineDataset, repeats=tcfg.refine_repeats) if refining else CMDetectionDataset
+    )
+    train_parts = [
+        make_ds(
+            d,
+            config=mcfg,
+            split="train",
+            val_fraction=tcfg.val_fraction,
+            augment=aug,
+            seed=tcfg.seed + 7919 * i,
+        )
+        for i, d in enumerate(dirs)
+    ]
+    val_parts = [
+        make_ds(d, config=mcfg, split="val", val_fraction=tcfg.val_fraction, seed=tcfg.seed) for d in dirs
+    ]
     train_ds: ConcatDataset = ConcatDataset(train_parts)
     val_ds: ConcatDataset = ConcatDataset(val_parts)
     if len(train_ds) == 0:
