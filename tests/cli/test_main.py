@@ -15,6 +15,8 @@ from fluoronav.cli.main import main
         (["simulate", "--n", "1", "--out", "x", "--no-such-option"], "No such option"),
         (["no-such-command"], "No such command"),
         (["simulate", "--n", "zero", "--out", "x"], "Invalid value"),
+        (["train", "--data", "x", "--out", "m.pt", "--stage", "refine", "--stage", "fine"], "'refine' alone"),
+        (["train", "--data", "x", "--out", "m.pt", "--stage", "middle"], "stages must be"),
     ],
 )
 def test_usage_error_is_short(args: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:

@@ -60,23 +60,21 @@ def train_command(
     """Train the detector (segmentation + landmark heatmaps, or the landmark refinement) and write MODEL."""
     from fluoronav.detection.train import TrainConfig, train
 
-    stages = tuple(dict.fromkeys(stage))
-    if stages != ("refine",) and (not stages or not set(stages) <= {"coarse", "fine"}):
-        raise typer.BadParameter(
-            f"--stage takes coarse and/or fine, or refine alone, got {', '.join(stage) or 'nothing'}"
+    try:  # TrainConfig holds the rules (which --stage combinations train, ranges)
+        config = TrainConfig(
+            epochs=epochs,
+            batch_size=batch_size,
+            lr=lr,
+            lr_step_epochs=lr_step,
+            seed=seed,
+            device=device,
+            workers=workers,
+            stages=tuple(dict.fromkeys(stage)),
+            collimate_prob=collimate_prob,
+            refine_repeats=refine_repeats,
         )
-    config = TrainConfig(
-        epochs=epochs,
-        batch_size=batch_size,
-        lr=lr,
-        lr_step_epochs=lr_step,
-        seed=seed,
-        device=device,
-        workers=workers,
-        stages=stages,
-        collimate_prob=collimate_prob,
-        refine_repeats=refine_repeats,
-    )
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
     metrics = train(data, out, config=config, resume=resume, init=init, progress=progress)
     typer.echo(json.dumps(metrics))
 

@@ -325,11 +325,10 @@ class RefineDataset(CMDetectionDataset):
         cfg = self.config
         train = self.augment is not None
         rng = np.random.default_rng([self.seed, self.epoch if train else 0, index])
-        shape = (int(cfg.refine_shape[0]), int(cfg.refine_shape[1]))
-        images = np.zeros((2, 1, *shape), np.float32)
+        images = np.zeros((2, 1, *cfg.refine_shape), np.float32)
         targets = np.full((2, 2), np.nan, np.float32)
         if s.landmarks_px is not None:
-            step = cfg.refine_step_mm / (s.pixel_spacing_mm or cfg.refine_assumed_spacing_mm)
+            step = cfg.refine_step_px(s.pixel_spacing_mm)
             for k in (0, 1):
                 got = training_patch(
                     s.image,
@@ -337,7 +336,7 @@ class RefineDataset(CMDetectionDataset):
                     s.landmarks_px[k],
                     rng,
                     step_px=step,
-                    shape=shape,
+                    shape=cfg.refine_shape,
                     jitter=self.jitter,
                     photometric=train,
                 )

@@ -343,10 +343,11 @@ class Detector:
         net, cfg = self.net.refine, self.config
         if net is None:
             return landmarks_px
-        spacing = pixel_spacing_mm or cfg.refine_assumed_spacing_mm
-        step = cfg.refine_step_mm / spacing
-        shape = (int(cfg.refine_shape[0]), int(cfg.refine_shape[1]))
-        frames = [(k, refine_patch(mask, p, step_px=step, shape=shape)) for k, p in enumerate(landmarks_px)]
+        step = cfg.refine_step_px(pixel_spacing_mm)
+        frames = [
+            (k, refine_patch(mask, p, step_px=step, shape=cfg.refine_shape))
+            for k, p in enumerate(landmarks_px)
+        ]
         todo = [(k, fr) for k, fr in frames if fr is not None]
         if not todo:
             return landmarks_px

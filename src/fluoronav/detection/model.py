@@ -167,6 +167,11 @@ class DetectorConfig:
                 f"fine_min_separation_px must be in [0, roi_size), got {self.fine_min_separation_px}"
             )
 
+    def refine_step_px(self, pixel_spacing_mm: float | None) -> float:
+        """Input pixels per refinement patch pixel for an image of this pixel spacing (mm;
+        None: ``refine_assumed_spacing_mm``)."""
+        return self.refine_step_mm / (pixel_spacing_mm or self.refine_assumed_spacing_mm)
+
     @property
     def mask_threshold_logit(self) -> float:
         """``mask_threshold`` as a logit (the networks' segmentation output)."""

@@ -36,10 +36,13 @@ from scipy import ndimage
 from fluoronav.detection.heatmaps import decode_logit_heatmaps
 
 __all__ = [
+    "RefineJitter",
     "RefinePatch",
     "add_center_prior",
+    "decode_refine_logits",
     "landmark_direction",
     "refine_patch",
+    "training_patch",
 ]
 
 #: ring around a landmark, in patch pixels, whose mask pixels give the tube's direction

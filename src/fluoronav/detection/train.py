@@ -43,7 +43,7 @@ from fluoronav.detection.model import (
     DetectorNet,
     count_parameters,
 )
-from fluoronav.detection.refine import RefineJitter
+from fluoronav.detection.refine import RefineJitter, decode_refine_logits
 from fluoronav.device import resolve_device
 from fluoronav.errors import InputError
 
@@ -217,6 +217,11 @@ def run_stages(
     return {stage: getattr(net, stage)(batch[f"{stage}_image"].to(device)) for stage in stages}
 
 
+def _mean_or_nan(values: Sequence[float]) -> float:
+    """Mean of a validation metric's values; NaN where there are none (e.g. no positives)."""
+    return float(np.mean(values)) if len(values) else float("nan")
+
+
 def refine_outputs(
     net: DetectorNet, batch: dict[str, torch.Tensor], device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -246,27 +251,23 @@ def validate_refine(
     """Validation loss and landmark error (input pixels) of the refinement stage from jittered starts:
     ``val_landmark_px`` with the inference prior (``refine_prior_px``), ``val_start_px`` where the
     patches started."""
-    from fluoronav.detection.refine import decode_refine_logits
-
     net.eval()
     losses, errs, starts = [], [], []
+    centre = torch.tensor([(cfg.refine_shape[1] - 1) / 2.0, (cfg.refine_shape[0] - 1) / 2.0])
+    scale = cfg.refine_step_px(None)  # input pixels per patch pixel at the training spacing
     for batch in loader:
         sel, target = refine_outputs(net, batch, device)
         losses.append(float(heatmap_cross_entropy(sel, target, sigma_px=cfg.refine_sigma_px)))
         pts, _ = decode_refine_logits(sel.cpu(), sigma_px=cfg.refine_sigma_px, prior_px=cfg.refine_prior_px)
         t = target[:, 0].cpu()
         ok = torch.isfinite(t).all(dim=1)
-        centre = torch.tensor([(cfg.refine_shape[1] - 1) / 2.0, (cfg.refine_shape[0] - 1) / 2.0])
-        # errors in patch pixels × input pixels per patch pixel (0.5 at the training spacing)
-        scale = cfg.refine_step_mm / cfg.refine_assumed_spacing_mm
         errs.extend((torch.linalg.norm(pts[ok] - t[ok], dim=1) * scale).tolist())
         starts.extend((torch.linalg.norm(centre - t[ok], dim=1) * scale).tolist())
     net.train()
-    nan = float("nan")
     return {
-        "val_loss": float(np.mean(losses)) if losses else nan,
-        "val_landmark_px": float(np.mean(errs)) if errs else nan,
-        "val_start_px": float(np.mean(starts)) if starts else nan,
+        "val_loss": _mean_or_nan(losses),
+        "val_landmark_px": _mean_or_nan(errs),
+        "val_start_px": _mean_or_nan(starts),
     }
 
 
@@ -304,12 +305,11 @@ def validate(
             errs_c = np.linalg.norm((cpts[i].numpy() - batch["coarse_landmarks"][i].numpy()) * cs, axis=1)
             coarse_errs.extend(errs_c)
     net.train()
-    nan = float("nan")
     return {
-        "val_loss": float(np.mean(losses)) if losses else nan,
-        "val_dice": float(np.mean(dices)) if dices else nan,
-        "val_landmark_px": float(np.mean(errs)) if errs else nan,
-        "val_coarse_landmark_px": float(np.mean(coarse_errs)) if coarse_errs else nan,
+        "val_loss": _mean_or_nan(losses),
+        "val_dice": _mean_or_nan(dices),
+        "val_landmark_px": _mean_or_nan(errs),
+        "val_coarse_landmark_px": _mean_or_nan(coarse_errs),
     }
 
 
