@@ -92,6 +92,22 @@ def test_init_starts_from_a_model_files_weights(tmp_path: Path) -> None:
         train(data, tmp_path / "x.pt", config=cfg, init=tmp_path / "bad.pt", progress=False)
 
 
+def test_init_keeps_the_init_files_decoding_settings_only_when_asked(tmp_path: Path) -> None:
+    data = write_dataset(tmp_path / "data", 4, size=64, seed=9, negative_every=3)
+    cfg = TrainConfig(epochs=1, batch_size=2, max_steps_per_epoch=1, device="cpu", val_fraction=0.3, seed=9)
+    tuned_cfg = dataclasses.replace(TINY, mask_join_frac=0.2, fine_scales=(0.9, 1.0), min_mask_px=12)
+    first = tmp_path / "first.pt"
+    train(data, first, config=cfg, model_config=tuned_cfg, progress=False)
+    kept, reset = tmp_path / "kept.pt", tmp_path / "reset.pt"
+    train(data, kept, config=cfg, init=first, keep_decoding=True, progress=False)
+    train(data, reset, config=cfg, init=first, progress=False)
+    assert Detector.load(kept, device="cpu").config == tuned_cfg
+    assert json.loads(sidecar_path(kept).read_text())["train"]["keep_decoding"] is True
+    # by default the architecture is the init's and the decoding settings this version's
+    default = dataclasses.replace(DetectorConfig(), input_size=32, roi_size=32, channels=(4, 8, 16))
+    assert Detector.load(reset, device="cpu").config == dataclasses.replace(default, roi_channels=(4, 8, 16))
+
+
 def test_training_one_stage_leaves_the_other_untouched(tmp_path: Path) -> None:
     data, cfg, first, w0 = _first_model(tmp_path, seed=7, steps=2)
     tuned = tmp_path / "fine_only.pt"

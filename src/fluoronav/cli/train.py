@@ -34,6 +34,12 @@ def train_command(
         "--init",
         help="Start from the weights of this model file (fine-tuning; fresh optimiser and schedule).",
     ),
+    keep_decoding: bool = typer.Option(
+        False,
+        "--keep-decoding",
+        help="With --init: keep that model's decoding settings (thresholds, passes, test-time "
+        "augmentation) instead of this version's defaults.",
+    ),
     stage: list[str] = typer.Option(
         ["coarse", "fine"],
         "--stage",
@@ -75,7 +81,15 @@ def train_command(
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
-    metrics = train(data, out, config=config, resume=resume, init=init, progress=progress)
+    metrics = train(
+        data,
+        out,
+        config=config,
+        resume=resume,
+        init=init,
+        keep_decoding=keep_decoding,
+        progress=progress,
+    )
     typer.echo(json.dumps(metrics))
 
 

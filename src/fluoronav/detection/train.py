@@ -321,6 +321,7 @@ def train(
     model_config: DetectorConfig | None = None,
     resume: bool = False,
     init: str | Path | None = None,
+    keep_decoding: bool = False,
     progress: bool = True,
 ) -> dict[str, float]:
     """Train the detector on one or more simulate data sets and write the model file ``out_path``.
@@ -332,8 +333,9 @@ def train(
     continued (its model configuration wins over ``model_config``). ``init`` starts from the weights
     of a model file (fine-tuning, e.g. on a new data set) and takes its architecture
     (:data:`ARCHITECTURE_FIELDS`); the decoding settings come from ``model_config`` (default: this
-    version's), the optimiser and the learning-rate schedule start afresh. ``resume`` wins over
-    ``init``.
+    version's), or with ``keep_decoding`` from the ``init`` file, ``model_config`` aside
+    (fine-tuning a tuned model: the result decodes as it did); the optimiser and the learning-rate
+    schedule start afresh. ``resume`` wins over ``init``.
     """
     tcfg = config or TrainConfig()
     out_path = Path(out_path)
@@ -358,7 +360,8 @@ def train(
         if not start.config.refine_channels:  # no refinement stage yet: this version's settings
             keep = tuple(f for f in ARCHITECTURE_FIELDS if f not in REFINE_FIELDS)
         arch = {f: getattr(start.config, f) for f in keep}
-        model_config = dataclasses.replace(model_config or DetectorConfig(), **arch)
+        base = start.config if keep_decoding else model_config or DetectorConfig()
+        model_config = dataclasses.replace(base, **arch)
         init_state = start.net.state_dict()
         logger.info("starting from the weights of %s", init)
     mcfg = model_config or DetectorConfig()
@@ -489,6 +492,7 @@ def train(
                 "data": [str(d) for d in dirs],
                 "samples": len(train_ds),
                 "init": None if init is None else str(init),
+                "keep_decoding": keep_decoding and init is not None,
                 # the augmentation ranges (None: off), so that a model file says how it was trained
                 "augmentation": None if aug is None else asdict(RefineJitter() if refining else aug),
             },
