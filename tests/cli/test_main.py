@@ -17,6 +17,7 @@ from fluoronav.cli.main import main
         (["simulate", "--n", "zero", "--out", "x"], "Invalid value"),
         (["train", "--data", "x", "--out", "m.pt", "--stage", "refine", "--stage", "fine"], "'refine' alone"),
         (["train", "--data", "x", "--out", "m.pt", "--stage", "middle"], "stages must be"),
+        (["train", "--data", "x", "--out", "m.pt", "--keep-decoding"], "give --init"),
     ],
 )
 def test_usage_error_is_short(args: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:

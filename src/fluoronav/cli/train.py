@@ -81,6 +81,10 @@ def train_command(
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
+    if keep_decoding and init is None:
+        raise typer.BadParameter(
+            "--keep-decoding keeps the decoding settings of an --init model: give --init"
+        )
     metrics = train(
         data,
         out,
