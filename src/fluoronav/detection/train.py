@@ -105,6 +105,9 @@ class TrainConfig:
             raise ValueError(f"collimate_prob must be in [0, 1], got {self.collimate_prob}")
 
 
+#: the architecture fields of the refinement stage
+REFINE_FIELDS = ("refine_channels", "refine_shape", "refine_step_mm", "refine_sigma_px")
+
 #: the model configuration fields fixed by trained weights (the rest only steer decoding)
 ARCHITECTURE_FIELDS = (
     "input_size",
@@ -114,14 +117,8 @@ ARCHITECTURE_FIELDS = (
     "num_res_units",
     "sigma_px",
     "heatmap",
-    "refine_channels",
-    "refine_shape",
-    "refine_step_mm",
-    "refine_sigma_px",
+    *REFINE_FIELDS,
 )
-
-#: the architecture fields of the refinement stage
-REFINE_FIELDS = ("refine_channels", "refine_shape", "refine_step_mm", "refine_sigma_px")
 
 
 def checkpoint_path(model_path: Path) -> Path:
