@@ -23,14 +23,16 @@ from fluoronav.detection.dataset import (
     Sample,
     collimate,
     crop_sample,
+    fine_view_for,
     load_sample,
     make_view,
+    partial_cm_points,
     photons_per_pixel_of,
     read_manifest,
     split_of,
 )
 from fluoronav.detection.model import DetectorConfig
-from fluoronav.detection.views import full_view
+from fluoronav.detection.views import View, full_view
 from fluoronav.errors import InputError
 
 CFG = DetectorConfig(input_size=64, roi_size=48, channels=(4, 8, 16), roi_channels=(4, 8, 16))
@@ -281,3 +283,52 @@ def test_dataset_items_of_collimated_samples_stay_consistent(data_dir: Path) -> 
         scales.append(float(item["coarse_scale"]))
         assert float(plain[i]["coarse_scale"]) == 96 / 64
     assert min(scales) < 96 / 64  # a smaller field: the CM is larger in the coarse view
+
+
+def _tube(a: tuple[float, float], b: tuple[float, float], shape: tuple[int, int] = (160, 200)) -> np.ndarray:
+    """A straight tube mask (radius 4 px) from a to b, (u, v) pixels."""
+    vv, uu = np.mgrid[0 : shape[0], 0 : shape[1]]
+    p = np.stack([uu, vv], axis=-1).astype(float)
+    pa, ab = np.asarray(a, float), np.subtract(b, a)
+    t = np.clip((p - pa) @ ab / (ab @ ab), 0.0, 1.0)
+    return np.hypot(*(p - pa - t[..., None] * ab).transpose(2, 0, 1)) <= 4.0
+
+
+def test_partial_cm_points_cover_one_end_and_the_drawn_fraction() -> None:
+    a, b = (30.0, 40.0), (150.0, 120.0)
+    mask, lm = _tube(a, b), np.array([a, b])
+    axis = np.subtract(b, a) / np.hypot(*np.subtract(b, a))
+    span = float(np.ptp((np.stack(np.nonzero(mask)[::-1], axis=1) - a) @ axis))
+    ends = set()
+    for seed in range(40):
+        pts = partial_cm_points(mask, lm, np.random.default_rng(seed), frac_range=(0.4, 0.6))
+        lo, hi, end = pts
+        from_a = bool(np.allclose(end, a))
+        assert from_a or np.allclose(end, b)
+        ends.add(from_a)
+        # the box spans 40-60 % of the tube's length along its axis (+ its width across), from that end
+        assert 0.4 * span - 1.0 <= (hi - lo) @ axis <= 0.6 * span + 12.0
+        assert np.all(end >= lo - 4.5) and np.all(end <= hi + 4.5)
+        far = np.array(b if from_a else a)
+        assert not (np.all(far >= lo) and np.all(far <= hi))
+    assert ends == {True, False}  # both ends are drawn
+    # end-on (A and B within 4 px): along the mask's principal axis, no failure
+    blob = _tube((90.0, 80.0), (120.0, 80.0))
+    pts = partial_cm_points(blob, np.array([[100.0, 80.0], [101.0, 80.0]]), np.random.default_rng(0))
+    assert 5.0 < np.ptp(pts[:2, 0]) < 30.0
+
+
+def test_partial_roi_leaves_the_far_landmark_out_of_the_fine_view() -> None:
+    a, b = (20.0, 80.0), (180.0, 80.0)
+    lm = np.array([a, b])
+    s = Sample("t", np.zeros((160, 200), np.float32), _tube(a, b), lm, 0.5)
+    cfg = DetectorConfig()
+
+    def inside(v: View) -> np.ndarray:
+        uv = v.from_input(lm)
+        return np.all((uv >= 0) & (uv <= v.size), axis=1)
+
+    for seed in range(30):
+        part = fine_view_for(s, cfg, np.random.default_rng(seed), p_partial=1.0, partial_frac=(0.4, 0.4))
+        assert inside(part).sum() == 1  # one end in the view, the other beyond its edge
+        assert inside(fine_view_for(s, cfg, np.random.default_rng(seed))).all()  # p_partial 0: both

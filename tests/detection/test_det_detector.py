@@ -261,6 +261,31 @@ def test_weak_coarse_mask_needs_sure_fine_landmarks(
     assert sure.detect(img).found
 
 
+@pytest.mark.parametrize(
+    ("min_mask_mm2", "spacing_mm", "found"),
+    [
+        (0.0, 0.2, True),  # off
+        (70.0, 0.2, True),  # the bar's mask, about 1,930 px, covers about 77 mm² at 0.2 mm
+        (85.0, 0.2, False),
+        (85.0, 0.25, True),  # the same pixels cover 121 mm² at 0.25 mm
+        (600.0, None, True),  # no spacing given: 0.582 mm pixels are assumed (about 650 mm²)
+        (700.0, None, False),
+    ],
+)
+def test_a_mask_smaller_than_the_cms_end_on_disc_is_no_detection(
+    min_mask_mm2: float, spacing_mm: float | None, found: bool
+) -> None:
+    img = drawn_cm()[0]
+    net = DetectorNet(dataclasses.replace(TINY, min_mask_mm2=min_mask_mm2))
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    res = Detector(net, device="cpu").detect(img, pixel_spacing_mm=spacing_mm)
+    assert 1880 <= res.mask.sum() <= 1980
+    assert res.found is found
+    assert (res.landmarks_px is None) is not found
+    with pytest.raises(ValueError, match="min_mask_mm2"):
+        dataclasses.replace(TINY, min_mask_mm2=-1.0)
+
+
 def test_weak_mask_settings_are_validated() -> None:
     with pytest.raises(ValueError, match="weak_mask_px"):
         dataclasses.replace(TINY, min_mask_px=10, weak_mask_px=11)

@@ -111,7 +111,7 @@ def test_init_keeps_the_init_files_decoding_settings_only_when_asked(tmp_path: P
 def test_training_one_stage_leaves_the_other_untouched(tmp_path: Path) -> None:
     data, cfg, first, w0 = _first_model(tmp_path, seed=7, steps=2)
     tuned = tmp_path / "fine_only.pt"
-    fine_cfg = dataclasses.replace(cfg, stages=("fine",), collimate_prob=0.5)
+    fine_cfg = dataclasses.replace(cfg, stages=("fine",), collimate_prob=0.5, partial_roi_prob=0.5)
     train(data, tuned, config=fine_cfg, init=first, progress=False)
     w1 = torch.load(tuned, weights_only=True)["state_dict"]
     # the coarse stage is not run at all: weights and batch-norm statistics stay bit-identical
@@ -123,8 +123,12 @@ def test_training_one_stage_leaves_the_other_untouched(tmp_path: Path) -> None:
     side = meta["train"]
     assert side["stages"] == ["fine"]
     assert side["augmentation"]["p_collimate"] == 0.5 and side["collimate_prob"] == 0.5
+    assert side["augmentation"]["p_partial_roi"] == 0.5 and side["partial_roi_prob"] == 0.5
     assert AugmentConfig().p_collimate == 0.0  # off unless asked for (--collimate-prob)
+    assert AugmentConfig().p_partial_roi == 0.0  # off unless asked for (--partial-roi-prob)
     with pytest.raises(ValueError, match="collimate_prob"):
         TrainConfig(collimate_prob=1.5)
+    with pytest.raises(ValueError, match="partial_roi_prob"):
+        TrainConfig(partial_roi_prob=-0.1)
     with pytest.raises(ValueError, match="stages"):
         TrainConfig(stages=("middle",))

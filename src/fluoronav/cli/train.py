@@ -59,6 +59,14 @@ def train_command(
         max=1.0,
         help="Probability of cropping a training sample to a random collimated field first.",
     ),
+    partial_roi_prob: float = typer.Option(
+        0.0,
+        "--partial-roi-prob",
+        min=0.0,
+        max=1.0,
+        help="Probability of fitting a training sample's fine ROI to a part of its CM only (the CM runs "
+        "out of the ROI, as after a coarse detection of part of it).",
+    ),
     seed: int = SEED_OPTION,
     device: str = DEVICE_OPTION,
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
@@ -77,6 +85,7 @@ def train_command(
             workers=workers,
             stages=tuple(dict.fromkeys(stage)),
             collimate_prob=collimate_prob,
+            partial_roi_prob=partial_roi_prob,
             refine_repeats=refine_repeats,
         )
     except ValueError as exc:

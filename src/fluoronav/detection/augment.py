@@ -36,6 +36,12 @@ class AugmentConfig:
         p_collimate: probability of cropping the sample to a collimated window
             (:func:`collimation_window`) before its views are made.
         min_field_frac: each side of that window is at least this fraction of the image's side.
+        p_partial_roi: probability that the fine stage's ROI is fitted to a part of the CM only
+            (:func:`~fluoronav.detection.dataset.partial_cm_points`), so that the CM runs out of the
+            ROI: at inference a coarse detection can find only part of a CM, and the fine stage must
+            then segment the CM up to the ROI's edge (which adds a pass on a wider ROI) instead of
+            ending it inside.
+        partial_frac: range of the fraction of the CM's length (along A–B) that such a ROI is fitted to.
     """
 
     p_flip: float = 0.5
@@ -51,6 +57,8 @@ class AugmentConfig:
     min_dose_fraction: float = 0.25
     p_collimate: float = 0.0
     min_field_frac: float = 0.35
+    p_partial_roi: float = 0.0
+    partial_frac: tuple[float, float] = (0.35, 0.75)
 
 
 def collimation_window(

@@ -129,13 +129,47 @@ def _cm_extent_points(mask: np.ndarray, landmarks_px: np.ndarray) -> np.ndarray:
     return np.concatenate([corners, landmarks_px])
 
 
+def partial_cm_points(
+    mask: np.ndarray,
+    landmarks_px: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    frac_range: tuple[float, float] = (0.35, 0.75),
+) -> np.ndarray:
+    """Points (N, 2) (u, v) that a view of part of the CM must contain: the bounding-box corners of
+    the mask pixels whose projection on the CM's axis falls within a fraction (uniform in
+    ``frac_range``) of its length at the A or the B end (equally likely), and that end's landmark.
+
+    The axis is A → B, or the mask's principal axis where A and B are under 4 px apart (end-on).
+    """
+    vv, uu = np.nonzero(mask)
+    p = np.stack([uu, vv], axis=1).astype(np.float64)
+    a, b = np.asarray(landmarks_px, dtype=np.float64).reshape(2, 2)
+    axis = b - a
+    if float(np.hypot(*axis)) < 4.0:
+        centred = p - p.mean(axis=0)
+        axis = np.linalg.eigh(centred.T @ centred)[1][:, -1]
+    t = (p - a) @ (axis / max(float(np.hypot(*axis)), 1e-9))
+    t0, t1 = float(t.min()), float(t.max())
+    span = float(rng.uniform(*frac_range)) * (t1 - t0)
+    from_a = bool(rng.random() < 0.5)
+    keep = t <= t0 + span if from_a else t >= t1 - span
+    part = p[keep]
+    corners = np.array([part.min(axis=0), part.max(axis=0)])
+    return np.concatenate([corners, (a if from_a else b)[None]])
+
+
 def fine_view_for(
     sample: Sample,
     config: DetectorConfig,
     rng: np.random.Generator | None,
+    *,
+    p_partial: float = 0.0,
+    partial_frac: tuple[float, float] = (0.35, 0.75),
 ) -> View:
-    """The ROI of a sample: around its mask and landmarks (jittered when ``rng`` is given);
-    a random window for negatives."""
+    """The ROI of a sample: around its mask and landmarks (jittered when ``rng`` is given; with
+    probability ``p_partial`` around a part of the CM, :func:`partial_cm_points`); a random window
+    for negatives."""
     rows, cols = sample.image.shape
     if sample.landmarks_px is None:
         r = rng if rng is not None else np.random.default_rng(0)
@@ -143,6 +177,17 @@ def fine_view_for(
         centre = r.uniform([0, 0], [cols, rows])
         return roi_view(centre[None], config.roi_size, margin_frac=0.0, min_side_px=max(side, 2.0))
     pts = _cm_extent_points(sample.mask, sample.landmarks_px)
+    if rng is not None and p_partial > 0.0 and rng.random() < p_partial:
+        pts = partial_cm_points(sample.mask, sample.landmarks_px, rng, frac_range=partial_frac)
+        # a coarse stage that found part of a CM fits its ROI to that part: less loose than the whole
+        return roi_view(
+            pts,
+            config.roi_size,
+            margin_frac=config.roi_margin_frac,
+            min_side_px=config.roi_min_side_px,
+            scale_factor=float(np.exp(rng.uniform(np.log(0.8), np.log(1.5)))),
+            shift_frac=tuple(rng.uniform(-0.1, 0.1, size=2)),
+        )
     if rng is None:
         return roi_view(
             pts, config.roi_size, margin_frac=config.roi_margin_frac, min_side_px=config.roi_min_side_px
@@ -280,7 +325,12 @@ class CMDetectionDataset(Dataset):
         if rng is not None and self.augment is not None and rng.random() < self.augment.p_collimate:
             s = collimate(s, rng, min_field_frac=self.augment.min_field_frac)
         cv = full_view(s.image.shape, self.config.input_size)
-        fv = fine_view_for(s, self.config, rng)
+        aug = self.augment
+        fv = (
+            fine_view_for(s, self.config, rng, p_partial=aug.p_partial_roi, partial_frac=aug.partial_frac)
+            if aug is not None
+            else fine_view_for(s, self.config, rng)
+        )
         n0 = self.photons_per_pixel
         ci, cm, cl = make_view(s, cv, self.config, rng=rng, augment=self.augment, photons_per_pixel=n0)
         fi, fm, fl = make_view(s, fv, self.config, rng=rng, augment=self.augment, photons_per_pixel=n0)

@@ -294,7 +294,8 @@ class Detector:
 
         Returns a :class:`Detection` in the input's pixels; ``found`` is False when the coarse mask is
         smaller than ``min_mask_px`` or a landmark confidence is below ``min_confidence`` (a weak coarse
-        mask, between ``weak_mask_px`` and ``min_mask_px``, needs ``weak_min_confidence`` instead).
+        mask, between ``weak_mask_px`` and ``min_mask_px``, needs ``weak_min_confidence`` instead), or
+        when the final mask covers less than ``min_mask_mm2`` at the detector.
         ``pixel_spacing_mm`` (mm per input pixel at the detector), where given, lets an image smaller
         than ``coarse_min_field_mm`` be seen by the coarse stage at the scale of a whole field; such a
         detection needs ``padded_min_confidence``.
@@ -319,7 +320,8 @@ class Detector:
         need = max(cfg.weak_min_confidence, cfg.min_confidence) if weak else cfg.min_confidence
         if padded:
             need = max(need, cfg.padded_min_confidence)
-        if not mask.any() or float(f_conf.min()) < need:
+        area_mm2 = float(mask.sum()) * (pixel_spacing_mm or cfg.refine_assumed_spacing_mm) ** 2
+        if not mask.any() or float(f_conf.min()) < need or area_mm2 < cfg.min_mask_mm2:
             return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
         f_pts = self.refine(img, f_pts, mask, pixel_spacing_mm=pixel_spacing_mm)
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])

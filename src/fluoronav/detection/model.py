@@ -72,6 +72,10 @@ class DetectorConfig:
             pieces by noise or a crossing bone); 0: the largest component only.
         min_mask_px: smallest coarse mask area (coarse pixels) counted as a detection.
         min_confidence: smallest landmark confidence (heatmap peak) counted as a detection.
+        min_mask_mm2: smallest final mask area at the detector (mm²) counted as a detection (0: off).
+            A tube of diameter d projects to at least a disc of diameter d (magnification ≥ 1), so a
+            smaller mask is not a whole CM (the paper's CM: π · 3² = 28.3 mm²). Images that do not
+            give their pixel spacing are taken to have ``refine_assumed_spacing_mm``.
         weak_mask_px: with 0 < this < ``min_mask_px``, coarse masks of this many coarse pixels or
             more but fewer than ``min_mask_px`` (a small or faint CM, or a false alarm) go on to the
             fine stage too, and count as a detection only if both fine landmark confidences are at
@@ -97,7 +101,8 @@ class DetectorConfig:
         refine_tta: 2: the refinement logits are averaged with those of the patch mirrored about the
             tube's axis; 1: the patch alone.
         refine_assumed_spacing_mm: the pixel spacing taken for images that do not give theirs (the
-            training images' 512² storage of the 1536 × 0.194 mm detector).
+            training images' 512² storage of the 1536 × 0.194 mm detector), by the refinement stage
+            and ``min_mask_mm2``.
     """
 
     input_size: int = 128
@@ -119,6 +124,7 @@ class DetectorConfig:
     mask_join_frac: float = 0.0
     min_mask_px: int = 6
     min_confidence: float = 0.3
+    min_mask_mm2: float = 0.0
     weak_mask_px: int = 0
     weak_min_confidence: float = 0.15
     low_pct: float = 1.0
@@ -148,6 +154,8 @@ class DetectorConfig:
             raise ValueError(f"weak_mask_px must be in [0, min_mask_px], got {self.weak_mask_px}")
         if not 0.0 <= self.weak_min_confidence <= 1.0:
             raise ValueError(f"weak_min_confidence must be in [0, 1], got {self.weak_min_confidence}")
+        if not self.min_mask_mm2 >= 0.0:
+            raise ValueError(f"min_mask_mm2 must be 0 or more, got {self.min_mask_mm2}")
         if not self.coarse_min_field_mm >= 0.0:
             raise ValueError(f"coarse_min_field_mm must be 0 or more, got {self.coarse_min_field_mm}")
         if not 0.0 <= self.padded_min_confidence <= 1.0:

@@ -76,6 +76,8 @@ class TrainConfig:
         refine_repeats: patches per landmark and sample in an epoch of the refinement stage.
         collimate_prob: probability that a training sample is cropped to a collimated field of view
             first (:func:`~fluoronav.detection.augment.collimation_window`, ``p_collimate``).
+        partial_roi_prob: probability that a training sample's fine ROI is fitted to a part of its
+            CM only (``AugmentConfig.p_partial_roi``).
     """
 
     epochs: int = 10
@@ -94,6 +96,7 @@ class TrainConfig:
     augment: bool = True
     stages: tuple[str, ...] = ("coarse", "fine")
     collimate_prob: float = 0.0
+    partial_roi_prob: float = 0.0
     refine_repeats: int = 5
 
     def __post_init__(self) -> None:
@@ -103,6 +106,8 @@ class TrainConfig:
             raise ValueError(f"refine_repeats must be 1 or more, got {self.refine_repeats}")
         if not 0.0 <= self.collimate_prob <= 1.0:
             raise ValueError(f"collimate_prob must be in [0, 1], got {self.collimate_prob}")
+        if not 0.0 <= self.partial_roi_prob <= 1.0:
+            raise ValueError(f"partial_roi_prob must be in [0, 1], got {self.partial_roi_prob}")
 
 
 #: the architecture fields of the refinement stage
@@ -387,7 +392,11 @@ def train(
         torch.set_rng_state(ckpt["torch_rng"])
         logger.info("resuming from %s at epoch %d", ckpt_file, start_epoch)
 
-    aug = AugmentConfig(p_collimate=tcfg.collimate_prob) if tcfg.augment else None
+    aug = (
+        AugmentConfig(p_collimate=tcfg.collimate_prob, p_partial_roi=tcfg.partial_roi_prob)
+        if tcfg.augment
+        else None
+    )
     dirs = [data_dir] if isinstance(data_dir, (str, Path)) else list(data_dir)
     # the refinement stage reads patches around the landmarks; the other stages whole views
     make_ds = (
