@@ -177,28 +177,21 @@ def fine_view_for(
         centre = r.uniform([0, 0], [cols, rows])
         return roi_view(centre[None], config.roi_size, margin_frac=0.0, min_side_px=max(side, 2.0))
     pts = _cm_extent_points(sample.mask, sample.landmarks_px)
-    if rng is not None and p_partial > 0.0 and rng.random() < p_partial:
-        pts = partial_cm_points(sample.mask, sample.landmarks_px, rng, frac_range=partial_frac)
-        # a coarse stage that found part of a CM fits its ROI to that part: less loose than the whole
-        return roi_view(
-            pts,
-            config.roi_size,
-            margin_frac=config.roi_margin_frac,
-            min_side_px=config.roi_min_side_px,
-            scale_factor=float(np.exp(rng.uniform(np.log(0.8), np.log(1.5)))),
-            shift_frac=tuple(rng.uniform(-0.1, 0.1, size=2)),
-        )
     if rng is None:
         return roi_view(
             pts, config.roi_size, margin_frac=config.roi_margin_frac, min_side_px=config.roi_min_side_px
         )
+    # log-uniform ×0.8–2: the first fine pass at inference may get a loose ROI from the coarse stage
+    max_scale = 2.0
+    if p_partial > 0.0 and rng.random() < p_partial:
+        pts = partial_cm_points(sample.mask, sample.landmarks_px, rng, frac_range=partial_frac)
+        max_scale = 1.5  # a coarse stage that found part of a CM fits its ROI to that part
     return roi_view(
         pts,
         config.roi_size,
         margin_frac=config.roi_margin_frac,
         min_side_px=config.roi_min_side_px,
-        # log-uniform ×0.8–2: the first fine pass at inference may get a loose ROI from the coarse stage
-        scale_factor=float(np.exp(rng.uniform(np.log(0.8), np.log(2.0)))),
+        scale_factor=float(np.exp(rng.uniform(np.log(0.8), np.log(max_scale)))),
         shift_frac=tuple(rng.uniform(-0.1, 0.1, size=2)),
     )
 
