@@ -323,12 +323,13 @@ def test_partial_roi_leaves_the_far_landmark_out_of_the_fine_view() -> None:
     lm = np.array([a, b])
     s = Sample("t", np.zeros((160, 200), np.float32), _tube(a, b), lm, 0.5)
     cfg = DetectorConfig()
+    partial = AugmentConfig(p_partial_roi=1.0, partial_frac=(0.4, 0.4))
 
     def inside(v: View) -> np.ndarray:
         uv = v.from_input(lm)
         return np.all((uv >= 0) & (uv <= v.size), axis=1)
 
     for seed in range(30):
-        part = fine_view_for(s, cfg, np.random.default_rng(seed), p_partial=1.0, partial_frac=(0.4, 0.4))
+        part = fine_view_for(s, cfg, np.random.default_rng(seed), augment=partial)
         assert inside(part).sum() == 1  # one end in the view, the other beyond its edge
-        assert inside(fine_view_for(s, cfg, np.random.default_rng(seed))).all()  # p_partial 0: both
+        assert inside(fine_view_for(s, cfg, np.random.default_rng(seed))).all()  # no partial ROIs: both

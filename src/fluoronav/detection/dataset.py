@@ -164,12 +164,11 @@ def fine_view_for(
     config: DetectorConfig,
     rng: np.random.Generator | None,
     *,
-    p_partial: float = 0.0,
-    partial_frac: tuple[float, float] = (0.35, 0.75),
+    augment: AugmentConfig | None = None,
 ) -> View:
     """The ROI of a sample: around its mask and landmarks (jittered when ``rng`` is given; with
-    probability ``p_partial`` around a part of the CM, :func:`partial_cm_points`); a random window
-    for negatives."""
+    probability ``augment.p_partial_roi`` around a part of the CM, :func:`partial_cm_points`); a
+    random window for negatives."""
     rows, cols = sample.image.shape
     if sample.landmarks_px is None:
         r = rng if rng is not None else np.random.default_rng(0)
@@ -183,8 +182,8 @@ def fine_view_for(
         )
     # log-uniform ×0.8–2: the first fine pass at inference may get a loose ROI from the coarse stage
     max_scale = 2.0
-    if p_partial > 0.0 and rng.random() < p_partial:
-        pts = partial_cm_points(sample.mask, sample.landmarks_px, rng, frac_range=partial_frac)
+    if augment is not None and augment.p_partial_roi > 0.0 and rng.random() < augment.p_partial_roi:
+        pts = partial_cm_points(sample.mask, sample.landmarks_px, rng, frac_range=augment.partial_frac)
         max_scale = 1.5  # a coarse stage that found part of a CM fits its ROI to that part
     return roi_view(
         pts,
@@ -318,12 +317,7 @@ class CMDetectionDataset(Dataset):
         if rng is not None and self.augment is not None and rng.random() < self.augment.p_collimate:
             s = collimate(s, rng, min_field_frac=self.augment.min_field_frac)
         cv = full_view(s.image.shape, self.config.input_size)
-        aug = self.augment
-        fv = (
-            fine_view_for(s, self.config, rng, p_partial=aug.p_partial_roi, partial_frac=aug.partial_frac)
-            if aug is not None
-            else fine_view_for(s, self.config, rng)
-        )
+        fv = fine_view_for(s, self.config, rng, augment=self.augment)
         n0 = self.photons_per_pixel
         ci, cm, cl = make_view(s, cv, self.config, rng=rng, augment=self.augment, photons_per_pixel=n0)
         fi, fm, fl = make_view(s, fv, self.config, rng=rng, augment=self.augment, photons_per_pixel=n0)
