@@ -213,6 +213,10 @@ def test_tta_setting_is_validated_and_old_files_read() -> None:
     for bad_sep in (-1.0, 128.0):
         with pytest.raises(ValueError, match="fine_min_separation_px"):
             DetectorConfig(roi_size=128, fine_min_separation_px=bad_sep)
+    assert DetectorConfig.from_dict({}).fine_support_px == 0.0  # files before it: no constraint
+    for bad_support in (-1.0, 128.0):
+        with pytest.raises(ValueError, match="fine_support_px"):
+            DetectorConfig(roi_size=128, fine_support_px=bad_support)
 
 
 def test_blank_image_gives_no_detection() -> None:
@@ -465,3 +469,54 @@ def test_padding_settings_are_validated() -> None:
         dataclasses.replace(TINY, padded_min_confidence=1.5)
     # model files without the keys read as off
     assert DetectorConfig.from_dict({"heatmap": "softmax"}).coarse_min_field_mm == 0.0
+
+
+def test_a_landmark_peaking_on_a_blob_apart_from_the_cm_is_taken_on_the_cm() -> None:
+    from fluoronav.detection.detector import off_support_exclusion
+    from fluoronav.detection.heatmaps import decode_landmarks
+
+    rows, cols, sigma = 64, 96, 2.0
+    v, u = torch.meshgrid(torch.arange(float(rows)), torch.arange(float(cols)), indexing="ij")
+    # the CM: a bar from u = 20 to 60 at v = 30 (6 px wide); a 5 × 5 blob beyond its right end
+    seg = torch.full((rows, cols), -8.0)
+    seg[27:33, 20:61] = 8.0
+    seg[6:11, 83:88] = 8.0
+
+    def gauss(cu: float, cv: float, w: float) -> torch.Tensor:
+        return np.log(w) - ((u - cu) ** 2 + (v - cv) ** 2) / (2 * sigma**2)
+
+    a = gauss(58.6, 30.4, 1.0)  # A at the bar's right end
+    b = torch.logsumexp(torch.stack([gauss(85.2, 8.1, 1.0), gauss(21.3, 29.7, 0.4)]), 0)  # B: blob first
+    maps = torch.stack([a, b])[None]
+    exclude = off_support_exclusion(seg[None], maps, threshold_logit=0.0, support_px=4.0)
+    assert not exclude[0, 0].any()  # A peaks on the CM: left alone
+    assert exclude[0, 1, 8, 85] and not exclude[0, 1, 30, 21] and not exclude[0, 1, 26, 40]
+    assert exclude[0, 1, 30, 66] and not exclude[0, 1, 30, 63]  # the bar grown by 4 px
+    plain, _ = decode_landmarks(maps, mode="softmax", sigma_px=sigma)
+    est, conf = decode_landmarks(maps, mode="softmax", sigma_px=sigma, exclude=exclude)
+    torch.testing.assert_close(est[0, 0], plain[0, 0])
+    assert float((plain[0, 1] - torch.tensor([85.2, 8.1])).abs().max()) < 0.05
+    assert float((est[0, 1] - torch.tensor([21.3, 29.7])).abs().max()) < 0.05  # on the CM's far end
+    # its confidence is the mass of the map there: 0.4 / 1.4 of the Gaussians' 0.86
+    assert abs(float(conf[0, 1]) - 0.4 / 1.4 * (1 - np.exp(-2.0))) < 0.03
+    # the bar cut 10 px short of a piece that goes on in its direction: B there is the far end of
+    # the tube and stays
+    cut = torch.full((rows, cols), -8.0)
+    cut[27:33, 30:61] = 8.0
+    cut[27:33, 71:81] = 8.0
+    far_end = torch.stack([gauss(31.0, 30.0, 1.0), gauss(79.5, 30.2, 1.0)])[None]
+    assert not off_support_exclusion(cut[None], far_end, threshold_logit=0.0, support_px=4.0).any()
+    # pieces less than 2 × 4 px apart are one region: B on a piece 5 px past A's end stays
+    near_piece = seg.clone()
+    near_piece[28:32, 66:69] = 8.0
+    near = torch.stack([a, gauss(67.0, 30.0, 1.0)])[None]
+    assert not off_support_exclusion(near_piece[None], near, threshold_logit=0.0, support_px=4.0).any()
+    assert off_support_exclusion(near_piece[None], near, threshold_logit=0.0, support_px=2.0)[0, 1].any()
+    # both landmarks off the CM: both move onto it
+    both = torch.stack([gauss(85.0, 8.0, 1.0), gauss(86.0, 9.0, 1.0)])[None]
+    assert off_support_exclusion(seg[None], both, threshold_logit=0.0, support_px=4.0)[0, :, 8, 85].all()
+    # a view without a mask excludes nothing
+    no_mask = torch.full((1, rows, cols), -8.0)
+    assert not off_support_exclusion(no_mask, maps, threshold_logit=0.0, support_px=4.0).any()
+    with pytest.raises(ValueError, match="exclude must be"):
+        decode_landmarks(maps, mode="softmax", sigma_px=sigma, exclude=exclude[:, :1])

@@ -31,6 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from scipy import ndimage as ndi
 
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.heatmaps import decode_landmarks
@@ -223,14 +224,21 @@ class Detector:
 
     @torch.no_grad()
     def _run(
-        self, net: torch.nn.Module, view_images: np.ndarray, *, tta: int = 1, min_separation_px: float = 0.0
+        self,
+        net: torch.nn.Module,
+        view_images: np.ndarray,
+        *,
+        tta: int = 1,
+        min_separation_px: float = 0.0,
+        support_px: float = 0.0,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N, S, S) normalised views → seg logits (N, S, S), landmarks (N, 2, 2) view px, confidences (N, 2).
 
         All views and their transforms go through the network in one batch. ``tta`` > 1 averages the
         logits over that many dihedral transforms of each view (each mapped back): the network's small
         orientation biases cancel, which sharpens mask edges and landmarks. ``min_separation_px``: see
-        :func:`~fluoronav.detection.heatmaps.separation_exclusion`.
+        :func:`~fluoronav.detection.heatmaps.separation_exclusion`; ``support_px``: see
+        :func:`off_support_exclusion`.
         """
         x = torch.from_numpy(np.ascontiguousarray(view_images, dtype=np.float32))[:, None].to(self.device)
         transforms = DIHEDRAL[:tta]
@@ -243,11 +251,17 @@ class Detector:
             .mean(0)
             .float()
         )  # (N, 3, S, S)
+        exclude = None
+        if support_px > 0.0:
+            exclude = off_support_exclusion(
+                out[:, 0], out[:, 1:], threshold_logit=self.config.mask_threshold_logit, support_px=support_px
+            )
         pts, conf = decode_landmarks(
             out[:, 1:],
             mode=self.config.heatmap,
             sigma_px=self.config.sigma_px,
             min_separation_px=min_separation_px,
+            exclude=exclude,
         )
         return out[:, 0].cpu().numpy(), pts.cpu().numpy().astype(np.float64), conf.cpu().numpy()
 
@@ -285,8 +299,14 @@ class Detector:
         px, confidences (N, 2). ``tta``: dihedral transforms per view (None: ``fine_tta``)."""
         stack = np.stack([self._view_input(image, v) for v in views])
         tta = self.config.fine_tta if tta is None else tta
-        sep = self.config.fine_min_separation_px
-        logits, pts, conf = self._run(self.net.fine, stack, tta=tta, min_separation_px=sep)
+        cfg = self.config
+        logits, pts, conf = self._run(
+            self.net.fine,
+            stack,
+            tta=tta,
+            min_separation_px=cfg.fine_min_separation_px,
+            support_px=cfg.fine_support_px,
+        )
         return logits, np.stack([v.to_input(p) for v, p in zip(views, pts, strict=True)]), conf
 
     def detect(self, image: np.ndarray, *, pixel_spacing_mm: float | None = None) -> Detection:
@@ -466,6 +486,54 @@ class Detector:
             local = np.asarray(landmarks_px, dtype=np.float64) - np.array([cx0, cy0], dtype=np.float64)
             out[cy0:cy1, cx0:cx1] = _cm_components(sub, local, join_frac=join_frac)
         return out
+
+
+def off_support_exclusion(
+    seg_logits: torch.Tensor, heatmaps: torch.Tensor, *, threshold_logit: float, support_px: float
+) -> torch.Tensor:
+    """Heatmap pixels a landmark may not take where its map peaks away from the CM's mask.
+
+    A and B lie on the CM. The CM's region is the largest connected component of the view's
+    thresholded mask grown by ``support_px``: pieces of one tube less than 2 · ``support_px`` apart
+    (a thin part of the mask broken by noise) are one region, a blob farther away (noise, a bone
+    edge) is not. A map whose argmax lies outside that region has every pixel outside it
+    excluded, so the landmark is taken at its best peak on the CM, unless the other landmark lies in
+    the region and the region runs towards this one (the median of its pixels' positions along the
+    segment from the other landmark to this one is ≥ 0): then this is the far end of a tube the mask
+    has cut in two, and it stays. Maps that peak in the region are left alone (no exclusion).
+
+    Args:
+        seg_logits: (N, S, S) segmentation logits.
+        heatmaps: (N, K, S, S) landmark maps (only their argmax is read).
+        threshold_logit: mask threshold on the logits.
+        support_px: growth of the mask, view pixels (> 0).
+
+    Returns:
+        (N, K, S, S) bool, all False for a view without a mask.
+    """
+    n, k, rows, cols = heatmaps.shape
+    exclude = torch.zeros(heatmaps.shape, dtype=torch.bool)
+    masks = (seg_logits > threshold_logit).cpu().numpy()
+    idx = heatmaps.reshape(n, k, -1).argmax(dim=-1).cpu().numpy()
+    for i in range(n):
+        if not masks[i].any():
+            continue
+        grown = ndi.distance_transform_edt(~masks[i]) <= support_px
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(grown.astype(np.uint8), connectivity=8)
+        largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        far = labels != largest
+        off = far.reshape(-1)[idx[i]]  # (K,) maps peaking off the CM
+        if k == 2 and off.sum() == 1:
+            j = int(np.argmin(off))  # the landmark on the CM
+            pj = np.array([idx[i, j] % cols, idx[i, j] // cols], dtype=np.float64)
+            pk = np.array([idx[i, 1 - j] % cols, idx[i, 1 - j] // cols], dtype=np.float64)
+            vv, uu = np.nonzero(~far)
+            t = (np.stack([uu, vv], axis=1) - pj) @ (pk - pj)
+            if float(np.median(t)) >= 0.0:
+                off[:] = False
+        if off.any():
+            exclude[i, torch.from_numpy(off)] = torch.from_numpy(far)
+    return exclude.to(heatmaps.device)
 
 
 def _cm_components(mask: np.ndarray, landmarks_px: np.ndarray, *, join_frac: float) -> np.ndarray:

@@ -233,17 +233,27 @@ def separation_exclusion(log_scores: torch.Tensor, *, min_separation_px: float) 
 
 
 def decode_landmarks(
-    heatmaps: torch.Tensor, *, mode: str, sigma_px: float, min_separation_px: float = 0.0
+    heatmaps: torch.Tensor,
+    *,
+    mode: str,
+    sigma_px: float,
+    min_separation_px: float = 0.0,
+    exclude: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Decode a stage's heatmap channels (B, K, rows, cols) by the model's ``heatmap`` mode; with two
     channels and ``min_separation_px`` > 0 their peaks are kept that far apart
-    (:func:`separation_exclusion`)."""
+    (:func:`separation_exclusion`). ``exclude``: optional (B, K, rows, cols) bool, pixels that cannot
+    be a peak (the separation is then kept among the others)."""
     if mode not in ("softmax", "gaussian"):
         raise ValueError(f"unknown heatmap mode {mode!r}")
-    exclude = None
+    if exclude is not None and exclude.shape != heatmaps.shape:
+        raise ValueError(f"exclude must be {tuple(heatmaps.shape)}, got {tuple(exclude.shape)}")
     if min_separation_px > 0.0 and heatmaps.shape[1] == 2:
         scores = heatmaps if mode == "softmax" else torch.log(heatmaps.float().clamp_min(1e-8))
-        exclude = separation_exclusion(scores, min_separation_px=min_separation_px)
+        if exclude is not None:
+            scores = scores.float().masked_fill(exclude, _EXCLUDED_LOGIT)
+        apart = separation_exclusion(scores, min_separation_px=min_separation_px)
+        exclude = apart if exclude is None else exclude | apart
     if mode == "softmax":
         return decode_logit_heatmaps(heatmaps, sigma_px=sigma_px, exclude=exclude)
     return decode_heatmaps(heatmaps, exclude=exclude)

@@ -66,6 +66,10 @@ class DetectorConfig:
             peak outside that disk keeps the higher joint probability moves there
             (:func:`~fluoronav.detection.heatmaps.separation_exclusion`). The fitted ROI puts A and B
             ≥ 13 ROI pixels apart in every training image, also the CMs seen nearly end-on.
+        fine_support_px: where a fine landmark map peaks outside the largest connected component
+            of its view's mask grown by this many ROI pixels (on a blob apart from the CM), the
+            landmark is taken at the map's best pixel inside it
+            (:func:`~fluoronav.detection.detector.off_support_exclusion`); 0: off.
         mask_threshold: probability above which a pixel is CM.
         mask_join_frac: the final mask is its largest connected component plus, when this is > 0,
             the components within max(3 px, this · |AB|) of the segment A–B (a tube's mask cut into
@@ -120,6 +124,7 @@ class DetectorConfig:
     fine_first_tta: int | None = None
     fine_scales: tuple[float, ...] = (1.0,)
     fine_min_separation_px: float = 0.0
+    fine_support_px: float = 0.0
     mask_threshold: float = 0.5
     mask_join_frac: float = 0.0
     min_mask_px: int = 6
@@ -170,6 +175,8 @@ class DetectorConfig:
             raise ValueError("refine_step_mm, refine_sigma_px and refine_assumed_spacing_mm must be > 0")
         if not self.refine_prior_px >= 0.0:
             raise ValueError(f"refine_prior_px must be 0 or more, got {self.refine_prior_px}")
+        if not 0.0 <= self.fine_support_px < self.roi_size:
+            raise ValueError(f"fine_support_px must be in [0, roi_size), got {self.fine_support_px}")
         if not 0.0 <= self.fine_min_separation_px < self.roi_size:
             raise ValueError(
                 f"fine_min_separation_px must be in [0, roi_size), got {self.fine_min_separation_px}"
