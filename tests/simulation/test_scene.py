@@ -9,7 +9,13 @@ import torch
 from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.anatomy.volume import Volume
 from fluoronav.manipulator.kinematics import CMKinematics
-from fluoronav.simulation.scene import BONE_HU, SceneSampling, projected_ab_mm, sample_scene
+from fluoronav.simulation.scene import (
+    BONE_HU,
+    SceneSampling,
+    projected_ab_mm,
+    projected_shaft_mm,
+    sample_scene,
+)
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +116,36 @@ def test_foreshortened_sampling_keeps_only_short_projections(phantom: Volume) ->
     a = sample_scene(phantom, np.random.default_rng(3), sampling=short)
     b = sample_scene(phantom, np.random.default_rng(3), sampling=short)
     np.testing.assert_array_equal(a.camera.camera_from_world, b.camera.camera_from_world)
-    with pytest.raises(ValueError, match=r"within 0\.01 mm"):
+    with pytest.raises(ValueError, match=r"max_projected_ab_mm=0\.01"):
         sample_scene(
             phantom, np.random.default_rng(0), sampling=SceneSampling(max_projected_ab_mm=0.01, max_draws=50)
         )
+
+
+def test_shaft_sampling_keeps_only_short_shafts(phantom: Volume) -> None:
+    import dataclasses
+
+    # a straight CM: its notched part A → B (26.85 mm along +z) and a shaft as long behind A
+    # (−z) project alike, up to the perspective of a 27 mm depth change at ~450 mm
+    for k in range(6):
+        s = sample_scene(phantom, np.random.default_rng(k))
+        straight = dataclasses.replace(s, control_points_deg=np.zeros(5))
+        ab = projected_ab_mm(straight)
+        assert projected_shaft_mm(straight, 26.85) == pytest.approx(ab, rel=0.15, abs=0.5)
+        assert projected_shaft_mm(s, 50.0) == pytest.approx(2 * projected_shaft_mm(s, 25.0), rel=0.15)
+    plain = [projected_shaft_mm(sample_scene(phantom, np.random.default_rng(k)), 50.0) for k in range(40)]
+    assert np.median(plain) > 60  # the paper's distribution: mostly a shaft across the view
+    short = SceneSampling(max_projected_shaft_mm=30.0, shaft_length_mm=50.0)
+    kept = [sample_scene(phantom, np.random.default_rng(k), sampling=short) for k in range(12)]
+    assert max(projected_shaft_mm(s, 50.0) for s in kept) <= 30.0
+    both = SceneSampling(max_projected_shaft_mm=40.0, max_projected_ab_mm=30.0)
+    s = sample_scene(phantom, np.random.default_rng(1), sampling=both)
+    assert projected_shaft_mm(s, 50.0) <= 40.0 and projected_ab_mm(s) <= 30.0
+    with pytest.raises(ValueError, match="needs a shaft"):
+        sample_scene(
+            phantom,
+            np.random.default_rng(0),
+            sampling=SceneSampling(max_projected_shaft_mm=30.0, shaft_length_mm=0.0),
+        )
+    with pytest.raises(ValueError, match="max_projected_shaft_mm must be positive"):
+        sample_scene(phantom, np.random.default_rng(0), sampling=SceneSampling(max_projected_shaft_mm=0.0))

@@ -36,6 +36,14 @@ def register(app: typer.Typer) -> None:
             help="Keep only foreshortened views: landmarks A and B at most this far apart on the "
             "detector (mm; a CM across the view projects ~60 mm). For training sets rich in hard views.",
         ),
+        max_projected_shaft_mm: float = typer.Option(
+            None,
+            "--max-projected-shaft-mm",
+            min=0.1,
+            help="Keep only views whose mounting shaft projects at most this long on the detector "
+            "(mm; the 50 mm shaft across the view projects ~110 mm): the shaft seen nearly along its "
+            "axis, a short stub at the CM's base. For training sets rich in hard views.",
+        ),
         shaft_length_mm: float = typer.Option(
             50.0,
             "--shaft-length-mm",
@@ -66,6 +74,7 @@ def register(app: typer.Typer) -> None:
             device=str(resolve_device(device)),
             max_projected_ab_mm=max_projected_ab_mm,
             shaft_length_mm=shaft_length_mm,
+            max_projected_shaft_mm=max_projected_shaft_mm,
         )
         rows = simulate_dataset(out, n, spec, scheduler=scheduler, workers=workers)
         typer.echo(f"{len(rows)} new samples; data set in {out}/ (manifest.jsonl, contact_sheet.png)")

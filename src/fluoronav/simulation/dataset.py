@@ -53,6 +53,8 @@ class DatasetSpec:
         phantom_spacing_mm: voxel size of the procedural phantoms (1 mm; coarser only for fast tests).
         max_projected_ab_mm: keep only foreshortened views, whose landmarks A and B project at most
             this far apart on the detector (mm); None: the paper's distribution as it is.
+        max_projected_shaft_mm: keep only views whose mounting shaft projects at most this long on
+            the detector (mm; a shaft seen nearly along its axis); None: every view.
         shaft_length_mm: length of the rigid tube the CM is mounted on
             (:attr:`SimulationConfig.shaft_length_mm`; 0: the bare CM). The default 50 mm tube ends
             in the field; a robot's shaft that runs out of the field is ~200 mm or more.
@@ -67,15 +69,22 @@ class DatasetSpec:
     phantom_spacing_mm: float = 1.0
     max_projected_ab_mm: float | None = None
     shaft_length_mm: float = 50.0
+    max_projected_shaft_mm: float | None = None
 
     def __post_init__(self) -> None:
         if not self.shaft_length_mm >= 0.0:
             raise ValueError(f"shaft_length_mm must be >= 0, got {self.shaft_length_mm}")
+        if self.max_projected_shaft_mm is not None and not self.shaft_length_mm > 0.0:
+            raise ValueError("max_projected_shaft_mm needs a shaft (shaft_length_mm > 0)")
 
     @property
     def sampling(self) -> SceneSampling:
         """The scene sampler of this data set."""
-        return SceneSampling(max_projected_ab_mm=self.max_projected_ab_mm)
+        return SceneSampling(
+            max_projected_ab_mm=self.max_projected_ab_mm,
+            max_projected_shaft_mm=self.max_projected_shaft_mm,
+            shaft_length_mm=self.shaft_length_mm,
+        )
 
     def anatomies(self) -> list[tuple[str, int]]:
         """(ct spec, phantom seed) pairs; the phantom seeds come from the run seed."""

@@ -23,7 +23,15 @@ from fluoronav.geometry.carm import carm_camera_from_world
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
 
-__all__ = ["Scene", "SceneSampling", "cm_pose_along", "place_cm_in_bone", "projected_ab_mm", "sample_scene"]
+__all__ = [
+    "Scene",
+    "SceneSampling",
+    "cm_pose_along",
+    "place_cm_in_bone",
+    "projected_ab_mm",
+    "projected_shaft_mm",
+    "sample_scene",
+]
 
 #: HU above which a voxel counts as bone when placing a CM in an unlabelled CT
 BONE_HU = 200.0
@@ -48,7 +56,14 @@ class SceneSampling:
     #: paper's views project A–B shorter than 33 mm) made most of the detector's errors; a training
     #: set can hold more of them.
     max_projected_ab_mm: float | None = None
-    #: draws allowed to find a scene within ``max_projected_ab_mm`` before giving up
+    #: keep only scenes whose mounting shaft (``shaft_length_mm`` behind A along the base axis)
+    #: projects at most this long on the detector, mm (None: every scene). A shaft seen nearly along
+    #: its axis is a short bright stub at A that a detector can take for part of the CM (2–3 % of
+    #: the paper's views project it shorter than 30 mm); a training set can hold more of them.
+    max_projected_shaft_mm: float | None = None
+    #: length of the mounting shaft that ``max_projected_shaft_mm`` measures, mm
+    shaft_length_mm: float = 50.0
+    #: draws allowed to find a scene within the limits above before giving up
     max_draws: int = 10_000
 
 
@@ -150,23 +165,30 @@ def sample_scene(
 ) -> Scene:
     """Sample one scene with the paper's data set distribution (see module docstring).
 
-    With ``sampling.max_projected_ab_mm`` set, scenes are drawn until the projected A–B distance is
-    within it (rejection sampling: the paper's distribution restricted to foreshortened views).
+    With ``sampling.max_projected_ab_mm`` (``max_projected_shaft_mm``) set, scenes are drawn until
+    the projected A–B distance (the projected shaft) is within it (rejection sampling: the paper's
+    distribution restricted to foreshortened views of the CM, or of its shaft).
     """
     sampling = sampling or SceneSampling()
     cm_config = cm_config or CMConfig()
-    limit = sampling.max_projected_ab_mm
-    if limit is None:
+    ab_limit, shaft_limit = sampling.max_projected_ab_mm, sampling.max_projected_shaft_mm
+    if ab_limit is None and shaft_limit is None:
         return _draw_scene(volume, rng, sampling, with_cm, cm_config)
-    if limit <= 0:
-        raise ValueError(f"max_projected_ab_mm must be positive, got {limit}")
+    for name, limit in (("max_projected_ab_mm", ab_limit), ("max_projected_shaft_mm", shaft_limit)):
+        if limit is not None and not limit > 0:
+            raise ValueError(f"{name} must be positive, got {limit}")
+    if shaft_limit is not None and not sampling.shaft_length_mm > 0:
+        raise ValueError("max_projected_shaft_mm needs a shaft (shaft_length_mm > 0)")
     kin = CMKinematics(cm_config)
     for _ in range(sampling.max_draws):
         scene = _draw_scene(volume, rng, sampling, with_cm, cm_config)
-        if projected_ab_mm(scene, kin) <= limit:
+        if shaft_limit is not None and projected_shaft_mm(scene, sampling.shaft_length_mm) > shaft_limit:
+            continue
+        if ab_limit is None or projected_ab_mm(scene, kin) <= ab_limit:
             return scene
     raise ValueError(
-        f"no scene with landmarks A and B within {limit} mm on the detector in {sampling.max_draws} draws"
+        f"no scene within max_projected_ab_mm={ab_limit}, max_projected_shaft_mm={shaft_limit} "
+        f"in {sampling.max_draws} draws"
     )
 
 
@@ -176,6 +198,17 @@ def projected_ab_mm(scene: Scene, kinematics: CMKinematics | None = None) -> flo
     ab_cm = kin.landmarks_cm(torch.as_tensor(np.asarray(scene.control_points_deg, dtype=np.float64)))
     ab_world = ab_cm.numpy() @ scene.world_from_cm[:3, :3].T + scene.world_from_cm[:3, 3]
     uv = scene.camera.project(ab_world)
+    if scene.camera.pixel_spacing_mm is None:
+        raise ValueError("the scene's camera has no pixel spacing")
+    return float(np.linalg.norm(uv[1] - uv[0]) * scene.camera.pixel_spacing_mm)
+
+
+def projected_shaft_mm(scene: Scene, shaft_length_mm: float) -> float:
+    """Length on the detector (mm, at the detector plane) of the mounting shaft: the segment from
+    the base origin A to ``shaft_length_mm`` behind it along the base axis (−z of the CM frame)."""
+    ends_cm = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -float(shaft_length_mm)]])
+    ends_world = ends_cm @ scene.world_from_cm[:3, :3].T + scene.world_from_cm[:3, 3]
+    uv = scene.camera.project(ends_world)
     if scene.camera.pixel_spacing_mm is None:
         raise ValueError("the scene's camera has no pixel spacing")
     return float(np.linalg.norm(uv[1] - uv[0]) * scene.camera.pixel_spacing_mm)
