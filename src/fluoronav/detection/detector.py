@@ -511,7 +511,7 @@ def off_support_exclusion(
     Returns:
         (N, K, S, S) bool, all False for a view without a mask.
     """
-    n, k, rows, cols = heatmaps.shape
+    n, k, _, cols = heatmaps.shape
     exclude = torch.zeros(heatmaps.shape, dtype=torch.bool)
     masks = (seg_logits > threshold_logit).cpu().numpy()
     idx = heatmaps.reshape(n, k, -1).argmax(dim=-1).cpu().numpy()
