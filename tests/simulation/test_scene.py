@@ -147,5 +147,9 @@ def test_shaft_sampling_keeps_only_short_shafts(phantom: Volume) -> None:
             np.random.default_rng(0),
             sampling=SceneSampling(max_projected_shaft_mm=30.0, shaft_length_mm=0.0),
         )
+    from fluoronav.simulation.dataset import DatasetSpec
+
+    with pytest.raises(ValueError, match="needs a shaft"):  # a data set's spec fails at once
+        DatasetSpec(max_projected_shaft_mm=30.0, shaft_length_mm=0.0)
     with pytest.raises(ValueError, match="max_projected_shaft_mm must be positive"):
         sample_scene(phantom, np.random.default_rng(0), sampling=SceneSampling(max_projected_shaft_mm=0.0))

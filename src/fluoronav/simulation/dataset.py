@@ -74,8 +74,7 @@ class DatasetSpec:
     def __post_init__(self) -> None:
         if not self.shaft_length_mm >= 0.0:
             raise ValueError(f"shaft_length_mm must be >= 0, got {self.shaft_length_mm}")
-        if self.max_projected_shaft_mm is not None and not self.shaft_length_mm > 0.0:
-            raise ValueError("max_projected_shaft_mm needs a shaft (shaft_length_mm > 0)")
+        _ = self.sampling  # SceneSampling validates the limits: fail here, before any worker starts
 
     @property
     def sampling(self) -> SceneSampling:

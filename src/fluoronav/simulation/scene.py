@@ -66,6 +66,14 @@ class SceneSampling:
     #: draws allowed to find a scene within the limits above before giving up
     max_draws: int = 10_000
 
+    def __post_init__(self) -> None:
+        for name in ("max_projected_ab_mm", "max_projected_shaft_mm"):
+            limit = getattr(self, name)
+            if limit is not None and not limit > 0:
+                raise ValueError(f"{name} must be positive, got {limit}")
+        if self.max_projected_shaft_mm is not None and not self.shaft_length_mm > 0:
+            raise ValueError("max_projected_shaft_mm needs a shaft (shaft_length_mm > 0)")
+
 
 @dataclass(frozen=True, eq=False)
 class Scene:
@@ -174,11 +182,6 @@ def sample_scene(
     ab_limit, shaft_limit = sampling.max_projected_ab_mm, sampling.max_projected_shaft_mm
     if ab_limit is None and shaft_limit is None:
         return _draw_scene(volume, rng, sampling, with_cm, cm_config)
-    for name, limit in (("max_projected_ab_mm", ab_limit), ("max_projected_shaft_mm", shaft_limit)):
-        if limit is not None and not limit > 0:
-            raise ValueError(f"{name} must be positive, got {limit}")
-    if shaft_limit is not None and not sampling.shaft_length_mm > 0:
-        raise ValueError("max_projected_shaft_mm needs a shaft (shaft_length_mm > 0)")
     kin = CMKinematics(cm_config)
     for _ in range(sampling.max_draws):
         scene = _draw_scene(volume, rng, sampling, with_cm, cm_config)
@@ -196,17 +199,18 @@ def projected_ab_mm(scene: Scene, kinematics: CMKinematics | None = None) -> flo
     """Distance of the projected landmarks A and B on the detector, mm (at the detector plane)."""
     kin = kinematics or CMKinematics(scene.cm_config)
     ab_cm = kin.landmarks_cm(torch.as_tensor(np.asarray(scene.control_points_deg, dtype=np.float64)))
-    ab_world = ab_cm.numpy() @ scene.world_from_cm[:3, :3].T + scene.world_from_cm[:3, 3]
-    uv = scene.camera.project(ab_world)
-    if scene.camera.pixel_spacing_mm is None:
-        raise ValueError("the scene's camera has no pixel spacing")
-    return float(np.linalg.norm(uv[1] - uv[0]) * scene.camera.pixel_spacing_mm)
+    return _projected_length_mm(scene, ab_cm.numpy())
 
 
 def projected_shaft_mm(scene: Scene, shaft_length_mm: float) -> float:
     """Length on the detector (mm, at the detector plane) of the mounting shaft: the segment from
     the base origin A to ``shaft_length_mm`` behind it along the base axis (−z of the CM frame)."""
-    ends_cm = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -float(shaft_length_mm)]])
+    return _projected_length_mm(scene, np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -float(shaft_length_mm)]]))
+
+
+def _projected_length_mm(scene: Scene, ends_cm: np.ndarray) -> float:
+    """Distance on the detector (mm, at the detector plane) between the projections of two points
+    (2, 3) given in the CM's base frame."""
     ends_world = ends_cm @ scene.world_from_cm[:3, :3].T + scene.world_from_cm[:3, 3]
     uv = scene.camera.project(ends_world)
     if scene.camera.pixel_spacing_mm is None:
