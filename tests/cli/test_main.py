@@ -18,6 +18,20 @@ from fluoronav.cli.main import main
         (["train", "--data", "x", "--out", "m.pt", "--stage", "refine", "--stage", "fine"], "'refine' alone"),
         (["train", "--data", "x", "--out", "m.pt", "--stage", "middle"], "stages must be"),
         (["train", "--data", "x", "--out", "m.pt", "--keep-decoding"], "give --init"),
+        (
+            [
+                "simulate",
+                "--n",
+                "1",
+                "--out",
+                "x",
+                "--max-projected-shaft-mm",
+                "30",
+                "--shaft-length-mm",
+                "0",
+            ],
+            "needs a shaft",
+        ),
     ],
 )
 def test_usage_error_is_short(args: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:

@@ -31,6 +31,9 @@ def test_help_documents_every_option() -> None:
         "--no-cm",
         "--size",
         "--phantoms",
+        "--max-projected-ab-mm",
+        "--max-projected-shaft-mm",
+        "--shaft-length-mm",
         "--device",
     ):
         assert opt in result.output

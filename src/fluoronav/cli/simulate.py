@@ -65,16 +65,19 @@ def register(app: typer.Typer) -> None:
         from fluoronav.device import resolve_device
         from fluoronav.simulation.dataset import DatasetSpec, simulate_dataset
 
-        spec = DatasetSpec(
-            cts=tuple(ct),
-            n_phantoms=phantoms,
-            with_cm=not no_cm,
-            image_size=size,
-            seed=seed,
-            device=str(resolve_device(device)),
-            max_projected_ab_mm=max_projected_ab_mm,
-            shaft_length_mm=shaft_length_mm,
-            max_projected_shaft_mm=max_projected_shaft_mm,
-        )
+        try:
+            spec = DatasetSpec(
+                cts=tuple(ct),
+                n_phantoms=phantoms,
+                with_cm=not no_cm,
+                image_size=size,
+                seed=seed,
+                device=str(resolve_device(device)),
+                max_projected_ab_mm=max_projected_ab_mm,
+                shaft_length_mm=shaft_length_mm,
+                max_projected_shaft_mm=max_projected_shaft_mm,
+            )
+        except ValueError as exc:  # settings that contradict each other
+            raise typer.BadParameter(str(exc)) from exc
         rows = simulate_dataset(out, n, spec, scheduler=scheduler, workers=workers)
         typer.echo(f"{len(rows)} new samples; data set in {out}/ (manifest.jsonl, contact_sheet.png)")
