@@ -25,7 +25,7 @@ from fluoronav.cli.main import main
                 "1",
                 "--out",
                 "x",
-                "--max-projected-shaft-mm",
+                "--max-shaft-mm",
                 "30",
                 "--shaft-length-mm",
                 "0",

@@ -32,7 +32,7 @@ def test_help_documents_every_option() -> None:
         "--size",
         "--phantoms",
         "--max-projected-ab-mm",
-        "--max-projected-shaft-mm",
+        "--max-shaft-mm",
         "--shaft-length-mm",
         "--device",
     ):

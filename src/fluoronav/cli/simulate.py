@@ -38,7 +38,7 @@ def register(app: typer.Typer) -> None:
         ),
         max_projected_shaft_mm: float = typer.Option(
             None,
-            "--max-projected-shaft-mm",
+            "--max-shaft-mm",
             min=0.1,
             help="Keep only views whose mounting shaft projects at most this long on the detector "
             "(mm; the 50 mm shaft across the view projects ~110 mm): the shaft seen nearly along its "
