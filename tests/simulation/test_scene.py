@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -9,6 +11,7 @@ import torch
 from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.anatomy.volume import Volume
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.simulation.dataset import DatasetSpec
 from fluoronav.simulation.scene import (
     BONE_HU,
     SceneSampling,
@@ -123,8 +126,6 @@ def test_foreshortened_sampling_keeps_only_short_projections(phantom: Volume) ->
 
 
 def test_shaft_sampling_keeps_only_short_shafts(phantom: Volume) -> None:
-    import dataclasses
-
     # a straight CM: its notched part A → B (26.85 mm along +z) and a shaft as long behind A
     # (−z) project alike, up to the perspective of a 27 mm depth change at ~450 mm
     for k in range(6):
@@ -141,15 +142,12 @@ def test_shaft_sampling_keeps_only_short_shafts(phantom: Volume) -> None:
     both = SceneSampling(max_projected_shaft_mm=40.0, max_projected_ab_mm=30.0)
     s = sample_scene(phantom, np.random.default_rng(1), sampling=both)
     assert projected_shaft_mm(s, 50.0) <= 40.0 and projected_ab_mm(s) <= 30.0
+    # the sampler checks its limits where it is made; a data set's spec makes it at once
     with pytest.raises(ValueError, match="needs a shaft"):
-        sample_scene(
-            phantom,
-            np.random.default_rng(0),
-            sampling=SceneSampling(max_projected_shaft_mm=30.0, shaft_length_mm=0.0),
-        )
-    from fluoronav.simulation.dataset import DatasetSpec
-
-    with pytest.raises(ValueError, match="needs a shaft"):  # a data set's spec fails at once
+        SceneSampling(max_projected_shaft_mm=30.0, shaft_length_mm=0.0)
+    with pytest.raises(ValueError, match="needs a shaft"):
         DatasetSpec(max_projected_shaft_mm=30.0, shaft_length_mm=0.0)
     with pytest.raises(ValueError, match="max_projected_shaft_mm must be positive"):
-        sample_scene(phantom, np.random.default_rng(0), sampling=SceneSampling(max_projected_shaft_mm=0.0))
+        SceneSampling(max_projected_shaft_mm=0.0)
+    with pytest.raises(ValueError, match="max_projected_ab_mm must be positive"):
+        SceneSampling(max_projected_ab_mm=-1.0)
