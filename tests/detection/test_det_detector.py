@@ -520,3 +520,99 @@ def test_a_landmark_peaking_on_a_blob_apart_from_the_cm_is_taken_on_the_cm() -> 
     assert not off_support_exclusion(no_mask, maps, threshold_logit=0.0, support_px=4.0).any()
     with pytest.raises(ValueError, match="exclude must be"):
         decode_landmarks(maps, mode="softmax", sigma_px=sigma, exclude=exclude[:, :1])
+
+
+def _fine(landmarks: list[list[float]], confidence: list[float], view_side: int = 80) -> object:
+    """A fine-stage hypothesis with a ROI of ``view_side`` px at the origin and a 10 × 10 mask."""
+    mask = np.zeros((200, 260), bool)
+    mask[100:110, 100:110] = True
+    return detector_module.FineResult(
+        np.array(landmarks, dtype=np.float64),
+        np.array(confidence, dtype=np.float64),
+        mask,
+        detector_module.View(x0=0, y0=0, side=view_side, size=TINY.roi_size),
+    )
+
+
+@pytest.mark.parametrize(
+    ("shift_px", "spacing_mm", "other_conf", "taken", "hypotheses"),
+    [
+        (30.0, 0.2, 0.6, True, 1),  # a landmark 6 mm away, and the network is surer of it: taken
+        (30.0, 0.2, 0.35, False, 1),  # 6 mm away, but only 0.05 surer: the detection stays
+        (20.0, 0.2, 0.9, False, 0),  # 4 mm: the same hypothesis, the fine stage is not run again
+        (10.0, None, 0.6, True, 1),  # 10 px at the assumed 0.582 mm are 5.8 mm
+    ],
+)
+def test_second_look_takes_a_wider_hypothesis_the_network_is_surer_of(
+    monkeypatch: pytest.MonkeyPatch,
+    shift_px: float,
+    spacing_mm: float | None,
+    other_conf: float,
+    taken: bool,
+    hypotheses: int,
+) -> None:
+    config = dataclasses.replace(TINY, fine_wide_factors=(1.6, 2.2), fine_wide_min_shift_mm=5.0)
+    det = Detector(DetectorNet(config), device="cpu")
+    first = _fine([[50.0, 50.0], [120.0, 50.0]], [0.3, 0.7])
+    other = _fine([[50.0, 50.0], [120.0 + shift_px, 50.0]], [other_conf, 0.8], view_side=120)
+    seen: dict[str, list] = {"views": [], "starts": []}
+
+    def fine_views(image: np.ndarray, views: list, *, tta: int | None = None) -> tuple:
+        seen["views"].append(views)
+        pts = np.stack([first.landmarks_px, other.landmarks_px])  # the 1.6× view agrees, the 2.2× not
+        return np.zeros((2, 64, 64)), pts, np.array([[0.3, 0.7], [0.9, 0.9]])
+
+    def refit(image: np.ndarray, view: object, *args: object) -> tuple:
+        return view, False
+
+    def fine_stage(image: np.ndarray, view: object) -> object:
+        seen["starts"].append(view)
+        return other
+
+    monkeypatch.setattr(det, "fine_views", fine_views)
+    monkeypatch.setattr(det, "_refit", refit)
+    monkeypatch.setattr(det, "fine_stage", fine_stage)
+    res = det.second_look(np.zeros((200, 260), np.float32), first, pixel_spacing_mm=spacing_mm)
+    assert res is (other if taken else first)
+    # one batch of the last ROI scaled by each factor about its centre (40, 40)
+    (views,) = seen["views"]
+    assert [v.side for v in views] == [128, 176]
+    for v in views:
+        assert abs(v.x0 + v.side / 2 - 40) <= 1 and abs(v.y0 + v.side / 2 - 40) <= 1
+    # the fine stage runs again only from the view whose landmark moved
+    assert len(seen["starts"]) == hypotheses
+    if hypotheses:
+        assert seen["starts"][0] is views[1]
+
+
+def test_second_look_is_off_by_default_and_never_adds_a_detection(monkeypatch: pytest.MonkeyPatch) -> None:
+    img, _, lm = drawn_cm()
+    # off (the default): no wider view is run
+    net = DetectorNet(TINY)
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    det = Detector(net, device="cpu")
+    first = _fine(lm.tolist(), [0.5, 0.5])
+    monkeypatch.setattr(det, "fine_views", lambda *a, **k: pytest.fail("a wider view was run"))
+    assert det.second_look(img, first) is first
+    # on: a detection is looked at again; a CM seen whole gives the same result as without
+    wide = DetectorNet(dataclasses.replace(TINY, fine_wide_factors=(1.6, 2.2)))
+    wide.coarse, wide.fine = IntensityOracle(), IntensityOracle()
+    ref = Detector(net, device="cpu").detect(img)
+    looked = Detector(wide, device="cpu")
+    calls = []
+    looked_at = looked.second_look
+    monkeypatch.setattr(looked, "second_look", lambda *a, **k: calls.append(1) or looked_at(*a, **k))
+    res = looked.detect(img)
+    assert calls == [1] and res.found
+    np.testing.assert_array_equal(res.landmarks_px, ref.landmarks_px)
+    np.testing.assert_array_equal(res.mask, ref.mask)
+    # an image without a detection (landmarks below min_confidence) is not looked at again
+    looked.config = dataclasses.replace(looked.config, min_confidence=0.99)
+    assert not looked.detect(img).found and calls == [1]
+    for bad in ({"fine_wide_factors": (0.8,)}, {"fine_wide_factors": (5.0,)}, {"fine_wide_min_gain": 2.0}):
+        with pytest.raises(ValueError, match="fine_wide"):
+            dataclasses.replace(TINY, **bad)
+    assert DetectorConfig.from_dict({"heatmap": "softmax"}).fine_wide_factors == ()
+    assert DetectorConfig.from_dict(
+        dataclasses.replace(TINY, fine_wide_factors=(2,)).to_dict()
+    ).fine_wide_factors == (2.0,)

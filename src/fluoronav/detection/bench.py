@@ -27,8 +27,9 @@ from fluoronav.detection.views import roi_view
 logger = logging.getLogger(__name__)
 
 
-def _bench_image(size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A simulated (size, size) log image of the CM over the phantom, its mask and landmarks (2, 2)."""
+def _bench_image(size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """A simulated (size, size) log image of the CM over the phantom, its mask, landmarks (2, 2) and
+    pixel spacing (mm)."""
     from fluoronav.anatomy.phantom import hip_phantom
     from fluoronav.simulation.scene import SceneSampling, sample_scene
     from fluoronav.simulation.xray import SimulationConfig, XraySimulator
@@ -38,7 +39,12 @@ def _bench_image(size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.n
     while True:  # the paper's scene sampling keeps the CM in view; redraw in the rare case it is not
         image = sim.simulate(sample_scene(sim.volume, rng, sampling=SceneSampling()), seed=seed)
         if image.landmarks_px is not None and image.mask.any():
-            return image.image.astype(np.float32), image.mask.astype(bool), np.asarray(image.landmarks_px)
+            return (
+                image.image.astype(np.float32),
+                image.mask.astype(bool),
+                np.asarray(image.landmarks_px),
+                float(image.camera.pixel_spacing_mm),
+            )
 
 
 def _median_ms(fn: Callable[[], object], repeats: int) -> float:
@@ -59,7 +65,7 @@ def run(quick: bool = False) -> dict[str, float]:
         torch.manual_seed(0)
         det = Detector(DetectorNet(DetectorConfig()), device="cpu", source="random weights")
     cfg = det.config
-    image, mask, ends = _bench_image(1536)
+    image, mask, ends, spacing_mm = _bench_image(1536)
     vv, uu = np.nonzero(mask)
     roi = roi_view(
         np.array([[uu.min(), vv.min()], [uu.max(), vv.max()]], dtype=np.float64),
@@ -69,8 +75,9 @@ def run(quick: bool = False) -> dict[str, float]:
     )
 
     def pipeline() -> None:
-        det.coarse(image)
-        det.fine_stage(image, roi)  # every fine pass, the last at each of the configured ROI scales
+        det.coarse(image, pixel_spacing_mm=spacing_mm)
+        # every fine pass (the last at each of the configured ROI scales) and the second look's wider views
+        det.second_look(image, det.fine_stage(image, roi), pixel_spacing_mm=spacing_mm)
         extract_centerline(mask, ends[0], ends[1])
 
     def baseline() -> None:

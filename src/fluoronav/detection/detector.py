@@ -97,6 +97,17 @@ class Detection:
         return None
 
 
+@dataclass(frozen=True)
+class FineResult:
+    """One fine-stage hypothesis: landmarks (2, 2) input px, confidences (2,), mask (rows, cols) bool
+    and the last pass's ROI at scale 1."""
+
+    landmarks_px: np.ndarray
+    confidence: np.ndarray
+    mask: np.ndarray
+    view: View
+
+
 def truncated_landmarks(
     mask: np.ndarray, landmarks_px: np.ndarray, *, edge_px: float = 3.0, reach_px: float = 10.0
 ) -> np.ndarray:
@@ -335,13 +346,21 @@ class Detector:
         confident = c_conf >= cfg.min_confidence
         c_mask = _component_at(c_mask, cv.from_input(c_pts[confident]))
         fv = self._roi(cv, c_mask, c_pts[confident])
-        f_pts, f_conf, mask = self.fine_stage(img, fv)
+        res = self.fine_stage(img, fv)
         # false alarms on CM-free images mostly start as small coarse masks: those need surer landmarks
         need = max(cfg.weak_min_confidence, cfg.min_confidence) if weak else cfg.min_confidence
         if padded:
             need = max(need, cfg.padded_min_confidence)
-        area_mm2 = float(mask.sum()) * (pixel_spacing_mm or cfg.refine_assumed_spacing_mm) ** 2
-        if not mask.any() or float(f_conf.min()) < need or area_mm2 < cfg.min_mask_mm2:
+        spacing_mm = pixel_spacing_mm or cfg.refine_assumed_spacing_mm
+
+        def accepted(r: FineResult) -> bool:
+            area_mm2 = float(r.mask.sum()) * spacing_mm**2
+            return bool(r.mask.any()) and float(r.confidence.min()) >= need and area_mm2 >= cfg.min_mask_mm2
+
+        if accepted(res):  # only a detection is looked at again: the second look adds none
+            res = self.second_look(img, res, pixel_spacing_mm=pixel_spacing_mm)
+        f_pts, f_conf, mask = res.landmarks_px, res.confidence, res.mask
+        if not accepted(res):
             return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
         f_pts = self.refine(img, f_pts, mask, pixel_spacing_mm=pixel_spacing_mm)
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])
@@ -388,9 +407,40 @@ class Detector:
             refined[k] = fr.to_input(q)
         return refined
 
-    def fine_stage(self, image: np.ndarray, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """All fine passes from a first ROI: landmarks (2, 2) in input px, confidences (2,) and the mask
-        (rows, cols) bool at the input size.
+    def second_look(
+        self, image: np.ndarray, first: FineResult, *, pixel_spacing_mm: float | None = None
+    ) -> FineResult:
+        """The fine stage's result, or a second hypothesis from a wider view that the network is
+        surer of (``fine_wide_factors``; see :class:`~fluoronav.detection.model.DetectorConfig`).
+
+        The last pass's ROI scaled by each factor goes through the fine stage in one batch; each wider
+        view that puts a landmark ``fine_wide_min_shift_mm`` or more from ``first``'s is followed
+        by all fine passes from a ROI fitted to its result. The hypothesis with the highest smaller
+        landmark confidence replaces ``first`` if that is ``fine_wide_min_gain`` above ``first``'s.
+        """
+        cfg = self.config
+        if not cfg.fine_wide_factors:
+            return first
+        views = [_scaled_view(first.view, f) for f in cfg.fine_wide_factors]
+        logits, pts, conf = self.fine_views(image, views)
+        spacing_mm = pixel_spacing_mm or cfg.refine_assumed_spacing_mm
+        shift_mm = np.linalg.norm(pts - first.landmarks_px, axis=-1).max(axis=-1) * spacing_mm
+        best = first
+        for j in np.flatnonzero(shift_mm >= cfg.fine_wide_min_shift_mm):
+            refit = self._refit(image, views[j], logits[j], pts[j], conf[j])
+            if refit is None:
+                continue
+            other = self.fine_stage(image, refit[0])
+            if other.confidence.min() > best.confidence.min():
+                best = other
+        if best.confidence.min() >= first.confidence.min() + cfg.fine_wide_min_gain:
+            logger.debug("second look: confidence %.2f -> %.2f", min(first.confidence), min(best.confidence))
+            return best
+        return first
+
+    def fine_stage(self, image: np.ndarray, view: View) -> FineResult:
+        """All fine passes from a first ROI: landmarks (2, 2) in input px, confidences (2,), the mask
+        (rows, cols) bool at the input size and the last pass's ROI (at scale 1).
 
         Each pass but the last refits the ROI to its result; the last runs on the ROI scaled by each of
         ``fine_scales`` in one batch (median landmarks and confidences, mean logits). While a pass's mask
@@ -427,7 +477,7 @@ class Detector:
             mask = self._mask_at_input(
                 logits, views, image.shape, thr_logit, f_pts, join_frac=cfg.mask_join_frac
             )
-            return f_pts, f_conf, mask
+            return FineResult(f_pts, f_conf, mask, view)
 
     def _refit(
         self, image: np.ndarray, view: View, logit: np.ndarray, pts: np.ndarray, conf: np.ndarray

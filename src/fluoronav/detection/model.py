@@ -70,6 +70,20 @@ class DetectorConfig:
             of its view's mask grown by this many ROI pixels (on a blob apart from the CM), the
             landmark is taken at the map's best pixel inside it
             (:func:`~fluoronav.detection.detector.off_support_exclusion`); 0: off.
+        fine_wide_factors: a second look after the fine stage (inference only; empty: none): the
+            last pass's ROI scaled by each factor (same centre, one batch). The fine stage, shown a
+            part of a CM only (the coarse stage found that part), can take it for the whole CM and
+            stop its mask and a landmark inside the tube; a wider view shows the rest. Where a wider
+            view puts a landmark ``fine_wide_min_shift_mm`` or more from the detection's, the fine
+            stage is run again from a ROI fitted to that view's result (a second hypothesis), and
+            the hypothesis with a smaller landmark confidence ``fine_wide_min_gain`` or more above the
+            detection's replaces it. Only a detection that is found is looked at again, so the
+            second look adds no detection on an image without a CM.
+        fine_wide_min_shift_mm: landmark shift (mm at the detector; images of unknown pixel spacing
+            are taken to have ``refine_assumed_spacing_mm``) from which a wider view is a second
+            hypothesis.
+        fine_wide_min_gain: gain in the smaller landmark confidence by which a second hypothesis
+            replaces the detection.
         mask_threshold: probability above which a pixel is CM.
         mask_join_frac: the final mask is its largest connected component plus, when this is > 0,
             the components within max(3 px, this · |AB|) of the segment A–B (a tube's mask cut into
@@ -125,6 +139,9 @@ class DetectorConfig:
     fine_scales: tuple[float, ...] = (1.0,)
     fine_min_separation_px: float = 0.0
     fine_support_px: float = 0.0
+    fine_wide_factors: tuple[float, ...] = ()
+    fine_wide_min_shift_mm: float = 5.0
+    fine_wide_min_gain: float = 0.1
     mask_threshold: float = 0.5
     mask_join_frac: float = 0.0
     min_mask_px: int = 6
@@ -153,6 +170,13 @@ class DetectorConfig:
             raise ValueError(f"fine_max_passes must be 0 or more, got {self.fine_max_passes}")
         if not self.fine_scales or not all(0.25 <= float(f) <= 4.0 for f in self.fine_scales):
             raise ValueError(f"fine_scales must be 1 or more factors in [0.25, 4], got {self.fine_scales}")
+        if not all(1.0 < float(f) <= 4.0 for f in self.fine_wide_factors):
+            raise ValueError(f"fine_wide_factors must be factors in (1, 4], got {self.fine_wide_factors}")
+        if not (self.fine_wide_min_shift_mm >= 0.0 and 0.0 <= self.fine_wide_min_gain <= 1.0):
+            raise ValueError(
+                "fine_wide_min_shift_mm must be 0 or more and fine_wide_min_gain in [0, 1], got "
+                f"{self.fine_wide_min_shift_mm} and {self.fine_wide_min_gain}"
+            )
         if not 0.0 <= self.mask_join_frac <= 1.0:
             raise ValueError(f"mask_join_frac must be in [0, 1], got {self.mask_join_frac}")
         if not 0 <= self.weak_mask_px <= self.min_mask_px:
@@ -195,7 +219,7 @@ class DetectorConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["channels"], d["roi_channels"] = list(self.channels), list(self.roi_channels)
-        d["fine_scales"] = list(self.fine_scales)
+        d["fine_scales"], d["fine_wide_factors"] = list(self.fine_scales), list(self.fine_wide_factors)
         d["refine_channels"], d["refine_shape"] = list(self.refine_channels), list(self.refine_shape)
         return d
 
@@ -209,8 +233,9 @@ class DetectorConfig:
         for key in ("channels", "roi_channels", "refine_channels", "refine_shape"):
             if key in kw:
                 kw[key] = tuple(int(c) for c in kw[key])
-        if "fine_scales" in kw:
-            kw["fine_scales"] = tuple(float(f) for f in kw["fine_scales"])
+        for key in ("fine_scales", "fine_wide_factors"):
+            if key in kw:
+                kw[key] = tuple(float(f) for f in kw[key])
         return cls(**kw)
 
 
