@@ -535,12 +535,13 @@ def _fine(landmarks: list[list[float]], confidence: list[float], view_side: int 
 
 
 @pytest.mark.parametrize(
-    ("shift_px", "spacing_mm", "other_conf", "taken", "hypotheses"),
+    ("shift_px", "spacing_mm", "other_conf", "min_confidence", "taken", "hypotheses"),
     [
-        (30.0, 0.2, 0.6, True, 1),  # a landmark 6 mm away, and the network is surer of it: taken
-        (30.0, 0.2, 0.35, False, 1),  # 6 mm away, but only 0.05 surer: the detection stays
-        (20.0, 0.2, 0.9, False, 0),  # 4 mm: the same hypothesis, the fine stage is not run again
-        (10.0, None, 0.6, True, 1),  # 10 px at the assumed 0.582 mm are 5.8 mm
+        (30.0, 0.2, 0.6, 0.0, True, 1),  # a landmark 6 mm away, the network 0.2 surer of it: taken
+        (30.0, 0.2, 0.45, 0.0, False, 1),  # 6 mm away, but only 0.125 surer: the detection stays
+        (30.0, 0.2, 0.6, 0.65, False, 1),  # surer, but its landmark A would not count as found
+        (20.0, 0.2, 0.9, 0.0, False, 0),  # 4 mm: the same hypothesis, the fine stage is not run again
+        (10.0, None, 0.6, 0.0, True, 1),  # 10 px at the assumed 0.582 mm are 5.8 mm
     ],
 )
 def test_second_look_takes_a_wider_hypothesis_the_network_is_surer_of(
@@ -548,10 +549,13 @@ def test_second_look_takes_a_wider_hypothesis_the_network_is_surer_of(
     shift_px: float,
     spacing_mm: float | None,
     other_conf: float,
+    min_confidence: float,
     taken: bool,
     hypotheses: int,
 ) -> None:
-    config = dataclasses.replace(TINY, fine_wide_factors=(1.6, 2.2), fine_wide_min_shift_mm=5.0)
+    config = dataclasses.replace(
+        TINY, fine_wide_factors=(1.6, 2.2), fine_wide_min_shift_mm=5.0, fine_wide_min_gain=0.15
+    )
     det = Detector(DetectorNet(config), device="cpu")
     first = _fine([[50.0, 50.0], [120.0, 50.0]], [0.3, 0.7])
     other = _fine([[50.0, 50.0], [120.0 + shift_px, 50.0]], [other_conf, 0.8], view_side=120)
@@ -572,7 +576,9 @@ def test_second_look_takes_a_wider_hypothesis_the_network_is_surer_of(
     monkeypatch.setattr(det, "fine_views", fine_views)
     monkeypatch.setattr(det, "_refit", refit)
     monkeypatch.setattr(det, "fine_stage", fine_stage)
-    res = det.second_look(np.zeros((200, 260), np.float32), first, pixel_spacing_mm=spacing_mm)
+    res = det.second_look(
+        np.zeros((200, 260), np.float32), first, pixel_spacing_mm=spacing_mm, min_confidence=min_confidence
+    )
     assert res is (other if taken else first)
     # one batch of the last ROI scaled by each factor about its centre (40, 40)
     (views,) = seen["views"]

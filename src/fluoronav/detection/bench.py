@@ -39,11 +39,13 @@ def _bench_image(size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.n
     while True:  # the paper's scene sampling keeps the CM in view; redraw in the rare case it is not
         image = sim.simulate(sample_scene(sim.volume, rng, sampling=SceneSampling()), seed=seed)
         if image.landmarks_px is not None and image.mask.any():
+            spacing_mm = image.camera.pixel_spacing_mm
+            assert spacing_mm is not None  # a simulated camera knows its detector
             return (
                 image.image.astype(np.float32),
                 image.mask.astype(bool),
                 np.asarray(image.landmarks_px),
-                float(image.camera.pixel_spacing_mm),
+                float(spacing_mm),
             )
 
 

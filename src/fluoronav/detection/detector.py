@@ -358,7 +358,7 @@ class Detector:
             return bool(r.mask.any()) and float(r.confidence.min()) >= need and area_mm2 >= cfg.min_mask_mm2
 
         if accepted(res):  # only a detection is looked at again: the second look adds none
-            res = self.second_look(img, res, pixel_spacing_mm=pixel_spacing_mm)
+            res = self.second_look(img, res, pixel_spacing_mm=pixel_spacing_mm, min_confidence=need)
         f_pts, f_conf, mask = res.landmarks_px, res.confidence, res.mask
         if not accepted(res):
             return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
@@ -408,15 +408,23 @@ class Detector:
         return refined
 
     def second_look(
-        self, image: np.ndarray, first: FineResult, *, pixel_spacing_mm: float | None = None
+        self,
+        image: np.ndarray,
+        first: FineResult,
+        *,
+        pixel_spacing_mm: float | None = None,
+        min_confidence: float = 0.0,
     ) -> FineResult:
         """The fine stage's result, or a second hypothesis from a wider view that the network is
         surer of (``fine_wide_factors``; see :class:`~fluoronav.detection.model.DetectorConfig`).
 
         The last pass's ROI scaled by each factor goes through the fine stage in one batch; each wider
         view that puts a landmark ``fine_wide_min_shift_mm`` or more from ``first``'s is followed
-        by all fine passes from a ROI fitted to its result. The hypothesis with the highest smaller
-        landmark confidence replaces ``first`` if that is ``fine_wide_min_gain`` above ``first``'s.
+        by all fine passes from a ROI fitted to its result. Of these hypotheses, those with a mask
+        and both landmark confidences ≥ ``min_confidence``, the one of the highest mean landmark
+        confidence replaces ``first`` if that mean is ``fine_wide_min_gain`` or more above
+        ``first``'s. (The mean, not the smaller one: a CM cut short has its landmark at the cut
+        unsure, and the other end's often too.)
         """
         cfg = self.config
         if not cfg.fine_wide_factors:
@@ -425,18 +433,18 @@ class Detector:
         logits, pts, conf = self.fine_views(image, views)
         spacing_mm = pixel_spacing_mm or cfg.refine_assumed_spacing_mm
         shift_mm = np.linalg.norm(pts - first.landmarks_px, axis=-1).max(axis=-1) * spacing_mm
-        best = first
+        best, best_score = first, float(np.mean(first.confidence)) + cfg.fine_wide_min_gain
         for j in np.flatnonzero(shift_mm >= cfg.fine_wide_min_shift_mm):
             refit = self._refit(image, views[j], logits[j], pts[j], conf[j])
             if refit is None:
                 continue
             other = self.fine_stage(image, refit[0])
-            if other.confidence.min() > best.confidence.min():
-                best = other
-        if best.confidence.min() >= first.confidence.min() + cfg.fine_wide_min_gain:
-            logger.debug("second look: confidence %.2f -> %.2f", min(first.confidence), min(best.confidence))
-            return best
-        return first
+            score = float(np.mean(other.confidence))
+            if other.mask.any() and float(other.confidence.min()) >= min_confidence and score >= best_score:
+                best, best_score = other, score
+        if best is not first:
+            logger.debug("second look: confidence %s -> %s", first.confidence, best.confidence)
+        return best
 
     def fine_stage(self, image: np.ndarray, view: View) -> FineResult:
         """All fine passes from a first ROI: landmarks (2, 2) in input px, confidences (2,), the mask

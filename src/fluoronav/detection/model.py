@@ -76,13 +76,14 @@ class DetectorConfig:
             stop its mask and a landmark inside the tube; a wider view shows the rest. Where a wider
             view puts a landmark ``fine_wide_min_shift_mm`` or more from the detection's, the fine
             stage is run again from a ROI fitted to that view's result (a second hypothesis), and
-            the hypothesis with a smaller landmark confidence ``fine_wide_min_gain`` or more above the
-            detection's replaces it. Only a detection that is found is looked at again, so the
-            second look adds no detection on an image without a CM.
+            the hypothesis whose mean landmark confidence is ``fine_wide_min_gain`` or more above
+            the detection's replaces it (:meth:`~fluoronav.detection.detector.Detector.second_look`).
+            Only a detection that is found is looked at again, and only by hypotheses that would be
+            found themselves, so the second look adds no detection on an image without a CM.
         fine_wide_min_shift_mm: landmark shift (mm at the detector; images of unknown pixel spacing
             are taken to have ``refine_assumed_spacing_mm``) from which a wider view is a second
             hypothesis.
-        fine_wide_min_gain: gain in the smaller landmark confidence by which a second hypothesis
+        fine_wide_min_gain: gain in the mean landmark confidence by which a second hypothesis
             replaces the detection.
         mask_threshold: probability above which a pixel is CM.
         mask_join_frac: the final mask is its largest connected component plus, when this is > 0,
@@ -141,7 +142,7 @@ class DetectorConfig:
     fine_support_px: float = 0.0
     fine_wide_factors: tuple[float, ...] = ()
     fine_wide_min_shift_mm: float = 5.0
-    fine_wide_min_gain: float = 0.1
+    fine_wide_min_gain: float = 0.15
     mask_threshold: float = 0.5
     mask_join_frac: float = 0.0
     min_mask_px: int = 6
