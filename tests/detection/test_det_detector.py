@@ -600,6 +600,9 @@ def test_second_look_is_off_by_default_and_never_adds_a_detection(monkeypatch: p
     first = _fine(lm.tolist(), [0.5, 0.5])
     monkeypatch.setattr(det, "fine_views", lambda *a, **k: pytest.fail("a wider view was run"))
     assert det.second_look(img, first) is first
+    # on, but the detection is surer (mean confidence 0.5) than fine_wide_max_confidence: none either
+    det.config = dataclasses.replace(TINY, fine_wide_factors=(2.2,), fine_wide_max_confidence=0.45)
+    assert det.second_look(img, first) is first
     # on: a detection is looked at again; a CM seen whole gives the same result as without
     wide = DetectorNet(dataclasses.replace(TINY, fine_wide_factors=(1.6, 2.2)))
     wide.coarse, wide.fine = IntensityOracle(), IntensityOracle()
@@ -615,7 +618,12 @@ def test_second_look_is_off_by_default_and_never_adds_a_detection(monkeypatch: p
     # an image without a detection (landmarks below min_confidence) is not looked at again
     looked.config = dataclasses.replace(looked.config, min_confidence=0.99)
     assert not looked.detect(img).found and calls == [1]
-    for bad in ({"fine_wide_factors": (0.8,)}, {"fine_wide_factors": (5.0,)}, {"fine_wide_min_gain": 2.0}):
+    for bad in (
+        {"fine_wide_factors": (0.8,)},
+        {"fine_wide_factors": (5.0,)},
+        {"fine_wide_min_gain": 2.0},
+        {"fine_wide_max_confidence": -0.1},
+    ):
         with pytest.raises(ValueError, match="fine_wide"):
             dataclasses.replace(TINY, **bad)
     assert DetectorConfig.from_dict({"heatmap": "softmax"}).fine_wide_factors == ()

@@ -418,7 +418,9 @@ class Detector:
         """The fine stage's result, or a second hypothesis from a wider view that the network is
         surer of (``fine_wide_factors``; see :class:`~fluoronav.detection.model.DetectorConfig`).
 
-        The last pass's ROI scaled by each factor goes through the fine stage in one batch; each wider
+        A detection whose mean landmark confidence is above ``fine_wide_max_confidence`` is
+        returned as it is. Otherwise the last pass's ROI scaled by each factor goes through the fine
+        stage in one batch; each wider
         view that puts a landmark ``fine_wide_min_shift_mm`` or more from ``first``'s is followed
         by all fine passes from a ROI fitted to its result. Of these hypotheses, those with a mask
         and both landmark confidences ≥ ``min_confidence``, the one of the highest mean landmark
@@ -427,7 +429,7 @@ class Detector:
         unsure, and the other end's often too.)
         """
         cfg = self.config
-        if not cfg.fine_wide_factors:
+        if not cfg.fine_wide_factors or float(np.mean(first.confidence)) > cfg.fine_wide_max_confidence:
             return first
         views = [_scaled_view(first.view, f) for f in cfg.fine_wide_factors]
         logits, pts, conf = self.fine_views(image, views)

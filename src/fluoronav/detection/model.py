@@ -85,6 +85,10 @@ class DetectorConfig:
             hypothesis.
         fine_wide_min_gain: gain in the mean landmark confidence by which a second hypothesis
             replaces the detection.
+        fine_wide_max_confidence: a detection whose mean landmark confidence is above this gets no
+            second look (1: every detection does). The fine stage's confidence tops out near 0.86
+            (a prediction as sharp as the training targets), so a detection above 0.86 minus
+            ``fine_wide_min_gain`` cannot be replaced and the look would only cost time.
         mask_threshold: probability above which a pixel is CM.
         mask_join_frac: the final mask is its largest connected component plus, when this is > 0,
             the components within max(3 px, this · |AB|) of the segment A–B (a tube's mask cut into
@@ -143,6 +147,7 @@ class DetectorConfig:
     fine_wide_factors: tuple[float, ...] = ()
     fine_wide_min_shift_mm: float = 5.0
     fine_wide_min_gain: float = 0.15
+    fine_wide_max_confidence: float = 1.0
     mask_threshold: float = 0.5
     mask_join_frac: float = 0.0
     min_mask_px: int = 6
@@ -177,6 +182,10 @@ class DetectorConfig:
             raise ValueError(
                 "fine_wide_min_shift_mm must be 0 or more and fine_wide_min_gain in [0, 1], got "
                 f"{self.fine_wide_min_shift_mm} and {self.fine_wide_min_gain}"
+            )
+        if not 0.0 <= self.fine_wide_max_confidence <= 1.0:
+            raise ValueError(
+                f"fine_wide_max_confidence must be in [0, 1], got {self.fine_wide_max_confidence}"
             )
         if not 0.0 <= self.mask_join_frac <= 1.0:
             raise ValueError(f"mask_join_frac must be in [0, 1], got {self.mask_join_frac}")
