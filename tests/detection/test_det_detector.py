@@ -522,7 +522,9 @@ def test_a_landmark_peaking_on_a_blob_apart_from_the_cm_is_taken_on_the_cm() -> 
         decode_landmarks(maps, mode="softmax", sigma_px=sigma, exclude=exclude[:, :1])
 
 
-def _fine(landmarks: list[list[float]], confidence: list[float], view_side: int = 80) -> object:
+def _fine(
+    landmarks: list[list[float]], confidence: list[float], view_side: int = 80
+) -> detector_module.FineResult:
     """A fine-stage hypothesis with a ROI of ``view_side`` px at the origin and a 10 × 10 mask."""
     mask = np.zeros((200, 260), bool)
     mask[100:110, 100:110] = True
@@ -569,7 +571,7 @@ def test_second_look_takes_a_wider_hypothesis_the_network_is_surer_of(
     def refit(image: np.ndarray, view: object, *args: object) -> tuple:
         return view, False
 
-    def fine_stage(image: np.ndarray, view: object) -> object:
+    def fine_stage(image: np.ndarray, view: object) -> detector_module.FineResult:
         seen["starts"].append(view)
         return other
 

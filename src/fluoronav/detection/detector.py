@@ -420,13 +420,12 @@ class Detector:
 
         A detection whose mean landmark confidence is above ``fine_wide_max_confidence`` is
         returned as it is. Otherwise the last pass's ROI scaled by each factor goes through the fine
-        stage in one batch; each wider
-        view that puts a landmark ``fine_wide_min_shift_mm`` or more from ``first``'s is followed
-        by all fine passes from a ROI fitted to its result. Of these hypotheses, those with a mask
-        and both landmark confidences ≥ ``min_confidence``, the one of the highest mean landmark
-        confidence replaces ``first`` if that mean is ``fine_wide_min_gain`` or more above
-        ``first``'s. (The mean, not the smaller one: a CM cut short has its landmark at the cut
-        unsure, and the other end's often too.)
+        stage in one batch; each wider view that puts a landmark ``fine_wide_min_shift_mm`` (mm at
+        the detector) or more from ``first``'s is followed by all fine passes from a ROI fitted to
+        its result. Of these hypotheses, those with a mask and both landmark confidences ≥
+        ``min_confidence``, the one of the highest mean landmark confidence replaces ``first`` if
+        that mean is ``fine_wide_min_gain`` or more above ``first``'s. (The mean, not the smaller
+        one: a CM cut short has its landmark at the cut unsure, and the other end's often too.)
         """
         cfg = self.config
         if not cfg.fine_wide_factors or float(np.mean(first.confidence)) > cfg.fine_wide_max_confidence:
