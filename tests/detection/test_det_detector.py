@@ -579,7 +579,10 @@ def test_second_look_takes_a_wider_hypothesis_the_network_is_surer_of(
     monkeypatch.setattr(det, "_refit", refit)
     monkeypatch.setattr(det, "fine_stage", fine_stage)
     res = det.second_look(
-        np.zeros((200, 260), np.float32), first, pixel_spacing_mm=spacing_mm, min_confidence=min_confidence
+        np.zeros((200, 260), np.float32),
+        first,
+        pixel_spacing_mm=spacing_mm,
+        accept=lambda r: float(r.confidence.min()) >= min_confidence,
     )
     assert res is (other if taken else first)
     # one batch of the last ROI scaled by each factor about its centre (40, 40)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -357,11 +358,12 @@ class Detector:
             area_mm2 = float(r.mask.sum()) * spacing_mm**2
             return bool(r.mask.any()) and float(r.confidence.min()) >= need and area_mm2 >= cfg.min_mask_mm2
 
-        if accepted(res):  # only a detection is looked at again: the second look adds none
-            res = self.second_look(img, res, pixel_spacing_mm=pixel_spacing_mm, min_confidence=need)
-        f_pts, f_conf, mask = res.landmarks_px, res.confidence, res.mask
         if not accepted(res):
-            return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
+            conf = res.confidence.astype(np.float64)
+            return Detection(False, None, conf, res.mask, None, pixel_spacing_mm)
+        # only a detection is looked at again, and only by hypotheses that are one: it adds none
+        res = self.second_look(img, res, pixel_spacing_mm=pixel_spacing_mm, accept=accepted)
+        f_pts, f_conf, mask = res.landmarks_px, res.confidence, res.mask
         f_pts = self.refine(img, f_pts, mask, pixel_spacing_mm=pixel_spacing_mm)
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])
         return Detection(True, f_pts, f_conf.astype(np.float64), mask, centerline, pixel_spacing_mm)
@@ -413,7 +415,7 @@ class Detector:
         first: FineResult,
         *,
         pixel_spacing_mm: float | None = None,
-        min_confidence: float = 0.0,
+        accept: Callable[[FineResult], bool] | None = None,
     ) -> FineResult:
         """The fine stage's result, or a second hypothesis from a wider view that the network is
         surer of (``fine_wide_factors``; see :class:`~fluoronav.detection.model.DetectorConfig`).
@@ -422,10 +424,10 @@ class Detector:
         returned as it is. Otherwise the last pass's ROI scaled by each factor goes through the fine
         stage in one batch; each wider view that puts a landmark ``fine_wide_min_shift_mm`` (mm at
         the detector) or more from ``first``'s is followed by all fine passes from a ROI fitted to
-        its result. Of these hypotheses, those with a mask and both landmark confidences ≥
-        ``min_confidence``, the one of the highest mean landmark confidence replaces ``first`` if
-        that mean is ``fine_wide_min_gain`` or more above ``first``'s. (The mean, not the smaller
-        one: a CM cut short has its landmark at the cut unsure, and the other end's often too.)
+        its result. Of these hypotheses, those that ``accept`` takes for a detection (by default:
+        any with a mask), the one of the highest mean landmark confidence replaces ``first`` if that
+        mean is ``fine_wide_min_gain`` or more above ``first``'s. (The mean, not the smaller one: a
+        CM cut short has its landmark at the cut unsure, and the other end's often too.)
         """
         cfg = self.config
         if not cfg.fine_wide_factors or float(np.mean(first.confidence)) > cfg.fine_wide_max_confidence:
@@ -441,7 +443,7 @@ class Detector:
                 continue
             other = self.fine_stage(image, refit[0])
             score = float(np.mean(other.confidence))
-            if other.mask.any() and float(other.confidence.min()) >= min_confidence and score >= best_score:
+            if score >= best_score and (accept(other) if accept is not None else bool(other.mask.any())):
                 best, best_score = other, score
         if best is not first:
             logger.debug("second look: confidence %s -> %s", first.confidence, best.confidence)
