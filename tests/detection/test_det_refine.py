@@ -26,6 +26,10 @@ from fluoronav.detection.train import TrainConfig, sidecar_path, train
 
 def test_patch_frame_maps_hand_computed_points_and_round_trips() -> None:
     f = RefinePatch(np.array([10.0, 20.0]), np.array([0.0, 1.0]), 0.5, (4, 6))
+    # moved 3 patch px along t = +v: 1.5 input px
+    g = f.shifted(3.0)
+    np.testing.assert_allclose(g.center_px, [10.0, 21.5], atol=1e-12)
+    assert g.tangent is f.tangent and g.step_px == f.step_px and g.shape == f.shape
     # patch (col 0, row 0): 2.5 patch px back along t = +v, 1.5 px along −n; n = (−1, 0)
     np.testing.assert_allclose(f.to_input(np.array([0.0, 0.0])), [10.75, 18.75], atol=1e-12)
     np.testing.assert_allclose(f.to_input(np.array([2.5, 1.5])), [10.0, 20.0], atol=1e-12)  # the centre
@@ -86,6 +90,18 @@ def test_decoding_recovers_a_sub_pixel_peak_and_the_prior_picks_the_near_mode() 
     # the prior is a Gaussian at the centre: 0 there, −r²/(2s²) elsewhere
     z = add_center_prior(torch.zeros(1, 1, 3, 5), sigma_px=2.0)
     assert float(z[0, 0, 1, 2]) == 0.0 and float(z[0, 0, 0, 0]) == pytest.approx(-(4 + 1) / 8.0)
+    # or at a given (col, row) per patch
+    z = add_center_prior(
+        torch.zeros(2, 1, 3, 5), sigma_px=2.0, center_px=torch.tensor([[1.0, 2.0], [4.0, 0.0]])
+    )
+    assert float(z[0, 0, 2, 1]) == 0.0 and float(z[1, 0, 0, 4]) == 0.0
+    assert float(z[0, 0, 0, 0]) == pytest.approx(-(1 + 4) / 8.0)
+    assert float(z[1, 0, 2, 0]) == pytest.approx(-(16 + 4) / 8.0)
+    # a prior away from the centre picks the mode near it: here the far one
+    pf, _ = decode_refine_logits(
+        logits, sigma_px=1.5, prior_px=3.0, prior_center_px=torch.tensor([[far[0] - 1.0, far[1]]])
+    )
+    assert abs(float(pf[0, 0]) - far[0]) < 0.5
 
 
 class _DotOracle(torch.nn.Module):
@@ -129,6 +145,38 @@ def test_detector_refines_landmarks_towards_what_the_patch_shows() -> None:
     np.testing.assert_array_equal(plain.refine(image, start, mask_b), start)
 
 
+def test_detector_averages_patches_moved_along_the_tube_with_the_prior_at_the_landmark() -> None:
+    cfg = DetectorConfig(
+        input_size=32,
+        roi_size=32,
+        channels=(4, 8),
+        roi_channels=(4, 8),
+        refine_channels=(4, 8),
+        refine_shape=(16, 32),
+        refine_prior_px=3.0,
+    )
+    net = DetectorNet(cfg)
+    net.refine = _DotOracle()
+    true = np.array([50.3, 40.6])
+    image, mask = _tube_scene(true)
+    start = np.array([true + np.array([1.0, 0.3]), [150.0, 40.0]])
+    one = Detector(net, device="cpu")
+    moved = Detector(net, device="cpu")
+    moved.config = dataclasses.replace(cfg, refine_shifts_px=(-4.0, 0.0, 4.0))
+    a, b = one.refine(image, start, mask), moved.refine(image, start, mask)
+    # every moved patch still shows the dot where it is: the same point, mapped back from each
+    assert np.linalg.norm(b[0] - true) < 0.35 and np.linalg.norm(b[0] - a[0]) < 0.1
+    np.testing.assert_array_equal(b[1], start[1])
+    # a second dot as bright 6 input px into the tube: a patch moved 10 patch px (5 input px) towards
+    # it is centred near it, but the prior stays at the fine landmark, so the true dot is still taken
+    vv, uu = np.mgrid[0 : image.shape[0], 0 : image.shape[1]].astype(np.float64)
+    decoy = true + np.array([6.0, 0.0])
+    image2 = image + 3.0 * np.exp(-((uu - decoy[0]) ** 2 + (vv - decoy[1]) ** 2) / 2.0).astype(np.float32)
+    moved.config = dataclasses.replace(cfg, refine_shifts_px=(10.0,))
+    c = moved.refine(image2, start, mask)
+    assert np.linalg.norm(c[0] - true) < 0.5
+
+
 def test_refine_settings_are_validated_and_round_trip() -> None:
     with pytest.raises(ValueError, match="refine_tta"):
         DetectorConfig(refine_tta=3)
@@ -136,7 +184,10 @@ def test_refine_settings_are_validated_and_round_trip() -> None:
         DetectorConfig(refine_channels=(4, 8, 16), refine_shape=(10, 16))
     with pytest.raises(ValueError, match="refine_prior_px"):
         DetectorConfig(refine_prior_px=-1.0)
-    cfg = DetectorConfig(refine_channels=(8, 16), refine_shape=(16, 32))
+    for bad in ((), (0.0, 20.0)):
+        with pytest.raises(ValueError, match="refine_shifts_px"):
+            DetectorConfig(refine_shifts_px=bad)
+    cfg = DetectorConfig(refine_channels=(8, 16), refine_shape=(16, 32), refine_shifts_px=(-2.0, 0.0, 2.0))
     assert DetectorConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
     assert DetectorConfig.from_dict({"heatmap": "softmax"}).refine_channels == ()  # older model files
 

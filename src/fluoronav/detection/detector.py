@@ -37,7 +37,7 @@ from scipy import ndimage as ndi
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.heatmaps import decode_landmarks
 from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet
-from fluoronav.detection.refine import decode_refine_logits, refine_patch
+from fluoronav.detection.refine import RefinePatch, decode_refine_logits, refine_patch
 from fluoronav.detection.views import View, full_view, normalize_intensity, paste, resample, roi_view
 from fluoronav.device import resolve_device
 from fluoronav.errors import FluoronavError, InputError
@@ -381,17 +381,19 @@ class Detector:
         (:mod:`fluoronav.detection.refine`); unchanged without a refinement stage, and each landmark
         whose direction the mask does not give (a CM seen end-on) keeps its place.
 
-        Both landmarks and their mirrored patches (``refine_tta``) go through the network in one batch.
+        Each landmark is read from one patch per ``refine_shifts_px`` (moved along the tube, the
+        prior staying at the landmark) and the mean of those estimates is taken. All patches of
+        both landmarks and their mirror images (``refine_tta``) go through the network in one batch.
         """
         net, cfg = self.net.refine, self.config
         if net is None:
             return landmarks_px
         step = cfg.refine_step_px(pixel_spacing_mm)
-        frames = [
-            (k, refine_patch(mask, p, step_px=step, shape=cfg.refine_shape))
-            for k, p in enumerate(landmarks_px)
-        ]
-        todo = [(k, fr) for k, fr in frames if fr is not None]
+        todo: list[tuple[int, RefinePatch]] = []  # (landmark, patch)
+        for k, p in enumerate(landmarks_px):
+            frame = refine_patch(mask, p, step_px=step, shape=cfg.refine_shape)
+            if frame is not None:
+                todo += [(k, frame.shifted(d)) for d in cfg.refine_shifts_px]
         if not todo:
             return landmarks_px
         x = torch.from_numpy(np.stack([fr.sample(image) for _, fr in todo]))[:, None].to(self.device)
@@ -402,11 +404,22 @@ class Detector:
         else:
             out = net(x)
         out = out.float().cpu()
-        sel = out[torch.arange(len(todo)), torch.tensor([k for k, _ in todo])][:, None]
-        pts, _ = decode_refine_logits(sel, sigma_px=cfg.refine_sigma_px, prior_px=cfg.refine_prior_px)
+        ks = [k for k, _ in todo]
+        sel = out[torch.arange(len(todo)), torch.tensor(ks)][:, None]
+        # the prior stays at the fine stage's landmark in every shifted patch
+        centers = np.stack([fr.from_input(landmarks_px[k]) for k, fr in todo])
+        pts, _ = decode_refine_logits(
+            sel,
+            sigma_px=cfg.refine_sigma_px,
+            prior_px=cfg.refine_prior_px,
+            prior_center_px=torch.from_numpy(centers).float(),
+        )
+        estimates = np.stack(
+            [fr.to_input(q) for (_, fr), q in zip(todo, pts.numpy().astype(np.float64), strict=True)]
+        )
         refined = np.array(landmarks_px, dtype=np.float64, copy=True)
-        for (k, fr), q in zip(todo, pts.numpy().astype(np.float64), strict=True):
-            refined[k] = fr.to_input(q)
+        for k in sorted(set(ks)):
+            refined[k] = estimates[[j for j, kk in enumerate(ks) if kk == k]].mean(axis=0)
         return refined
 
     def second_look(

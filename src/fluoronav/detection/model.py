@@ -121,6 +121,9 @@ class DetectorConfig:
         refine_prior_px: σ of the Gaussian prior around the fine stage's landmark at inference, patch
             pixels (0: none; the patch alone sometimes takes the tube's end for B or the base for A,
             a few mm off, which the fine stage's view of the whole CM rules out).
+        refine_shifts_px: each landmark is read from patches centred this many patch pixels along
+            the tube from it (one batch; the prior stays at the fine stage's landmark) and the mean
+            of their estimates is taken; (0,): one patch.
         refine_tta: 2: the refinement logits are averaged with those of the patch mirrored about the
             tube's axis; 1: the patch alone.
         refine_assumed_spacing_mm: the pixel spacing taken for images that do not give theirs (the
@@ -164,6 +167,7 @@ class DetectorConfig:
     refine_step_mm: float = 0.291
     refine_sigma_px: float = 1.5
     refine_prior_px: float = 3.0
+    refine_shifts_px: tuple[float, ...] = (0.0,)
     refine_tta: int = 2
     refine_assumed_spacing_mm: float = 0.582
 
@@ -199,6 +203,10 @@ class DetectorConfig:
             raise ValueError(f"coarse_min_field_mm must be 0 or more, got {self.coarse_min_field_mm}")
         if not 0.0 <= self.padded_min_confidence <= 1.0:
             raise ValueError(f"padded_min_confidence must be in [0, 1], got {self.padded_min_confidence}")
+        if not self.refine_shifts_px or not all(abs(float(d)) <= 16.0 for d in self.refine_shifts_px):
+            raise ValueError(
+                f"refine_shifts_px must be 1 or more shifts in [-16, 16], got {self.refine_shifts_px}"
+            )
         if self.refine_tta not in (1, 2):
             raise ValueError(f"refine_tta must be 1 or 2, got {self.refine_tta}")
         if self.refine_channels:
@@ -231,6 +239,7 @@ class DetectorConfig:
         d["channels"], d["roi_channels"] = list(self.channels), list(self.roi_channels)
         d["fine_scales"], d["fine_wide_factors"] = list(self.fine_scales), list(self.fine_wide_factors)
         d["refine_channels"], d["refine_shape"] = list(self.refine_channels), list(self.refine_shape)
+        d["refine_shifts_px"] = list(self.refine_shifts_px)
         return d
 
     @classmethod
@@ -243,7 +252,7 @@ class DetectorConfig:
         for key in ("channels", "roi_channels", "refine_channels", "refine_shape"):
             if key in kw:
                 kw[key] = tuple(int(c) for c in kw[key])
-        for key in ("fine_scales", "fine_wide_factors"):
+        for key in ("fine_scales", "fine_wide_factors", "refine_shifts_px"):
             if key in kw:
                 kw[key] = tuple(float(f) for f in kw[key])
         return cls(**kw)

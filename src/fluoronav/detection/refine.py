@@ -19,10 +19,13 @@ about the tube's axis (the mirror test-time augmentation). The tangent is the di
 landmark to the mean of the CM mask's pixels in a ring around it (:func:`landmark_direction`): the same
 estimate from the true mask in training and from the detected mask at inference.
 
-At inference the patch's log-probabilities get a Gaussian prior around the patch centre (σ =
-``refine_prior_px`` patch pixels): the patch shows the tube's end (beyond B) or the base (before A)
-a few millimetres off, which the small patch alone can mistake for the landmark; the fine stage,
-which sees the whole CM, tells them apart.
+At inference the patch's log-probabilities get a Gaussian prior around the fine stage's landmark
+(σ = ``refine_prior_px`` patch pixels): the patch shows the tube's end (beyond B) or the base (before
+A) a few millimetres off, which the small patch alone can mistake for the landmark; the fine stage,
+which sees the whole CM, tells them apart. The detector can also read each landmark from several
+patches moved along the tube (``refine_shifts_px``), the prior staying at the fine stage's landmark,
+and take the mean: the network's estimate depends a little on where the landmark falls in its patch
+and on the pixel grid, and that part of the error averages out.
 """
 
 from __future__ import annotations
@@ -68,6 +71,12 @@ class RefinePatch:
     @property
     def normal(self) -> np.ndarray:
         return np.array([-self.tangent[1], self.tangent[0]])
+
+    def shifted(self, along_px: float) -> RefinePatch:
+        """The same frame with its centre moved ``along_px`` patch pixels along the tube (into the
+        CM where positive)."""
+        center = self.center_px + float(along_px) * self.step_px * self.tangent
+        return RefinePatch(center, self.tangent, self.step_px, self.shape)
 
     def _origin(self) -> np.ndarray:
         rows, cols = self.shape
@@ -128,25 +137,38 @@ def refine_patch(
     return RefinePatch(np.asarray(point_px, dtype=np.float64), t, float(step_px), shape)
 
 
-def add_center_prior(log_probs: torch.Tensor, *, sigma_px: float) -> torch.Tensor:
-    """(N, K, rows, cols) log-probabilities + log of an isotropic Gaussian at the patch centre of
-    σ = ``sigma_px`` patch pixels (0: unchanged)."""
+def add_center_prior(
+    log_probs: torch.Tensor, *, sigma_px: float, center_px: torch.Tensor | None = None
+) -> torch.Tensor:
+    """(N, K, rows, cols) log-probabilities + log of an isotropic Gaussian of σ = ``sigma_px`` patch
+    pixels (0: unchanged) at ``center_px`` (N, 2) (col, row) patch pixels, one per patch (None: the
+    patch centre)."""
     if sigma_px <= 0:
         return log_probs
     rows, cols = log_probs.shape[-2:]
-    v = torch.arange(rows, dtype=log_probs.dtype, device=log_probs.device) - (rows - 1) / 2.0
-    u = torch.arange(cols, dtype=log_probs.dtype, device=log_probs.device) - (cols - 1) / 2.0
-    r2 = v[:, None] ** 2 + u[None, :] ** 2
-    return log_probs - r2 / (2.0 * sigma_px**2)
+    dtype, device = log_probs.dtype, log_probs.device
+    if center_px is None:
+        center = torch.tensor([[(cols - 1) / 2.0, (rows - 1) / 2.0]], dtype=dtype, device=device)
+    else:
+        center = torch.as_tensor(center_px, dtype=dtype, device=device).reshape(-1, 2)
+    v = torch.arange(rows, dtype=dtype, device=device)[None, :] - center[:, 1:]  # (N|1, rows)
+    u = torch.arange(cols, dtype=dtype, device=device)[None, :] - center[:, :1]  # (N|1, cols)
+    r2 = v[:, :, None] ** 2 + u[:, None, :] ** 2  # (N|1, rows, cols)
+    return log_probs - r2[:, None] / (2.0 * sigma_px**2)
 
 
 def decode_refine_logits(
-    logits: torch.Tensor, *, sigma_px: float, prior_px: float
+    logits: torch.Tensor,
+    *,
+    sigma_px: float,
+    prior_px: float,
+    prior_center_px: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(N, 1, rows, cols) refinement logits → sub-pixel peaks (N, 2) (col, row) and confidences (N,),
-    after the centre prior (:func:`add_center_prior`)."""
+    after the prior (:func:`add_center_prior`; ``prior_center_px`` (N, 2), None: the patch centre)."""
     logp = torch.log_softmax(logits.flatten(-2).float(), dim=-1).reshape(logits.shape)
-    pts, conf = decode_logit_heatmaps(add_center_prior(logp, sigma_px=prior_px), sigma_px=sigma_px)
+    prior = add_center_prior(logp, sigma_px=prior_px, center_px=prior_center_px)
+    pts, conf = decode_logit_heatmaps(prior, sigma_px=sigma_px)
     return pts[:, 0], conf[:, 0]
 
 
