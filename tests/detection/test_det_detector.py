@@ -635,3 +635,67 @@ def test_second_look_is_off_by_default_and_never_adds_a_detection(monkeypatch: p
     assert DetectorConfig.from_dict(
         dataclasses.replace(TINY, fine_wide_factors=(2,)).to_dict()
     ).fine_wide_factors == (2.0,)
+
+
+@pytest.mark.parametrize(
+    ("joined", "conf_at_a", "min_confidence", "taken"),
+    [
+        (False, 0.8, 0.0, True),  # A's component alone: the network is far surer of it
+        (False, 0.3, 0.0, False),  # surer by 0.15 at most: the ROI over both stays
+        (False, 0.8, 0.85, False),  # surer, but it would not be found itself
+        (True, 0.8, 0.0, False),  # one component under both landmarks: no other hypothesis
+    ],
+)
+def test_split_coarse_mask_tries_each_landmarks_component_alone(
+    monkeypatch: pytest.MonkeyPatch, joined: bool, conf_at_a: float, min_confidence: float, taken: bool
+) -> None:
+    det = Detector(DetectorNet(dataclasses.replace(TINY, coarse_split=True)), device="cpu")
+    cv = detector_module.View(x0=0, y0=0, side=256, size=64)  # 4 input px per coarse px
+    c_mask = np.zeros((64, 64), bool)
+    c_mask[10:14, 10:20] = True  # under A
+    c_mask[40:44, 40:50] = True  # under B, a blob far away
+    if joined:
+        c_mask[14:42, 18:20] = True
+        c_mask[40:42, 18:40] = True
+    c_pts = cv.to_input(np.array([[12.0, 12.0], [45.0, 42.0]]))
+    first = _fine(c_pts.tolist(), [0.2, 0.25])
+    starts: list = []
+
+    def fine_stage(image: np.ndarray, view: detector_module.View) -> detector_module.FineResult:
+        starts.append(view)
+        centre = np.array([view.x0 + view.side / 2, view.y0 + view.side / 2])
+        near_a = np.linalg.norm(centre - c_pts[0]) < np.linalg.norm(centre - c_pts[1])
+        return _fine(c_pts.tolist(), [conf_at_a, conf_at_a] if near_a else [0.05, 0.05])
+
+    monkeypatch.setattr(det, "fine_stage", fine_stage)
+    res = det._split_look(
+        np.zeros((256, 256), np.float32),
+        cv,
+        c_mask,
+        c_pts,
+        first,
+        accept=lambda r: float(r.confidence.min()) >= min_confidence,
+    )
+    assert (res is not first) == taken
+    if taken:
+        np.testing.assert_array_equal(res.confidence, [conf_at_a, conf_at_a])
+    assert len(starts) == (0 if joined else 2)
+    # each ROI holds its own component only: A's 10 coarse px long (40 input px), B's likewise
+    for view in starts:
+        assert view.side < 80
+
+
+def test_split_coarse_mask_is_off_by_default_and_round_trips(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert not TINY.coarse_split and not DetectorConfig.from_dict({"heatmap": "softmax"}).coarse_split
+    on = dataclasses.replace(TINY, coarse_split=True)
+    assert DetectorConfig.from_dict(on.to_dict()).coarse_split
+    img, _, _ = drawn_cm()
+    for config, looks in ((TINY, 0), (on, 1)):
+        net = DetectorNet(config)
+        net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+        det = Detector(net, device="cpu")
+        calls: list[int] = []
+        split_look = det._split_look
+        monkeypatch.setattr(det, "_split_look", lambda *a, **k: calls.append(1) or split_look(*a, **k))
+        ref = det.detect(img)
+        assert ref.found and len(calls) == looks  # one bar: one component, the result unchanged

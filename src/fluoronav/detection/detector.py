@@ -344,10 +344,6 @@ class Detector:
         weak = c_area < cfg.min_mask_px
         if c_area < (cfg.weak_mask_px or cfg.min_mask_px):
             return empty
-        confident = c_conf >= cfg.min_confidence
-        c_mask = _component_at(c_mask, cv.from_input(c_pts[confident]))
-        fv = self._roi(cv, c_mask, c_pts[confident])
-        res = self.fine_stage(img, fv)
         # false alarms on CM-free images mostly start as small coarse masks: those need surer landmarks
         need = max(cfg.weak_min_confidence, cfg.min_confidence) if weak else cfg.min_confidence
         if padded:
@@ -358,6 +354,11 @@ class Detector:
             area_mm2 = float(r.mask.sum()) * spacing_mm**2
             return bool(r.mask.any()) and float(r.confidence.min()) >= need and area_mm2 >= cfg.min_mask_mm2
 
+        confident = c_conf >= cfg.min_confidence
+        seeds = cv.from_input(c_pts[confident])
+        res = self.fine_stage(img, self._roi(cv, _component_at(c_mask, seeds), c_pts[confident]))
+        if cfg.coarse_split and bool(confident.all()):
+            res = self._split_look(img, cv, c_mask, c_pts, res, accept=accepted)
         if not accepted(res):
             conf = res.confidence.astype(np.float64)
             return Detection(False, None, conf, res.mask, None, pixel_spacing_mm)
@@ -421,6 +422,34 @@ class Detector:
         for k in sorted(set(ks)):
             refined[k] = estimates[[j for j, kk in enumerate(ks) if kk == k]].mean(axis=0)
         return refined
+
+    def _split_look(
+        self,
+        image: np.ndarray,
+        cv: View,
+        c_mask: np.ndarray,
+        c_pts: np.ndarray,
+        first: FineResult,
+        *,
+        accept: Callable[[FineResult], bool],
+    ) -> FineResult:
+        """``first``, or the fine stage from one coarse landmark's mask component alone where the
+        two landmarks (2, 2) input px lie on different components of the coarse mask (view px) and
+        that hypothesis is surer by ``fine_wide_min_gain`` (``coarse_split`` in the configuration)."""
+        seeds = cv.from_input(c_pts)
+        # a seed on no component gets the largest one, a mask of one component itself: both overlap
+        parts = [_component_at(c_mask, seeds[k : k + 1]) for k in range(2)]
+        if bool((parts[0] & parts[1]).any()):
+            return first
+        best, best_score = first, float(np.mean(first.confidence)) + self.config.fine_wide_min_gain
+        for k in range(2):
+            other = self.fine_stage(image, self._roi(cv, parts[k], c_pts[k : k + 1]))
+            score = float(np.mean(other.confidence))
+            if score >= best_score and accept(other):
+                best, best_score = other, score
+        if best is not first:
+            logger.debug("split coarse mask: confidence %s -> %s", first.confidence, best.confidence)
+        return best
 
     def second_look(
         self,

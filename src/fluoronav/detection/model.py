@@ -89,6 +89,14 @@ class DetectorConfig:
             second look (1: every detection does). The fine stage's confidence tops out near 0.86
             (a prediction as sharp as the training targets), so a detection above 0.86 minus
             ``fine_wide_min_gain`` cannot be replaced and the look would only cost time.
+        coarse_split: where the two confident coarse landmarks lie on different connected components
+            of the coarse mask, the fine stage also runs from each component alone with its
+            landmark (two more hypotheses; by default the ROI holds both components: one CM cut in
+            two by a crossing bone), and a hypothesis whose mean landmark confidence is
+            ``fine_wide_min_gain`` or more above the first one's replaces it. This mends a coarse
+            landmark that went to a blob far from the CM, whose ROI then shows the CM too small
+            to be found. Unlike the second look it can turn a non-detection into a detection (the
+            hypothesis must be found itself). False: off.
         mask_threshold: probability above which a pixel is CM.
         mask_join_frac: the final mask is its largest connected component plus, when this is > 0,
             the components within max(3 px, this · |AB|) of the segment A–B (a tube's mask cut into
@@ -151,6 +159,7 @@ class DetectorConfig:
     fine_wide_min_shift_mm: float = 5.0
     fine_wide_min_gain: float = 0.15
     fine_wide_max_confidence: float = 1.0
+    coarse_split: bool = False
     mask_threshold: float = 0.5
     mask_join_frac: float = 0.0
     min_mask_px: int = 6
