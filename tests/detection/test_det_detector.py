@@ -696,6 +696,8 @@ def test_split_coarse_mask_is_off_by_default_and_round_trips(monkeypatch: pytest
         det = Detector(net, device="cpu")
         calls: list[int] = []
         split_look = det._split_look
-        monkeypatch.setattr(det, "_split_look", lambda *a, **k: calls.append(1) or split_look(*a, **k))
+        monkeypatch.setattr(
+            det, "_split_look", lambda *a, c=calls, f=split_look, **k: c.append(1) or f(*a, **k)
+        )
         ref = det.detect(img)
         assert ref.found and len(calls) == looks  # one bar: one component, the result unchanged
