@@ -118,16 +118,20 @@ def _tube_scene(true_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return image.astype(np.float32), mask
 
 
+#: a detector small enough to build in a test; its refinement stage is replaced by :class:`_DotOracle`
+ORACLE_CFG = DetectorConfig(
+    input_size=32,
+    roi_size=32,
+    channels=(4, 8),
+    roi_channels=(4, 8),
+    refine_channels=(4, 8),
+    refine_shape=(16, 32),
+    refine_prior_px=3.0,
+)
+
+
 def test_detector_refines_landmarks_towards_what_the_patch_shows() -> None:
-    cfg = DetectorConfig(
-        input_size=32,
-        roi_size=32,
-        channels=(4, 8),
-        roi_channels=(4, 8),
-        refine_channels=(4, 8),
-        refine_shape=(16, 32),
-        refine_prior_px=3.0,
-    )
+    cfg = ORACLE_CFG
     net = DetectorNet(cfg)
     net.refine = _DotOracle()
     det = Detector(net, device="cpu")
@@ -146,15 +150,7 @@ def test_detector_refines_landmarks_towards_what_the_patch_shows() -> None:
 
 
 def test_detector_averages_patches_moved_along_the_tube_with_the_prior_at_the_landmark() -> None:
-    cfg = DetectorConfig(
-        input_size=32,
-        roi_size=32,
-        channels=(4, 8),
-        roi_channels=(4, 8),
-        refine_channels=(4, 8),
-        refine_shape=(16, 32),
-        refine_prior_px=3.0,
-    )
+    cfg = ORACLE_CFG
     net = DetectorNet(cfg)
     net.refine = _DotOracle()
     true = np.array([50.3, 40.6])
