@@ -701,3 +701,53 @@ def test_split_coarse_mask_is_off_by_default_and_round_trips(monkeypatch: pytest
         )
         ref = det.detect(img)
         assert ref.found and len(calls) == looks  # one bar: one component, the result unchanged
+
+
+@pytest.mark.parametrize(
+    ("min_px", "blob_px", "conf_at_blob", "tried", "taken"),
+    [
+        (3, 12, 0.8, True, True),  # both landmarks on one blob, the CM is the other: taken
+        (3, 12, 0.3, True, False),  # the other blob is no surer: the first stays
+        (20, 12, 0.8, False, False),  # a blob under coarse_other_min_px is not tried
+        (0, 12, 0.8, False, False),  # off (the default)
+    ],
+)
+def test_another_coarse_blob_is_a_hypothesis_too(
+    monkeypatch: pytest.MonkeyPatch, min_px: int, blob_px: int, conf_at_blob: float, tried: bool, taken: bool
+) -> None:
+    det = Detector(DetectorNet(dataclasses.replace(TINY, coarse_other_min_px=min_px)), device="cpu")
+    cv = detector_module.View(x0=0, y0=0, side=256, size=64)
+    c_mask = np.zeros((64, 64), bool)
+    c_mask[10:14, 10:20] = True  # both coarse landmarks here
+    c_mask[40:43, 40 : 40 + blob_px // 3] = True  # another blob of blob_px pixels
+    c_pts = cv.to_input(np.array([[11.0, 12.0], [18.0, 12.0]]))
+    first = _fine(c_pts.tolist(), [0.2, 0.25])
+    starts: list = []
+
+    def fine_stage(image: np.ndarray, view: detector_module.View) -> detector_module.FineResult:
+        starts.append(view)
+        centre = np.array([view.x0 + view.side / 2, view.y0 + view.side / 2]) / 4.0  # coarse px
+        at_blob = np.linalg.norm(centre - [42.0, 41.5]) < 5
+        return _fine(c_pts.tolist(), [conf_at_blob] * 2 if at_blob else [0.05, 0.05])
+
+    monkeypatch.setattr(det, "fine_stage", fine_stage)
+    first_mask = detector_module._component_at(c_mask, cv.from_input(c_pts))
+    res = det._split_look(
+        np.zeros((256, 256), np.float32),
+        cv,
+        c_mask,
+        c_pts,
+        first,
+        accept=lambda r: True,
+        first_mask=first_mask,
+    )
+    assert len(starts) == (1 if tried else 0)
+    assert (res is not first) == taken
+    with pytest.raises(ValueError, match="coarse_other_min_px"):
+        dataclasses.replace(TINY, coarse_other_min_px=-1)
+    assert (
+        DetectorConfig.from_dict(
+            dataclasses.replace(TINY, coarse_other_min_px=3).to_dict()
+        ).coarse_other_min_px
+        == 3
+    )

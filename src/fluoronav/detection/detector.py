@@ -356,9 +356,19 @@ class Detector:
 
         confident = c_conf >= cfg.min_confidence
         seeds = cv.from_input(c_pts[confident])
-        res = self.fine_stage(img, self._roi(cv, _component_at(c_mask, seeds), c_pts[confident]))
-        if cfg.coarse_split and bool(confident.all()):
-            res = self._split_look(img, cv, c_mask, c_pts, res, accept=accepted)
+        first_mask = _component_at(c_mask, seeds)
+        res = self.fine_stage(img, self._roi(cv, first_mask, c_pts[confident]))
+        if (cfg.coarse_split and bool(confident.all())) or cfg.coarse_other_min_px > 0:
+            res = self._split_look(
+                img,
+                cv,
+                c_mask,
+                c_pts,
+                res,
+                accept=accepted,
+                first_mask=first_mask,
+                both=bool(confident.all()),
+            )
         if not accepted(res):
             conf = res.confidence.astype(np.float64)
             return Detection(False, None, conf, res.mask, None, pixel_spacing_mm)
@@ -432,23 +442,38 @@ class Detector:
         first: FineResult,
         *,
         accept: Callable[[FineResult], bool],
+        first_mask: np.ndarray | None = None,
+        both: bool = True,
     ) -> FineResult:
-        """``first``, or the fine stage from one coarse landmark's mask component alone where the
-        two landmarks (2, 2) input px lie on different components of the coarse mask (view px) and
-        that hypothesis is surer by ``fine_wide_min_gain`` (``coarse_split`` in the configuration)."""
-        seeds = cv.from_input(c_pts)
-        # a seed on no component gets the largest one, a mask of one component itself: both overlap
-        parts = [_component_at(c_mask, seeds[k : k + 1]) for k in range(2)]
-        if bool((parts[0] & parts[1]).any()):
-            return first
-        best, best_score = first, float(np.mean(first.confidence)) + self.config.fine_wide_min_gain
-        for k in range(2):
-            other = self.fine_stage(image, self._roi(cv, parts[k], c_pts[k : k + 1]))
+        """``first``, or a hypothesis from another part of the coarse mask (view px) that is surer by
+        ``fine_wide_min_gain``: with ``coarse_split``, where the two landmarks (2, 2) input px
+        (``both`` confident) lie on different components, the fine stage from each one's component
+        alone with its landmark; with ``coarse_other_min_px``, from each component of that many
+        pixels or more outside ``first_mask`` (the components ``first`` started from) alone."""
+        cfg = self.config
+        starts: list[View] = []
+        if cfg.coarse_split and both:
+            seeds = cv.from_input(c_pts)
+            # a seed on no component gets the largest one, a mask of one component itself: both overlap
+            parts = [_component_at(c_mask, seeds[k : k + 1]) for k in range(2)]
+            if not bool((parts[0] & parts[1]).any()):
+                starts += [self._roi(cv, parts[k], c_pts[k : k + 1]) for k in range(2)]
+        if cfg.coarse_other_min_px > 0 and first_mask is not None:
+            n, labels, stats, _ = cv2.connectedComponentsWithStats(c_mask.astype(np.uint8), connectivity=8)
+            for j in range(1, n):
+                part = labels == j
+                if stats[j, cv2.CC_STAT_AREA] >= cfg.coarse_other_min_px and not (part & first_mask).any():
+                    starts.append(self._roi(cv, part, np.zeros((0, 2))))
+        best, best_score = first, float(np.mean(first.confidence)) + cfg.fine_wide_min_gain
+        for start in starts:
+            other = self.fine_stage(image, start)
             score = float(np.mean(other.confidence))
             if score >= best_score and accept(other):
                 best, best_score = other, score
         if best is not first:
-            logger.debug("split coarse mask: confidence %s -> %s", first.confidence, best.confidence)
+            logger.debug(
+                "another part of the coarse mask: confidence %s -> %s", first.confidence, best.confidence
+            )
         return best
 
     def second_look(

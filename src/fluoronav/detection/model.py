@@ -97,6 +97,11 @@ class DetectorConfig:
             landmark that went to a blob far from the CM, whose ROI then shows the CM too small
             to be found. Unlike the second look it can turn a non-detection into a detection (the
             hypothesis must be found itself). False: off.
+        coarse_other_min_px: each connected component of the coarse mask of this many coarse pixels
+            or more that the first fine ROI was not fitted to (the landmarks lie elsewhere) is a
+            hypothesis too: the fine stage from it alone, judged as ``coarse_split``'s. The coarse
+            stage can put both landmarks on a tube-like blob apart from the CM (the far end of its
+            mounting shaft) while the CM is a second blob. 0: off.
         mask_threshold: probability above which a pixel is CM.
         mask_join_frac: the final mask is its largest connected component plus, when this is > 0,
             the components within max(3 px, this · |AB|) of the segment A–B (a tube's mask cut into
@@ -160,6 +165,7 @@ class DetectorConfig:
     fine_wide_min_gain: float = 0.15
     fine_wide_max_confidence: float = 1.0
     coarse_split: bool = False
+    coarse_other_min_px: int = 0
     mask_threshold: float = 0.5
     mask_join_frac: float = 0.0
     min_mask_px: int = 6
@@ -202,6 +208,8 @@ class DetectorConfig:
             )
         if not 0.0 <= self.mask_join_frac <= 1.0:
             raise ValueError(f"mask_join_frac must be in [0, 1], got {self.mask_join_frac}")
+        if self.coarse_other_min_px < 0:
+            raise ValueError(f"coarse_other_min_px must be 0 or more, got {self.coarse_other_min_px}")
         if not 0 <= self.weak_mask_px <= self.min_mask_px:
             raise ValueError(f"weak_mask_px must be in [0, min_mask_px], got {self.weak_mask_px}")
         if not 0.0 <= self.weak_min_confidence <= 1.0:
