@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -637,6 +638,21 @@ def test_second_look_is_off_by_default_and_never_adds_a_detection(monkeypatch: p
     ).fine_wide_factors == (2.0,)
 
 
+def _fine_stage_spy(
+    starts: list, c_pts: np.ndarray, sure_near_px: np.ndarray, radius_px: float, conf: float
+) -> Callable[[np.ndarray, detector_module.View], detector_module.FineResult]:
+    """A stand-in fine stage that records its ROIs and is sure (``conf``) only of ROIs centred
+    within ``radius_px`` input px of ``sure_near_px``."""
+
+    def fine_stage(image: np.ndarray, view: detector_module.View) -> detector_module.FineResult:
+        starts.append(view)
+        centre = np.array([view.x0 + view.side / 2, view.y0 + view.side / 2])
+        sure = np.linalg.norm(centre - sure_near_px) < radius_px
+        return _fine(c_pts.tolist(), [conf, conf] if sure else [0.05, 0.05])
+
+    return fine_stage
+
+
 @pytest.mark.parametrize(
     ("joined", "conf_at_a", "min_confidence", "taken"),
     [
@@ -660,22 +676,12 @@ def test_split_coarse_mask_tries_each_landmarks_component_alone(
     c_pts = cv.to_input(np.array([[12.0, 12.0], [45.0, 42.0]]))
     first = _fine(c_pts.tolist(), [0.2, 0.25])
     starts: list = []
+    monkeypatch.setattr(det, "fine_stage", _fine_stage_spy(starts, c_pts, c_pts[0], 40.0, conf_at_a))
 
-    def fine_stage(image: np.ndarray, view: detector_module.View) -> detector_module.FineResult:
-        starts.append(view)
-        centre = np.array([view.x0 + view.side / 2, view.y0 + view.side / 2])
-        near_a = np.linalg.norm(centre - c_pts[0]) < np.linalg.norm(centre - c_pts[1])
-        return _fine(c_pts.tolist(), [conf_at_a, conf_at_a] if near_a else [0.05, 0.05])
+    def accept(r: detector_module.FineResult) -> bool:
+        return float(r.confidence.min()) >= min_confidence
 
-    monkeypatch.setattr(det, "fine_stage", fine_stage)
-    res = det._split_look(
-        np.zeros((256, 256), np.float32),
-        cv,
-        c_mask,
-        c_pts,
-        first,
-        accept=lambda r: float(r.confidence.min()) >= min_confidence,
-    )
+    res = det._split_look(np.zeros((256, 256), np.float32), cv, c_mask, c_pts, first, accept=accept)
     assert (res is not first) == taken
     if taken:
         np.testing.assert_array_equal(res.confidence, [conf_at_a, conf_at_a])
@@ -723,24 +729,11 @@ def test_another_coarse_blob_is_a_hypothesis_too(
     c_pts = cv.to_input(np.array([[11.0, 12.0], [18.0, 12.0]]))
     first = _fine(c_pts.tolist(), [0.2, 0.25])
     starts: list = []
-
-    def fine_stage(image: np.ndarray, view: detector_module.View) -> detector_module.FineResult:
-        starts.append(view)
-        centre = np.array([view.x0 + view.side / 2, view.y0 + view.side / 2]) / 4.0  # coarse px
-        at_blob = np.linalg.norm(centre - [42.0, 41.5]) < 5
-        return _fine(c_pts.tolist(), [conf_at_blob] * 2 if at_blob else [0.05, 0.05])
-
-    monkeypatch.setattr(det, "fine_stage", fine_stage)
+    blob_px = cv.to_input(np.array([[42.0, 41.5]]))[0]
+    monkeypatch.setattr(det, "fine_stage", _fine_stage_spy(starts, c_pts, blob_px, 20.0, conf_at_blob))
     first_mask = detector_module._component_at(c_mask, cv.from_input(c_pts))
-    res = det._split_look(
-        np.zeros((256, 256), np.float32),
-        cv,
-        c_mask,
-        c_pts,
-        first,
-        accept=lambda r: True,
-        first_mask=first_mask,
-    )
+    img = np.zeros((256, 256), np.float32)
+    res = det._split_look(img, cv, c_mask, c_pts, first, accept=lambda r: True, first_mask=first_mask)
     assert len(starts) == (1 if tried else 0)
     assert (res is not first) == taken
     with pytest.raises(ValueError, match="coarse_other_min_px"):
