@@ -681,7 +681,7 @@ def test_split_coarse_mask_tries_each_landmarks_component_alone(
     def accept(r: detector_module.FineResult) -> bool:
         return float(r.confidence.min()) >= min_confidence
 
-    res = det._split_look(np.zeros((256, 256), np.float32), cv, c_mask, c_pts, first, accept=accept)
+    res = det._coarse_hypotheses(np.zeros((256, 256), np.float32), cv, c_mask, c_pts, first, accept=accept)
     assert (res is not first) == taken
     if taken:
         np.testing.assert_array_equal(res.confidence, [conf_at_a, conf_at_a])
@@ -701,9 +701,9 @@ def test_split_coarse_mask_is_off_by_default_and_round_trips(monkeypatch: pytest
         net.coarse, net.fine = IntensityOracle(), IntensityOracle()
         det = Detector(net, device="cpu")
         calls: list[int] = []
-        split_look = det._split_look
+        coarse_hypotheses = det._coarse_hypotheses
         monkeypatch.setattr(
-            det, "_split_look", lambda *a, c=calls, f=split_look, **k: c.append(1) or f(*a, **k)
+            det, "_coarse_hypotheses", lambda *a, c=calls, f=coarse_hypotheses, **k: c.append(1) or f(*a, **k)
         )
         ref = det.detect(img)
         assert ref.found and len(calls) == looks  # one bar: one component, the result unchanged
@@ -733,7 +733,7 @@ def test_another_coarse_blob_is_a_hypothesis_too(
     monkeypatch.setattr(det, "fine_stage", _fine_stage_spy(starts, c_pts, blob_px, 20.0, conf_at_blob))
     first_mask = detector_module._component_at(c_mask, cv.from_input(c_pts))
     img = np.zeros((256, 256), np.float32)
-    res = det._split_look(img, cv, c_mask, c_pts, first, accept=lambda r: True, first_mask=first_mask)
+    res = det._coarse_hypotheses(img, cv, c_mask, c_pts, first, accept=lambda r: True, first_mask=first_mask)
     assert len(starts) == (1 if tried else 0)
     assert (res is not first) == taken
     with pytest.raises(ValueError, match="coarse_other_min_px"):

@@ -355,19 +355,12 @@ class Detector:
             return bool(r.mask.any()) and float(r.confidence.min()) >= need and area_mm2 >= cfg.min_mask_mm2
 
         confident = c_conf >= cfg.min_confidence
-        seeds = cv.from_input(c_pts[confident])
-        first_mask = _component_at(c_mask, seeds)
+        both = bool(confident.all())
+        first_mask = _component_at(c_mask, cv.from_input(c_pts[confident]))
         res = self.fine_stage(img, self._roi(cv, first_mask, c_pts[confident]))
-        if (cfg.coarse_split and bool(confident.all())) or cfg.coarse_other_min_px > 0:
-            res = self._split_look(
-                img,
-                cv,
-                c_mask,
-                c_pts,
-                res,
-                accept=accepted,
-                first_mask=first_mask,
-                both=bool(confident.all()),
+        if (cfg.coarse_split and both) or cfg.coarse_other_min_px > 0:
+            res = self._coarse_hypotheses(
+                img, cv, c_mask, c_pts, res, accept=accepted, first_mask=first_mask, both=both
             )
         if not accepted(res):
             conf = res.confidence.astype(np.float64)
@@ -415,8 +408,8 @@ class Detector:
         else:
             out = net(x)
         out = out.float().cpu()
-        ks = [k for k, _ in todo]
-        sel = out[torch.arange(len(todo)), torch.tensor(ks)][:, None]
+        ks = np.array([k for k, _ in todo])
+        sel = out[torch.arange(len(todo)), torch.from_numpy(ks)][:, None]
         # the prior stays at the fine stage's landmark in every shifted patch
         centers = np.stack([fr.from_input(landmarks_px[k]) for k, fr in todo])
         pts, _ = decode_refine_logits(
@@ -429,11 +422,11 @@ class Detector:
             [fr.to_input(q) for (_, fr), q in zip(todo, pts.numpy().astype(np.float64), strict=True)]
         )
         refined = np.array(landmarks_px, dtype=np.float64, copy=True)
-        for k in sorted(set(ks)):
-            refined[k] = estimates[[j for j, kk in enumerate(ks) if kk == k]].mean(axis=0)
+        for k in np.unique(ks):
+            refined[k] = estimates[ks == k].mean(axis=0)
         return refined
 
-    def _split_look(
+    def _coarse_hypotheses(
         self,
         image: np.ndarray,
         cv: View,
@@ -464,16 +457,28 @@ class Detector:
                 part = labels == j
                 if stats[j, cv2.CC_STAT_AREA] >= cfg.coarse_other_min_px and not (part & first_mask).any():
                     starts.append(self._roi(cv, part, np.zeros((0, 2))))
-        best, best_score = first, float(np.mean(first.confidence)) + cfg.fine_wide_min_gain
+        return self._surest(image, first, starts, accept=accept, what="another part of the coarse mask")
+
+    def _surest(
+        self,
+        image: np.ndarray,
+        first: FineResult,
+        starts: list[View],
+        *,
+        accept: Callable[[FineResult], bool],
+        what: str,
+    ) -> FineResult:
+        """``first``, or of the fine stage's results from ``starts`` (first ROIs) those that
+        ``accept`` takes, the one of the highest mean landmark confidence where that mean is
+        ``fine_wide_min_gain`` or more above ``first``'s. ``what`` names the hypotheses in the log."""
+        best, best_score = first, float(np.mean(first.confidence)) + self.config.fine_wide_min_gain
         for start in starts:
             other = self.fine_stage(image, start)
             score = float(np.mean(other.confidence))
             if score >= best_score and accept(other):
                 best, best_score = other, score
         if best is not first:
-            logger.debug(
-                "another part of the coarse mask: confidence %s -> %s", first.confidence, best.confidence
-            )
+            logger.debug("%s: confidence %s -> %s", what, first.confidence, best.confidence)
         return best
 
     def second_look(
@@ -503,18 +508,14 @@ class Detector:
         logits, pts, conf = self.fine_views(image, views)
         spacing_mm = pixel_spacing_mm or cfg.refine_assumed_spacing_mm
         shift_mm = np.linalg.norm(pts - first.landmarks_px, axis=-1).max(axis=-1) * spacing_mm
-        best, best_score = first, float(np.mean(first.confidence)) + cfg.fine_wide_min_gain
+        starts = []
         for j in np.flatnonzero(shift_mm >= cfg.fine_wide_min_shift_mm):
             refit = self._refit(image, views[j], logits[j], pts[j], conf[j])
-            if refit is None:
-                continue
-            other = self.fine_stage(image, refit[0])
-            score = float(np.mean(other.confidence))
-            if score >= best_score and (accept(other) if accept is not None else bool(other.mask.any())):
-                best, best_score = other, score
-        if best is not first:
-            logger.debug("second look: confidence %s -> %s", first.confidence, best.confidence)
-        return best
+            if refit is not None:
+                starts.append(refit[0])
+        if accept is None:
+            accept = _has_mask
+        return self._surest(image, first, starts, accept=accept, what="second look")
 
     def fine_stage(self, image: np.ndarray, view: View) -> FineResult:
         """All fine passes from a first ROI: landmarks (2, 2) in input px, confidences (2,), the mask
@@ -662,6 +663,11 @@ def off_support_exclusion(
         if off.any():
             exclude[i, torch.from_numpy(off)] = torch.from_numpy(far)
     return exclude.to(heatmaps.device)
+
+
+def _has_mask(r: FineResult) -> bool:
+    """The default acceptance of a second-look hypothesis: it has a mask."""
+    return bool(r.mask.any())
 
 
 def _cm_components(mask: np.ndarray, landmarks_px: np.ndarray, *, join_frac: float) -> np.ndarray:
