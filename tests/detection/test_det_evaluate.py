@@ -13,7 +13,7 @@ from test_det_detector import empty_net
 from fluoronav.cli.main import main
 from fluoronav.detection.dataset import load_sample, read_manifest
 from fluoronav.detection.detector import Detection, Detector
-from fluoronav.detection.evaluate import dice_score, evaluate
+from fluoronav.detection.evaluate import dice_score, evaluate, projected_shaft_mm
 from fluoronav.detection.train import save_model
 
 
@@ -178,3 +178,69 @@ def test_evaluate_refuses_an_unwritable_output_before_scoring(
     with pytest.raises(SystemExit):
         main(["evaluate", "--data", str(tmp_path / "missing"), "--no-progress", "--out", str(target)])
     assert not target.exists()
+
+
+def _camera_64(pixel_spacing_mm: float | None = 0.5) -> dict:
+    """A 64² camera 1000 mm from the world origin, looking along +z (fx = fy = 1000 px)."""
+    cam = {
+        "rows": 64,
+        "cols": 64,
+        "K": [[1000.0, 0.0, 32.0], [0.0, 1000.0, 32.0], [0.0, 0.0, 1.0]],
+        "camera_from_world": [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 1000.0], [0, 0, 0, 1.0]],
+    }
+    if pixel_spacing_mm is not None:
+        cam["pixel_spacing_mm"] = pixel_spacing_mm
+    return cam
+
+
+#: CM base frames (world_from_cm) and their shaft's projected length by hand for 50 and 100 mm shafts
+#: (_camera_64, 0.5 mm pixels): across the view (cm z → world x, A at x = 10: u 42 → −8 or −58, 50 or
+#: 100 px); along the view (0 mm); tilted 36.87° from the view axis (ends (−30, 0, 960) and
+#: (−60, 0, 920): Δu = 1000·30/960 = 31.25 px and 1000·60/920 = 65.217 px)
+_SHAFT_POSES = [
+    ([[0.0, 0, 1, 10], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]], 25.0, 50.0),
+    ([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], 0.0, 0.0),
+    ([[0.8, 0, 0.6, 0], [0, 1, 0, 0], [-0.6, 0, 0.8, 0], [0, 0, 0, 1]], 15.625, 0.5 * 60000 / 920),
+]
+
+
+@pytest.mark.parametrize(("world_from_cm", "expected_50_mm", "expected_100_mm"), _SHAFT_POSES)
+def test_projected_shaft_length_by_hand(
+    world_from_cm: list, expected_50_mm: float, expected_100_mm: float
+) -> None:
+    rec = {"id": 0, "camera": _camera_64(), "world_from_cm": world_from_cm}
+    assert projected_shaft_mm(rec, 50.0) == pytest.approx(expected_50_mm, abs=1e-9)
+    assert projected_shaft_mm(rec, 100.0) == pytest.approx(expected_100_mm, abs=1e-9)
+
+
+def test_projected_shaft_length_is_none_where_unknown() -> None:
+    pose = _SHAFT_POSES[0][0]
+    assert projected_shaft_mm({"camera": None, "world_from_cm": pose}, 50.0) is None
+    assert projected_shaft_mm({"camera": _camera_64(), "world_from_cm": None}, 50.0) is None
+    assert projected_shaft_mm({"camera": _camera_64(None), "world_from_cm": pose}, 50.0) is None
+    assert projected_shaft_mm({"camera": _camera_64(), "world_from_cm": pose}, 0.0) is None
+    assert projected_shaft_mm({"camera": {"rows": 64}, "world_from_cm": pose}, 50.0) is None
+
+
+def test_evaluate_splits_positives_by_projected_shaft(tmp_path: Path) -> None:
+    data = write_dataset(tmp_path / "d", 6, size=64, seed=4, negative_every=3)
+    records = read_manifest(data)
+    for i, rec in enumerate(records):
+        rec["camera"] = _camera_64()
+        rec["world_from_cm"] = _SHAFT_POSES[i % 2][0]
+    (data / "manifest.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    # a 200 mm shaft: the first pose projects 100 mm (the last class), the second still 0 mm
+    (data / "dataset.json").write_text(json.dumps({"spec": {"shaft_length_mm": 200.0}}))
+    per_sample = tmp_path / "rows.jsonl"
+    summary = evaluate(
+        _KnownErrors(data, miss=set()), data, split="all", progress=False, per_sample=per_sample
+    )
+    rows = [json.loads(line) for line in per_sample.read_text().splitlines()]
+    pos = [r for r in rows if r["positive"]]
+    assert [r["shaft_mm"] for r in pos] == pytest.approx([100.0, 0.0, 0.0, 100.0])
+    classes = summary["by_projected_shaft"]
+    assert [c["shaft_mm"] for c in classes] == [[0.0, 30.0], [30.0, 60.0], [60.0, None]]
+    assert [c["positives"] for c in classes] == [2, 0, 2]
+    # _KnownErrors puts every A 5 mm off (a gross error) and every B on the truth
+    assert [c["landmark_gross"] for c in classes] == [2, 0, 2]
+    assert classes[0]["landmark_mm_mean"] == pytest.approx(2.5)

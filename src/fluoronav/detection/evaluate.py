@@ -8,7 +8,10 @@ real fluoroscopy is often collimated, and then the image has no air around the b
 
 The summary also splits the positives by how long the CM projects (the true A–B distance on the
 detector, mm): CMs seen nearly along their axis are the hard cases, and a test set's mix of them moves
-the means. ``per_sample`` writes one JSON line per image as it is scored, to find the failures.
+the means. It splits them too by how long the CM's mounting shaft projects (where the manifest has the
+camera and the CM's pose): a shaft seen nearly along its axis is a short stub at A that the detector
+can take for part of the CM. ``per_sample`` writes one JSON line per image as it is scored, to find
+the failures.
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ from tqdm import tqdm
 
 from fluoronav.detection.dataset import collimate, load_sample, read_manifest, split_of
 from fluoronav.detection.detector import Detector
+from fluoronav.errors import InputError
+from fluoronav.geometry.camera import Camera
 
 logger = logging.getLogger(__name__)
 
@@ -56,22 +61,61 @@ AB_CLASS_EDGES_MM = (17.0, 33.0, 50.0, math.inf)
 GROSS_ERROR_MM = 3.0
 
 
-def _ab_classes(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Positives grouped by true projected A–B length (rows of :func:`evaluate`'s per-sample records)."""
+#: upper edges (mm, projected length of the CM's mounting shaft on the detector) of the shaft classes
+#: of the summary: a stub seen nearly along its axis (the failure kind of docs/detector.md's stop-35
+#: survey), short, and the rest (the 50 mm shaft across the view projects ~110 mm)
+SHAFT_CLASS_EDGES_MM = (30.0, 60.0, math.inf)
+
+
+def projected_shaft_mm(record: dict[str, Any], shaft_length_mm: float) -> float | None:
+    """Length (mm at the detector plane) of the projected mounting shaft of a manifest record.
+
+    The shaft runs from the base origin A to ``shaft_length_mm`` behind it along −z of the CM's frame
+    (as :func:`fluoronav.simulation.scene.projected_shaft_mm`). None where the record lacks the
+    camera, the pose ``world_from_cm`` or the pixel spacing, or ``shaft_length_mm`` is not positive.
+    """
+    if not shaft_length_mm > 0.0 or record.get("camera") is None or record.get("world_from_cm") is None:
+        return None
+    try:
+        camera = Camera.from_dict(record["camera"], source=f"sample {record.get('id')}")
+        world_from_cm = np.asarray(record["world_from_cm"], dtype=np.float64)
+    except (InputError, TypeError, ValueError):
+        return None
+    if world_from_cm.shape != (4, 4) or camera.pixel_spacing_mm is None:
+        return None
+    ends_cm = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -float(shaft_length_mm)]])
+    uv = camera.project(ends_cm @ world_from_cm[:3, :3].T + world_from_cm[:3, 3])
+    return float(np.linalg.norm(uv[1] - uv[0]) * camera.pixel_spacing_mm)
+
+
+def _shaft_length_mm(data_dir: str | Path) -> float:
+    """The mounting shaft's length of a data set (``dataset.json``; 50 mm, the default, if unrecorded)."""
+    meta = Path(data_dir) / "dataset.json"
+    try:
+        spec = json.loads(meta.read_text(encoding="utf-8")).get("spec", {})
+        return float(spec.get("shaft_length_mm", 50.0))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return 50.0
+
+
+def _classes(rows: list[dict[str, Any]], key: str, edges: tuple[float, ...]) -> list[dict[str, Any]]:
+    """Positives grouped by ``row[key]`` into ``[0, edges[0]), [edges[0], edges[1]), …`` (rows of
+    :func:`evaluate`'s per-sample records; rows whose ``key`` is None are left out)."""
     out = []
     lo = 0.0
-    for hi in AB_CLASS_EDGES_MM:
-        sel = [r for r in rows if r["ab_mm"] is not None and lo <= r["ab_mm"] < hi]
+    for hi in edges:
+        sel = [r for r in rows if r.get(key) is not None and lo <= r[key] < hi]
         found = [r for r in sel if r["found"]]
         errs = [e for r in found if r["landmark_mm"] is not None for e in r["landmark_mm"]]
         out.append(
             {
-                "ab_mm": [lo, None if math.isinf(hi) else hi],
+                key: [lo, None if math.isinf(hi) else hi],
                 "positives": len(sel),
                 "dice_mean": float(np.mean([r["dice"] for r in sel])) if sel else None,
                 "found_rate": len(found) / len(sel) if sel else None,
                 "landmark_mm_mean": float(np.mean(errs)) if errs else None,
                 "landmark_mm_median": float(np.median(errs)) if errs else None,
+                "landmark_gross": sum(e > GROSS_ERROR_MM for e in errs),
             }
         )
         lo = hi
@@ -101,12 +145,14 @@ def evaluate(
     ``per_sample``: a JSON Lines file written as the images are scored (overwritten), one record per
     image: ``id``, ``positive``, ``found``, ``usable`` (:attr:`Detection.usable`), ``confidence``
     (A, B), ``detect_ms`` and, on positives, ``dice``, ``ab_px`` / ``ab_mm`` (the true projected A–B
-    distance) and, where found, ``landmark_px`` / ``landmark_mm`` (A, B errors). mm values are None
-    where the record has no pixel spacing.
+    distance), ``shaft_mm`` (the true projected length of the mounting shaft, :func:`projected_shaft_mm`;
+    None where unknown) and, where found, ``landmark_px`` / ``landmark_mm`` (A, B errors). mm values
+    are None where the record has no pixel spacing.
     """
     if field_frac is not None and not 0.0 < field_frac <= 1.0:
         raise ValueError(f"field_frac must be in (0, 1], got {field_frac}")
     records = read_manifest(data_dir)
+    shaft_length_mm = _shaft_length_mm(data_dir)
     if split != "all":
         records = [r for r in records if split_of(str(r["id"]), val_fraction) == split]
     dices, err_px, err_mm, seconds = [], [], [], []
@@ -142,6 +188,7 @@ def evaluate(
                 dices.append(dice_score(det.mask, s.mask) if det.found else 0.0)
                 ab_px = float(np.linalg.norm(s.landmarks_px[1] - s.landmarks_px[0]))
                 row |= {"dice": dices[-1], "ab_px": ab_px, "ab_mm": None if sp is None else ab_px * sp}
+                row["shaft_mm"] = projected_shaft_mm(rec, shaft_length_mm)
                 row |= {"landmark_px": None, "landmark_mm": None}
                 if det.found and det.landmarks_px is not None:
                     found_pos += 1
@@ -172,7 +219,8 @@ def evaluate(
             "count": int(np.sum(np.asarray(err_mm) > GROSS_ERROR_MM)),
             "of": len(err_mm),
         },
-        "by_projected_ab": _ab_classes(positives),
+        "by_projected_ab": _classes(positives, "ab_mm", AB_CLASS_EDGES_MM),
+        "by_projected_shaft": _classes(positives, "shaft_mm", SHAFT_CLASS_EDGES_MM),
         "found_rate": found_pos / n_pos if n_pos else None,
         "false_positive_rate": found_neg / n_neg if n_neg else None,
         "detect_ms": _stats([1e3 * x for x in seconds]),
