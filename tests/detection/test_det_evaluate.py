@@ -11,7 +11,7 @@ from det_synthetic import write_dataset
 from test_det_detector import empty_net
 
 from fluoronav.cli.main import main
-from fluoronav.detection.dataset import load_sample, read_manifest
+from fluoronav.detection.dataset import load_sample, read_manifest, shaft_length_of
 from fluoronav.detection.detector import Detection, Detector
 from fluoronav.detection.evaluate import dice_score, evaluate, projected_shaft_mm
 from fluoronav.detection.train import save_model
@@ -244,3 +244,13 @@ def test_evaluate_splits_positives_by_projected_shaft(tmp_path: Path) -> None:
     # _KnownErrors puts every A 5 mm off (a gross error) and every B on the truth
     assert [c["landmark_gross"] for c in classes] == [2, 0, 2]
     assert classes[0]["landmark_mm_mean"] == pytest.approx(2.5)
+
+
+def test_shaft_length_of_a_data_set(tmp_path: Path) -> None:
+    assert shaft_length_of(tmp_path) == 50.0  # no dataset.json: the default of every older set
+    (tmp_path / "dataset.json").write_text(json.dumps({"spec": {"shaft_length_mm": 0.0}}))
+    assert shaft_length_of(tmp_path) == 0.0  # the bare CM
+    (tmp_path / "dataset.json").write_text(json.dumps({"spec": {"shaft_length_mm": 300}}))
+    assert shaft_length_of(tmp_path) == 300.0
+    (tmp_path / "dataset.json").write_text("{not json")
+    assert shaft_length_of(tmp_path) == 50.0

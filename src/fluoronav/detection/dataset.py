@@ -78,15 +78,28 @@ def pixel_spacing_of(record: dict) -> float | None:
     return float(np.mean(np.asarray(ps, dtype=np.float64)))
 
 
+def _recorded(root: str | Path, section: str, key: str) -> object:
+    """``root/dataset.json``'s ``section.key`` (as ``simulate`` writes it), or None where unrecorded."""
+    path = Path(root) / "dataset.json"
+    try:
+        return json.loads(path.read_text(encoding="utf-8")).get(section, {}).get(key)
+    except (OSError, json.JSONDecodeError, AttributeError):
+        return None
+
+
 def photons_per_pixel_of(root: str | Path) -> float | None:
     """Flat-field photons per stored pixel recorded in ``root/dataset.json`` (``simulate`` writes
     ``storage.photons_per_pixel``), or None (no record, or noise-free)."""
-    path = Path(root) / "dataset.json"
-    try:
-        value = json.loads(path.read_text(encoding="utf-8")).get("storage", {}).get("photons_per_pixel")
-    except (OSError, json.JSONDecodeError, AttributeError):
-        return None
+    value = _recorded(root, "storage", "photons_per_pixel")
     return float(value) if isinstance(value, (int, float)) and value > 0 else None
+
+
+def shaft_length_of(root: str | Path) -> float:
+    """Length (mm) of the CM's mounting shaft recorded in ``root/dataset.json`` (``spec.shaft_length_mm``;
+    0: the bare CM), else 50 mm, ``simulate``'s default and the length of every set made before the
+    option."""
+    value = _recorded(root, "spec", "shaft_length_mm")
+    return float(value) if isinstance(value, (int, float)) and value >= 0 else 50.0
 
 
 @dataclass(frozen=True)

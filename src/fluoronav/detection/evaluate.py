@@ -26,10 +26,11 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from fluoronav.detection.dataset import collimate, load_sample, read_manifest, split_of
+from fluoronav.detection.dataset import collimate, load_sample, read_manifest, shaft_length_of, split_of
 from fluoronav.detection.detector import Detector
 from fluoronav.errors import InputError
 from fluoronav.geometry.camera import Camera
+from fluoronav.simulation.scene import projected_length_mm, shaft_ends_cm
 
 logger = logging.getLogger(__name__)
 
@@ -71,8 +72,8 @@ def projected_shaft_mm(record: dict[str, Any], shaft_length_mm: float) -> float 
     """Length (mm at the detector plane) of the projected mounting shaft of a manifest record.
 
     The shaft runs from the base origin A to ``shaft_length_mm`` behind it along −z of the CM's frame
-    (as :func:`fluoronav.simulation.scene.projected_shaft_mm`). None where the record lacks the
-    camera, the pose ``world_from_cm`` or the pixel spacing, or ``shaft_length_mm`` is not positive.
+    (:func:`fluoronav.simulation.scene.projected_shaft_mm` for a record). None where the record lacks
+    the camera, the pose ``world_from_cm`` or the pixel spacing, or ``shaft_length_mm`` is not positive.
     """
     if not shaft_length_mm > 0.0 or record.get("camera") is None or record.get("world_from_cm") is None:
         return None
@@ -83,19 +84,7 @@ def projected_shaft_mm(record: dict[str, Any], shaft_length_mm: float) -> float 
         return None
     if world_from_cm.shape != (4, 4) or camera.pixel_spacing_mm is None:
         return None
-    ends_cm = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -float(shaft_length_mm)]])
-    uv = camera.project(ends_cm @ world_from_cm[:3, :3].T + world_from_cm[:3, 3])
-    return float(np.linalg.norm(uv[1] - uv[0]) * camera.pixel_spacing_mm)
-
-
-def _shaft_length_mm(data_dir: str | Path) -> float:
-    """The mounting shaft's length of a data set (``dataset.json``; 50 mm, the default, if unrecorded)."""
-    meta = Path(data_dir) / "dataset.json"
-    try:
-        spec = json.loads(meta.read_text(encoding="utf-8")).get("spec", {})
-        return float(spec.get("shaft_length_mm", 50.0))
-    except (OSError, ValueError, TypeError, AttributeError):
-        return 50.0
+    return projected_length_mm(camera, world_from_cm, shaft_ends_cm(shaft_length_mm))
 
 
 def _classes(rows: list[dict[str, Any]], key: str, edges: tuple[float, ...]) -> list[dict[str, Any]]:
@@ -152,7 +141,7 @@ def evaluate(
     if field_frac is not None and not 0.0 < field_frac <= 1.0:
         raise ValueError(f"field_frac must be in (0, 1], got {field_frac}")
     records = read_manifest(data_dir)
-    shaft_length_mm = _shaft_length_mm(data_dir)
+    shaft_length_mm = shaft_length_of(data_dir)
     if split != "all":
         records = [r for r in records if split_of(str(r["id"]), val_fraction) == split]
     dices, err_px, err_mm, seconds = [], [], [], []

@@ -205,17 +205,26 @@ def projected_ab_mm(scene: Scene, kinematics: CMKinematics | None = None) -> flo
 def projected_shaft_mm(scene: Scene, shaft_length_mm: float) -> float:
     """Length on the detector (mm, at the detector plane) of the mounting shaft: the segment from
     the base origin A to ``shaft_length_mm`` behind it along the base axis (−z of the CM frame)."""
-    return _projected_length_mm(scene, np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -float(shaft_length_mm)]]))
+    return _projected_length_mm(scene, shaft_ends_cm(shaft_length_mm))
+
+
+def shaft_ends_cm(shaft_length_mm: float) -> np.ndarray:
+    """The mounting shaft's ends (2, 3) in the CM's base frame: A and ``shaft_length_mm`` behind it."""
+    return np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -float(shaft_length_mm)]])
+
+
+def projected_length_mm(camera: Camera, world_from_cm: np.ndarray, ends_cm: np.ndarray) -> float:
+    """Distance on the detector (mm, at the detector plane) between the projections of two points
+    (2, 3) given in the CM's base frame, posed by ``world_from_cm`` (4, 4) and seen by ``camera``."""
+    ends_world = ends_cm @ world_from_cm[:3, :3].T + world_from_cm[:3, 3]
+    uv = camera.project(ends_world)
+    if camera.pixel_spacing_mm is None:
+        raise ValueError("the camera has no pixel spacing")
+    return float(np.linalg.norm(uv[1] - uv[0]) * camera.pixel_spacing_mm)
 
 
 def _projected_length_mm(scene: Scene, ends_cm: np.ndarray) -> float:
-    """Distance on the detector (mm, at the detector plane) between the projections of two points
-    (2, 3) given in the CM's base frame."""
-    ends_world = ends_cm @ scene.world_from_cm[:3, :3].T + scene.world_from_cm[:3, 3]
-    uv = scene.camera.project(ends_world)
-    if scene.camera.pixel_spacing_mm is None:
-        raise ValueError("the scene's camera has no pixel spacing")
-    return float(np.linalg.norm(uv[1] - uv[0]) * scene.camera.pixel_spacing_mm)
+    return projected_length_mm(scene.camera, scene.world_from_cm, ends_cm)
 
 
 def _draw_scene(
