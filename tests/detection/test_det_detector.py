@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 import fluoronav.detection.detector as detector_module
-from fluoronav.detection.detector import Detector, load_image, truncated_landmarks, write_detection
+from fluoronav.detection.detector import Detection, Detector, load_image, truncated_landmarks, write_detection
 from fluoronav.detection.model import DetectorConfig, DetectorNet
 from fluoronav.detection.train import save_model
 from fluoronav.errors import FluoronavError, InputError
@@ -402,6 +402,29 @@ def test_a_cm_cut_by_the_image_border_is_found_and_not_usable() -> None:
     assert not det.usable and det.unusable_reason == "the CM leaves the image at landmark A"
     whole = detector.detect(drawn_cm()[0])
     assert whole.usable and whole.unusable_reason is None
+
+
+@pytest.mark.parametrize(
+    ("b_uv", "spacing_mm", "off"),
+    [
+        ((50.0, 30.0), 0.5, False),  # on the bar
+        ((50.0, 36.0), 0.5, False),  # 5 px = 2.5 mm beside it: within 3 mm
+        ((50.0, 38.0), 0.5, True),  # 7 px = 3.5 mm
+        ((50.0, 36.0), None, False),  # 5 px × 0.582 mm = 2.91 mm
+        ((50.0, 37.0), None, True),  # 6 px × 0.582 mm = 3.49 mm
+        ((50.0, 71.0), 0.1, True),  # 40 px = 4 mm
+    ],
+)
+def test_a_landmark_off_the_mask_makes_a_detection_not_usable(
+    b_uv: tuple[float, float], spacing_mm: float | None, off: bool
+) -> None:
+    mask = np.zeros((80, 100), bool)
+    mask[27:32, 10:90] = True  # a bar: rows 27-31, so (50, 36) is 5 px from its last row
+    lm = np.array([[10.0, 29.0], b_uv])
+    det = Detection(True, lm, np.array([0.8, 0.8]), mask, None, spacing_mm)
+    assert det.landmark_off_mask.tolist() == [False, off]
+    assert det.usable is not off
+    assert det.unusable_reason == ("landmark B off the CM's mask" if off else None)
 
 
 def test_mask_fragments_along_the_landmarks_are_joined_and_a_distant_blob_is_not() -> None:

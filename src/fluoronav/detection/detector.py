@@ -53,6 +53,15 @@ def shipped_model_path() -> Path:
     return Path(str(resources.files("fluoronav") / "data" / SHIPPED_MODEL_NAME))
 
 
+#: a found landmark further than this (mm at the detector) from the mask is not on the CM: its
+#: detection is not usable (the CM's tube is ~6 mm wide and A and B lie on it; no landmark of the
+#: validation sets is more than 3 mm off its mask, stop 35)
+OFF_MASK_MM = 3.0
+
+#: pixel spacing (mm) taken for images without one: the training images' (the 1536² detector binned 3×)
+ASSUMED_SPACING_MM = 0.582
+
+
 @dataclass(frozen=True)
 class Detection:
     """Result of one image.
@@ -83,8 +92,23 @@ class Detection:
         return truncated_landmarks(self.mask, self.landmarks_px)
 
     @property
+    def landmark_off_mask(self) -> np.ndarray:
+        """(2,) bool, True for a landmark more than :data:`OFF_MASK_MM` (mm at the detector; images
+        without a pixel spacing are taken to have :data:`ASSUMED_SPACING_MM` pixels) from every pixel
+        of the mask: A and B lie on the CM, so such a landmark is on something else (a shaft's far
+        end). All False when nothing was found."""
+        if not self.found or self.landmarks_px is None or not self.mask.any():
+            return np.zeros(2, dtype=bool)
+        vv, uu = np.nonzero(self.mask)
+        pixels = np.stack([uu, vv], axis=1).astype(np.float64)
+        lm = np.asarray(self.landmarks_px, dtype=np.float64).reshape(2, 1, 2)
+        dist_px = np.sqrt(((pixels[None] - lm) ** 2).sum(axis=-1)).min(axis=1)
+        return dist_px * (self.pixel_spacing_mm or ASSUMED_SPACING_MM) > OFF_MASK_MM
+
+    @property
     def usable(self) -> bool:
-        """Found, with both landmarks inside the image: what a registration may start from."""
+        """Found, with both landmarks inside the image and on the CM's mask: what a registration may
+        start from."""
         return self.unusable_reason is None
 
     @property
@@ -95,6 +119,9 @@ class Detection:
         cut = [name for name, t in zip("AB", self.landmark_truncated, strict=True) if t]
         if cut:
             return f"the CM leaves the image at landmark {' and '.join(cut)}"
+        off = [name for name, o in zip("AB", self.landmark_off_mask, strict=True) if o]
+        if off:
+            return f"landmark {' and '.join(off)} off the CM's mask"
         return None
 
 
