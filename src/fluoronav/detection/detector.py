@@ -58,8 +58,9 @@ def shipped_model_path() -> Path:
 #: validation sets is more than 3 mm off its mask, stop 35)
 OFF_MASK_MM = 3.0
 
-#: pixel spacing (mm) taken for images without one: the training images' (the 1536² detector binned 3×)
-ASSUMED_SPACING_MM = 0.582
+#: pixel spacing (mm) taken for images without one: the training images' (the 1536² detector binned
+#: 3×), the configuration's default for the refinement and ``min_mask_mm2``
+ASSUMED_SPACING_MM: float = DetectorConfig.refine_assumed_spacing_mm
 
 
 @dataclass(frozen=True)
