@@ -44,13 +44,14 @@ def train_command(
         ["coarse", "fine"],
         "--stage",
         help="Stage to train (repeatable: coarse, fine; or refine alone: the landmark refinement stage, "
-        "added to an --init model without one); the others keep their weights and are not run.",
+        "or ends alone: the mask-end stage, each added to an --init model without one); the others "
+        "keep their weights and are not run.",
     ),
     refine_repeats: int = typer.Option(
         5,
         "--refine-repeats",
         min=1,
-        help="--stage refine: jittered patches per landmark and sample per epoch.",
+        help="--stage refine or ends: jittered patches per landmark and sample per epoch.",
     ),
     collimate_prob: float = typer.Option(
         0.0,

@@ -28,6 +28,8 @@ from fluoronav.detection.augment import (
     collimation_window,
     lower_dose,
 )
+from fluoronav.detection.centerline import extract_centerline
+from fluoronav.detection.ends import EndJitter, training_end_patch, training_tube_patch
 from fluoronav.detection.model import DetectorConfig
 from fluoronav.detection.refine import RefineJitter, training_patch
 from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
@@ -393,3 +395,65 @@ class RefineDataset(CMDetectionDataset):
                 if got is not None:
                     images[k, 0], targets[k] = got
         return {"refine_image": torch.from_numpy(images), "refine_landmarks": torch.from_numpy(targets)}
+
+
+class EndsDataset(CMDetectionDataset):
+    """Training/validation items of the mask-end stage (``tube=False``): each sample ``repeats`` times
+    per epoch, each time with a patch around A and one around B, placed as the refined landmarks
+    would miss them (:func:`~fluoronav.detection.ends.training_end_patch`); or of the tube-mask stage
+    (``tube=True``): two patches centred at random points of the true centreline
+    (:func:`~fluoronav.detection.ends.training_tube_patch`). Validation items have the same jitter
+    every epoch and no photometric augmentation.
+
+    Items: ``ends_image`` (2, 1, rows, cols), ``ends_mask`` (2, 1, rows, cols) the true mask on the
+    patch, ``ends_valid`` (2,) 1 where the patch exists (0: negatives; a mask without a direction).
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        *,
+        repeats: int = 1,
+        jitter: EndJitter | None = None,
+        tube: bool = False,
+        **kw: object,
+    ) -> None:
+        super().__init__(root, **kw)  # type: ignore[arg-type]
+        if not (self.config.tube_channels if tube else self.config.ends_channels):
+            raise ValueError(
+                "the model configuration has no "
+                + ("tube-mask stage (tube_channels)" if tube else "mask-end stage (ends_channels)")
+            )
+        self.repeats = int(repeats)
+        self.jitter = jitter or EndJitter()
+        self.tube = tube
+
+    def __len__(self) -> int:
+        return len(self.records) * self.repeats
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        s = self.sample(index % len(self.records))
+        cfg = self.config
+        train = self.augment is not None
+        rng = np.random.default_rng([self.seed, self.epoch if train else 0, index])
+        images = np.zeros((2, 1, *cfg.ends_shape), np.float32)
+        masks = np.zeros((2, 1, *cfg.ends_shape), np.float32)
+        valid = np.zeros(2, np.float32)
+        if s.landmarks_px is not None:
+            step = cfg.refine_step_px(s.pixel_spacing_mm)
+            kw = {"step_px": step, "shape": cfg.ends_shape, "jitter": self.jitter, "photometric": train}
+            line = extract_centerline(s.mask > 0, s.landmarks_px[0], s.landmarks_px[1]) if self.tube else None
+            for k in (0, 1):
+                got = (
+                    training_tube_patch(s.image, s.mask, line, rng, **kw)  # type: ignore[arg-type]
+                    if line is not None
+                    else training_end_patch(s.image, s.mask, s.landmarks_px[k], rng, **kw)  # type: ignore[arg-type]
+                )
+                if got is not None:
+                    images[k, 0], masks[k, 0] = got
+                    valid[k] = 1.0
+        return {
+            "ends_image": torch.from_numpy(images),
+            "ends_mask": torch.from_numpy(masks),
+            "ends_valid": torch.from_numpy(valid),
+        }

@@ -3,9 +3,10 @@
 ``Detector.load()`` reads the shipped weights (``fluoronav/data/detector.pt``) or a model file written
 by ``fluoronav train``; ``Detector.detect(image)`` runs the coarse stage on the whole image, the fine
 stage on a region of interest around the coarse detection, refines the landmarks on tube-aligned
-patches where the model has a refinement stage (:mod:`fluoronav.detection.refine`), and extracts the
-centreline
-(:func:`fluoronav.detection.centerline.extract_centerline`) from the final mask between the landmarks.
+patches where the model has a refinement stage (:mod:`fluoronav.detection.refine`), extracts the
+centreline (:func:`fluoronav.detection.centerline.extract_centerline`) from the fine mask between the
+landmarks, and, where the model has them, redraws the mask along that centreline and at its two ends
+on tube-aligned patches (the tube-mask and mask-end stages, :mod:`fluoronav.detection.ends`).
 
 Input images are detector images after the log transform, bone and metal bright (as ``simulate``
 writes them). :func:`load_image` converts other files to that form:
@@ -35,6 +36,7 @@ import torch
 from scipy import ndimage as ndi
 
 from fluoronav.detection.centerline import extract_centerline
+from fluoronav.detection.ends import end_zone_paste, sample_patches, tube_frames, tube_paste
 from fluoronav.detection.heatmaps import decode_landmarks
 from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet
 from fluoronav.detection.refine import RefinePatch, decode_refine_logits, refine_patch
@@ -397,7 +399,10 @@ class Detector:
         res = self.second_look(img, res, pixel_spacing_mm=pixel_spacing_mm, accept=accepted)
         f_pts, f_conf, mask = res.landmarks_px, res.confidence, res.mask
         f_pts = self.refine(img, f_pts, mask, pixel_spacing_mm=pixel_spacing_mm)
+        # the centreline of the fine mask: the patch-mask stages move its edges by a pixel or less
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])
+        mask = self.mask_tube(img, centerline, mask, pixel_spacing_mm=pixel_spacing_mm)
+        mask = self.mask_ends(img, f_pts, mask, pixel_spacing_mm=pixel_spacing_mm)
         return Detection(True, f_pts, f_conf.astype(np.float64), mask, centerline, pixel_spacing_mm)
 
     @torch.no_grad()
@@ -453,6 +458,67 @@ class Detector:
         for k in np.unique(ks):
             refined[k] = estimates[ks == k].mean(axis=0)
         return refined
+
+    @torch.no_grad()
+    def mask_ends(
+        self,
+        image: np.ndarray,
+        landmarks_px: np.ndarray,
+        mask: np.ndarray,
+        *,
+        pixel_spacing_mm: float | None = None,
+    ) -> np.ndarray:
+        """The mask (rows, cols) bool with its ends redrawn by the mask-end stage
+        (:mod:`fluoronav.detection.ends`) on a tube-aligned patch at each landmark (2, 2) (u, v) input
+        px; unchanged without that stage, and at a landmark whose direction the mask does not give.
+        Both patches (and with ``ends_tta`` 2 their mirror images about the tube's axis, the logits
+        averaged) go through the network in one batch."""
+        net, cfg = self.net.ends, self.config
+        if net is None:
+            return mask
+        step = cfg.refine_step_px(pixel_spacing_mm)
+        frames = [refine_patch(mask, p, step_px=step, shape=cfg.ends_shape) for p in landmarks_px]
+        todo = [f for f in frames if f is not None]
+        if not todo:
+            return mask
+        for frame, logit in zip(todo, self._patch_logits(net, image, todo), strict=True):
+            mask = end_zone_paste(mask, frame, logit, inner_px=cfg.ends_inner_px)
+        return mask
+
+    @torch.no_grad()
+    def mask_tube(
+        self,
+        image: np.ndarray,
+        centerline_px: np.ndarray,
+        mask: np.ndarray,
+        *,
+        pixel_spacing_mm: float | None = None,
+    ) -> np.ndarray:
+        """The mask (rows, cols) bool redrawn along the tube by the tube-mask stage
+        (:mod:`fluoronav.detection.ends`): patches every ``tube_spacing_px`` along the CM's
+        centreline (N, 2) (u, v) input px from A to B, each deciding the band of ``tube_band_px``
+        around its centre (mean logits where bands overlap); unchanged without that stage. All
+        patches (and with ``ends_tta`` 2 their mirror images) go through the network in one batch."""
+        net, cfg = self.net.tube, self.config
+        if net is None:
+            return mask
+        step = cfg.refine_step_px(pixel_spacing_mm)
+        frames = tube_frames(
+            centerline_px, step_px=step, shape=cfg.ends_shape, spacing_px=cfg.tube_spacing_px * step
+        )
+        if not frames:
+            return mask
+        return tube_paste(mask, frames, self._patch_logits(net, image, frames), band_px=cfg.tube_band_px)
+
+    def _patch_logits(self, net: torch.nn.Module, image: np.ndarray, frames: list[RefinePatch]) -> np.ndarray:
+        """(P, rows, cols) mask logits of a patch-mask stage on ``frames``' patches of ``image``, with
+        ``ends_tta`` 2 each averaged with that of its mirror image about the tube's axis (one batch)."""
+        x = torch.from_numpy(sample_patches(image, frames))[:, None].to(self.device)
+        if self.config.ends_tta == 1:
+            return net(x)[:, 0].float().cpu().numpy()
+        n = x.shape[0]
+        out = net(torch.cat([x, x.flip(-2)]))
+        return (0.5 * (out[:n] + out[n:].flip(-2)))[:, 0].float().cpu().numpy()
 
     def _coarse_hypotheses(
         self,

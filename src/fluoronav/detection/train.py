@@ -28,16 +28,20 @@ from pathlib import Path
 import numpy as np
 import torch
 from monai.losses import DiceLoss
+from torch import nn
 from torch.nn import functional as tnf
 from torch.utils.data import ConcatDataset, DataLoader
 from tqdm import tqdm
 
 from fluoronav import __version__
 from fluoronav.detection.augment import AugmentConfig
-from fluoronav.detection.dataset import CMDetectionDataset, RefineDataset
+from fluoronav.detection.dataset import CMDetectionDataset, EndsDataset, RefineDataset
+from fluoronav.detection.ends import EndJitter
 from fluoronav.detection.heatmaps import decode_landmarks, gaussian_heatmaps, heatmap_cross_entropy
 from fluoronav.detection.model import (
+    DEFAULT_ENDS_CHANNELS,
     DEFAULT_REFINE_CHANNELS,
+    DEFAULT_TUBE_CHANNELS,
     MODEL_FORMAT_VERSION,
     DetectorConfig,
     DetectorNet,
@@ -72,8 +76,11 @@ class TrainConfig:
         stages: the stages trained (``("coarse", "fine")``, or one of them): the others keep their
             weights and are not run, so fine-tuning only the fine stage costs about half a step.
             ``("refine",)`` trains the landmark refinement stage alone on tube-aligned patches
-            (:class:`~fluoronav.detection.dataset.RefineDataset`), adding it to a model without one.
-        refine_repeats: patches per landmark and sample in an epoch of the refinement stage.
+            (:class:`~fluoronav.detection.dataset.RefineDataset`), adding it to a model without one;
+            ``("ends",)`` the mask-end stage alone (:class:`~fluoronav.detection.dataset.EndsDataset`,
+            BCE + Dice on the patch masks), likewise; ``("tube",)`` the tube-mask stage alone, likewise.
+        refine_repeats: patches per landmark and sample in an epoch of the refinement or the mask-end
+            stage.
         collimate_prob: probability that a training sample is cropped to a collimated field of view
             first (:func:`~fluoronav.detection.augment.collimation_window`, ``p_collimate``).
         partial_roi_prob: probability that a training sample's fine ROI is fitted to a part of its
@@ -100,8 +107,12 @@ class TrainConfig:
     refine_repeats: int = 5
 
     def __post_init__(self) -> None:
-        if self.stages != ("refine",) and (not self.stages or not set(self.stages) <= {"coarse", "fine"}):
-            raise ValueError(f"stages must be 'coarse' and/or 'fine', or 'refine' alone, got {self.stages}")
+        alone = self.stages in (("refine",), ("ends",), ("tube",))
+        if not alone and (not self.stages or not set(self.stages) <= {"coarse", "fine"}):
+            raise ValueError(
+                "stages must be 'coarse' and/or 'fine', or one of 'refine', 'ends', 'tube' alone, "
+                f"got {self.stages}"
+            )
         if self.refine_repeats < 1:
             raise ValueError(f"refine_repeats must be 1 or more, got {self.refine_repeats}")
         if not 0.0 <= self.collimate_prob <= 1.0:
@@ -113,6 +124,9 @@ class TrainConfig:
 #: the architecture fields of the refinement stage
 REFINE_FIELDS = ("refine_channels", "refine_shape", "refine_step_mm", "refine_sigma_px")
 
+#: the architecture fields of the patch-mask stages (their patch scale is ``refine_step_mm``)
+ENDS_FIELDS = ("ends_channels", "ends_shape", "tube_channels")
+
 #: the model configuration fields fixed by trained weights (the rest only steer decoding)
 ARCHITECTURE_FIELDS = (
     "input_size",
@@ -123,6 +137,7 @@ ARCHITECTURE_FIELDS = (
     "sigma_px",
     "heatmap",
     *REFINE_FIELDS,
+    *ENDS_FIELDS,
 )
 
 
@@ -273,6 +288,65 @@ def validate_refine(
     }
 
 
+def ends_outputs(
+    stage: nn.Module, batch: dict[str, torch.Tensor], device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Patch mask logits (N, 1, rows, cols) of the mask-end or tube-mask ``stage`` and true patch
+    masks (N, 1, rows, cols) of the patches that exist (N ≤ 2 × the batch)."""
+    x = batch["ends_image"].to(device)  # (B, 2, 1, rows, cols)
+    ok = batch["ends_valid"].to(device).reshape(-1) > 0
+    out = stage(x.reshape(-1, *x.shape[2:])[ok])
+    return out, batch["ends_mask"].to(device).reshape(-1, *x.shape[2:])[ok]
+
+
+def ends_loss(
+    stage: nn.Module, batch: dict[str, torch.Tensor], device: torch.device, dice: DiceLoss
+) -> torch.Tensor:
+    """Binary cross-entropy + Dice of a patch-mask stage's masks on a batch (0 without patches)."""
+    out, target = ends_outputs(stage, batch, device)
+    if out.shape[0] == 0:
+        return out.sum()
+    return tnf.binary_cross_entropy_with_logits(out, target) + dice(out, target)
+
+
+@torch.no_grad()
+def validate_ends(
+    stage: nn.Module,
+    loader: DataLoader,
+    device: torch.device,
+    cfg: DetectorConfig,
+    dice: DiceLoss,
+    *,
+    tube: bool = False,
+) -> dict[str, float]:
+    """Validation loss and the pixel error of a patch-mask stage on the part of the patches that it
+    decides at inference (``ends_inner_px`` for the mask-end stage, ``tube_band_px`` for the tube-mask
+    one, ``tube``): ``val_end_error`` the fraction of those pixels labelled wrongly, ``val_end_dice``
+    the Dice there."""
+    stage.eval()
+    losses, wrong, total, inter, sizes = [], 0.0, 0.0, 0.0, 0.0
+    centre = (cfg.ends_shape[1] - 1) / 2.0
+    cols = torch.arange(cfg.ends_shape[1], dtype=torch.float32)
+    keep = (cols - centre).abs() <= cfg.tube_band_px if tube else cols <= centre + cfg.ends_inner_px
+    for batch in loader:
+        out, target = ends_outputs(stage, batch, device)
+        if out.shape[0] == 0:
+            continue
+        losses.append(float(tnf.binary_cross_entropy_with_logits(out, target) + dice(out, target)))
+        pred = (out[..., keep.to(out.device)] > 0).float()
+        t = target[..., keep.to(out.device)]
+        wrong += float((pred != t).float().sum())
+        total += float(t.numel())
+        inter += float((pred * t).sum())
+        sizes += float(pred.sum() + t.sum())
+    stage.train()
+    return {
+        "val_loss": _mean_or_nan(losses),
+        "val_end_error": wrong / total if total else float("nan"),
+        "val_end_dice": 2.0 * inter / sizes if sizes else float("nan"),
+    }
+
+
 @torch.no_grad()
 def validate(
     net: DetectorNet,
@@ -360,7 +434,14 @@ def train(
         start = Detector.load(init, device="cpu")  # validated: one-line error on a bad file
         keep: tuple[str, ...] = ARCHITECTURE_FIELDS
         if not start.config.refine_channels:  # no refinement stage yet: this version's settings
-            keep = tuple(f for f in ARCHITECTURE_FIELDS if f not in REFINE_FIELDS)
+            keep = tuple(f for f in keep if f not in REFINE_FIELDS)
+        # likewise the patch-mask stages, which share their patch shape
+        c = start.config
+        absent = {"ends_channels"} if not c.ends_channels else set()
+        absent |= {"tube_channels"} if not c.tube_channels else set()
+        if not (c.ends_channels or c.tube_channels):
+            absent.add("ends_shape")
+        keep = tuple(f for f in keep if f not in absent)
         arch = {f: getattr(start.config, f) for f in keep}
         base = start.config if keep_decoding else model_config or DetectorConfig()
         model_config = dataclasses.replace(base, **arch)
@@ -368,19 +449,27 @@ def train(
         logger.info("starting from the weights of %s", init)
     mcfg = model_config or DetectorConfig()
     refining = tcfg.stages == ("refine",)
+    tubing = tcfg.stages == ("tube",)
+    ending = tubing or tcfg.stages == ("ends",)  # a patch-mask stage
     if refining and not mcfg.refine_channels:
         mcfg = dataclasses.replace(mcfg, refine_channels=DEFAULT_REFINE_CHANNELS)
+    if tubing and not mcfg.tube_channels:
+        mcfg = dataclasses.replace(mcfg, tube_channels=DEFAULT_TUBE_CHANNELS)
+    if ending and not tubing and not mcfg.ends_channels:
+        mcfg = dataclasses.replace(mcfg, ends_channels=DEFAULT_ENDS_CHANNELS)
 
     torch.manual_seed(tcfg.seed)
     net = DetectorNet(mcfg).to(device)
     if init_state is not None:
         missing, unexpected = net.load_state_dict(init_state, strict=False)
-        if unexpected or any(not k.startswith("refine.") for k in missing):
+        if unexpected or any(not k.startswith(("refine.", "ends.", "tube.")) for k in missing):
             raise InputError(str(init), "weights do not match the model configuration")
-    for name in ("coarse", "fine", "refine"):
+    for name in ("coarse", "fine", "refine", "ends", "tube"):
         module = getattr(net, name)
         if module is not None:
             module.requires_grad_(name in tcfg.stages)
+    # the patch-mask stage that trains; None for the others (a model may carry one all the same)
+    patch_stage = (net.tube if tubing else net.ends) if ending else None
     opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=tcfg.lr)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=tcfg.lr_step_epochs, gamma=tcfg.lr_gamma)
     start_epoch = 0
@@ -398,9 +487,13 @@ def train(
         else None
     )
     dirs = [data_dir] if isinstance(data_dir, (str, Path)) else list(data_dir)
-    # the refinement stage reads patches around the landmarks; the other stages whole views
+    # the refinement and mask-end stages read patches around the landmarks; the others whole views
     make_ds = (
-        functools.partial(RefineDataset, repeats=tcfg.refine_repeats) if refining else CMDetectionDataset
+        functools.partial(RefineDataset, repeats=tcfg.refine_repeats)
+        if refining
+        else functools.partial(EndsDataset, repeats=tcfg.refine_repeats, tube=tubing)
+        if ending
+        else CMDetectionDataset
     )
     train_parts = [
         make_ds(
@@ -457,6 +550,8 @@ def train(
                 break
             if refining:
                 loss = refine_loss(net, batch, device, mcfg)
+            elif patch_stage is not None:
+                loss = ends_loss(patch_stage, batch, device, dice)
             else:
                 loss = detector_loss(
                     run_stages(net, batch, tcfg.stages, device), batch, device, mcfg, tcfg, dice
@@ -475,11 +570,12 @@ def train(
         val_loader = DataLoader(val_ds, batch_size=tcfg.batch_size, shuffle=False, num_workers=tcfg.workers)
         val: dict[str, float] = {}
         if len(val_ds):
-            val = (
-                validate_refine(net, val_loader, device, mcfg)
-                if refining
-                else validate(net, val_loader, device, mcfg, tcfg, dice)
-            )
+            if refining:
+                val = validate_refine(net, val_loader, device, mcfg)
+            elif patch_stage is not None:
+                val = validate_ends(patch_stage, val_loader, device, mcfg, dice, tube=tubing)
+            else:
+                val = validate(net, val_loader, device, mcfg, tcfg, dice)
         metrics = {
             "epoch": epoch + 1,
             "lr": lr,
@@ -500,7 +596,9 @@ def train(
                 "init": None if init is None else str(init),
                 "keep_decoding": keep_decoding and init is not None,
                 # the augmentation ranges (None: off), so that a model file says how it was trained
-                "augmentation": None if aug is None else asdict(RefineJitter() if refining else aug),
+                "augmentation": None
+                if aug is None
+                else asdict(RefineJitter() if refining else EndJitter() if ending else aug),
             },
             "metrics": metrics,
         }
