@@ -15,7 +15,10 @@ from fluoronav.cli.main import main
         (["simulate", "--n", "1", "--out", "x", "--no-such-option"], "No such option"),
         (["no-such-command"], "No such command"),
         (["simulate", "--n", "zero", "--out", "x"], "Invalid value"),
-        (["train", "--data", "x", "--out", "m.pt", "--stage", "refine", "--stage", "fine"], "'refine' alone"),
+        (
+            ["train", "--data", "x", "--out", "m.pt", "--stage", "refine", "--stage", "fine"],
+            "'refine', 'ends', 'tube' alone",
+        ),
         (["train", "--data", "x", "--out", "m.pt", "--stage", "middle"], "stages must be"),
         (["train", "--data", "x", "--out", "m.pt", "--keep-decoding"], "give --init"),
         (

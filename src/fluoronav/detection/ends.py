@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from fluoronav.detection.refine import RefinePatch, refine_patch
+from fluoronav.detection.refine import RefinePatch, moved_frame, photometric_change, refine_patch
 
 __all__ = [
     "EndJitter",
@@ -110,12 +110,9 @@ def training_end_patch(
     frame = refine_patch(mask, landmark_px, step_px=step_px, shape=shape)
     if frame is None:
         return None
-    a = np.deg2rad(rng.normal(0.0, jitter.angle_sigma_deg))
-    t = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ frame.tangent
-    n = np.array([-t[1], t[0]])
+    angle = rng.normal(0.0, jitter.angle_sigma_deg)
     along, across = rng.normal(0.0, jitter.along_sigma_px), rng.normal(0.0, jitter.across_sigma_px)
-    centre = np.asarray(landmark_px, dtype=np.float64) + step_px * (along * t + across * n)
-    frame = RefinePatch(centre, t, float(step_px), shape)
+    frame = moved_frame(frame, landmark_px, angle_deg=angle, along_px=along, across_px=across)
     return _patch_and_label(image, mask, frame, rng, jitter=jitter, photometric=photometric)
 
 
@@ -139,9 +136,7 @@ def _patch_and_label(
     if rng.random() < jitter.p_mirror:  # exact mirror about the axis: rows j ↔ rows − 1 − j
         patch, target = patch[::-1].copy(), target[::-1].copy()
     if photometric:
-        patch = patch * rng.uniform(*jitter.contrast) + rng.normal(
-            0.0, rng.uniform(0.0, jitter.max_noise), patch.shape
-        )
+        patch = photometric_change(patch, rng, contrast=jitter.contrast, max_noise=jitter.max_noise)
     return patch.astype(np.float32), target.astype(np.float32)
 
 
@@ -241,12 +236,16 @@ def training_tube_patch(
     if length <= 0.0:
         return None
     c, t = _polyline_frame(pts, rng.uniform(0.0, length), chord_px=0.25 * shape[1] * step_px)
-    a = np.deg2rad(rng.normal(0.0, jitter.angle_sigma_deg))
-    t = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ t
+    angle = rng.normal(0.0, jitter.angle_sigma_deg)
     if rng.random() < 0.5:  # either direction along the tube
         t = -t
-    n = np.array([-t[1], t[0]])
-    frame = RefinePatch(c + step_px * rng.normal(0.0, jitter.across_sigma_px) * n, t, float(step_px), shape)
+    frame = moved_frame(
+        RefinePatch(c, t, float(step_px), shape),
+        c,
+        angle_deg=angle,
+        along_px=0.0,
+        across_px=rng.normal(0.0, jitter.across_sigma_px),
+    )
     return _patch_and_label(image, mask, frame, rng, jitter=jitter, photometric=photometric)
 
 

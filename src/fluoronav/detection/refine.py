@@ -44,6 +44,8 @@ __all__ = [
     "add_center_prior",
     "decode_refine_logits",
     "landmark_direction",
+    "moved_frame",
+    "photometric_change",
     "refine_patch",
     "training_patch",
 ]
@@ -215,22 +217,37 @@ def training_patch(
     frame = refine_patch(mask, landmark_px, step_px=step_px, shape=shape)
     if frame is None:
         return None
-    a = np.deg2rad(rng.normal(0.0, jitter.angle_sigma_deg))
-    t = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ frame.tangent
-    n = np.array([-t[1], t[0]])
+    angle = rng.normal(0.0, jitter.angle_sigma_deg)
     along = (
         rng.uniform(-jitter.along_wide_px, jitter.along_wide_px)
         if rng.random() < jitter.p_wide
         else rng.normal(0.0, jitter.along_sigma_px)
     )
     across = rng.normal(0.0, jitter.across_sigma_px)
-    centre = np.asarray(landmark_px, dtype=np.float64) + step_px * (along * t + across * n)
-    frame = RefinePatch(centre, t, float(step_px), shape)
+    frame = moved_frame(frame, landmark_px, angle_deg=angle, along_px=along, across_px=across)
     patch, target = frame.sample(image), frame.from_input(landmark_px)
     if rng.random() < jitter.p_mirror:  # exact mirror about the axis: rows j ↔ rows − 1 − j
         patch, target = patch[::-1].copy(), np.array([target[0], shape[0] - 1 - target[1]])
     if photometric:
-        patch = patch * rng.uniform(*jitter.contrast) + rng.normal(
-            0.0, rng.uniform(0.0, jitter.max_noise), patch.shape
-        )
+        patch = photometric_change(patch, rng, contrast=jitter.contrast, max_noise=jitter.max_noise)
     return patch.astype(np.float32), target
+
+
+def moved_frame(
+    frame: RefinePatch, point_px: np.ndarray, *, angle_deg: float, along_px: float, across_px: float
+) -> RefinePatch:
+    """``frame``'s tangent turned by ``angle_deg`` and its centre put ``along_px`` and ``across_px``
+    patch pixels from ``point_px`` along and across the turned tube (a training start)."""
+    a = np.deg2rad(angle_deg)
+    t = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ frame.tangent
+    n = np.array([-t[1], t[0]])
+    centre = np.asarray(point_px, dtype=np.float64) + frame.step_px * (along_px * t + across_px * n)
+    return RefinePatch(centre, t, frame.step_px, frame.shape)
+
+
+def photometric_change(
+    patch: np.ndarray, rng: np.random.Generator, *, contrast: tuple[float, float], max_noise: float
+) -> np.ndarray:
+    """A normalised patch × a contrast factor uniform in ``contrast`` + Gaussian noise of a σ
+    uniform in [0, ``max_noise``]."""
+    return patch * rng.uniform(*contrast) + rng.normal(0.0, rng.uniform(0.0, max_noise), patch.shape)
