@@ -441,13 +441,18 @@ class EndsDataset(CMDetectionDataset):
         valid = np.zeros(2, np.float32)
         if s.landmarks_px is not None:
             step = cfg.refine_step_px(s.pixel_spacing_mm)
-            kw = {"step_px": step, "shape": cfg.ends_shape, "jitter": self.jitter, "photometric": train}
             line = extract_centerline(s.mask > 0, s.landmarks_px[0], s.landmarks_px[1]) if self.tube else None
             for k in (0, 1):
-                got = (
-                    training_tube_patch(s.image, s.mask, line, rng, **kw)  # type: ignore[arg-type]
-                    if line is not None
-                    else training_end_patch(s.image, s.mask, s.landmarks_px[k], rng, **kw)  # type: ignore[arg-type]
+                # the tube-mask stage's patches lie on the centreline, the mask-end stage's on A and B
+                got = (training_tube_patch if line is not None else training_end_patch)(
+                    s.image,
+                    s.mask,
+                    line if line is not None else s.landmarks_px[k],
+                    rng,
+                    step_px=step,
+                    shape=cfg.ends_shape,
+                    jitter=self.jitter,
+                    photometric=train,
                 )
                 if got is not None:
                     images[k, 0], masks[k, 0] = got

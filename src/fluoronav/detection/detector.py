@@ -196,6 +196,17 @@ DIHEDRAL: tuple[tuple[int, bool], ...] = (
 )
 
 
+def _mirror_mean(net: torch.nn.Module, x: torch.Tensor, tta: int) -> torch.Tensor:
+    """A patch network's output (N, C, rows, cols) on tube-aligned patches ``x`` (N, 1, rows, cols);
+    with ``tta`` 2 averaged with its output on the patches mirrored about the tube's axis (rows
+    flipped), both in one batch."""
+    if tta == 1:
+        return net(x)
+    n = x.shape[0]
+    out = net(torch.cat([x, x.flip(-2)]))
+    return 0.5 * (out[:n] + out[n:].flip(-2))
+
+
 def _dihedral(x: torch.Tensor, quarter_turns: int, mirrored: bool) -> torch.Tensor:
     """(…, S, S) mirrored left-right (if asked), then turned by quarter turns."""
     y = torch.flip(x, dims=[-1]) if mirrored else x
@@ -434,13 +445,7 @@ class Detector:
         if not todo:
             return landmarks_px
         x = torch.from_numpy(np.stack([fr.sample(image) for _, fr in todo]))[:, None].to(self.device)
-        if cfg.refine_tta == 2:
-            n = x.shape[0]
-            out = net(torch.cat([x, x.flip(-2)]))
-            out = 0.5 * (out[:n] + out[n:].flip(-2))
-        else:
-            out = net(x)
-        out = out.float().cpu()
+        out = _mirror_mean(net, x, cfg.refine_tta).float().cpu()
         ks = np.array([k for k, _ in todo])
         sel = out[torch.arange(len(todo)), torch.from_numpy(ks)][:, None]
         # the prior stays at the fine stage's landmark in every shifted patch
@@ -514,11 +519,7 @@ class Detector:
         """(P, rows, cols) mask logits of a patch-mask stage on ``frames``' patches of ``image``, with
         ``ends_tta`` 2 each averaged with that of its mirror image about the tube's axis (one batch)."""
         x = torch.from_numpy(sample_patches(image, frames))[:, None].to(self.device)
-        if self.config.ends_tta == 1:
-            return net(x)[:, 0].float().cpu().numpy()
-        n = x.shape[0]
-        out = net(torch.cat([x, x.flip(-2)]))
-        return (0.5 * (out[:n] + out[n:].flip(-2)))[:, 0].float().cpu().numpy()
+        return _mirror_mean(net, x, self.config.ends_tta)[:, 0].float().cpu().numpy()
 
     def _coarse_hypotheses(
         self,
