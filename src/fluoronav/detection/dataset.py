@@ -350,7 +350,26 @@ class CMDetectionDataset(Dataset):
         }
 
 
-class RefineDataset(CMDetectionDataset):
+class _PatchDataset(CMDetectionDataset):
+    """Items of a patch stage: each sample ``repeats`` times per epoch, each time with its own draws
+    (:meth:`_draw`)."""
+
+    def __init__(self, root: str | Path, *, repeats: int = 1, **kw: object) -> None:
+        super().__init__(root, **kw)  # type: ignore[arg-type]
+        self.repeats = int(repeats)
+
+    def __len__(self) -> int:
+        return len(self.records) * self.repeats
+
+    def _draw(self, index: int) -> tuple[Sample, bool, np.random.Generator]:
+        """Item ``index``'s sample, whether it is a training item (augmented), and its generator: new
+        draws every training epoch, the same every epoch for validation."""
+        train = self.augment is not None
+        rng = np.random.default_rng([self.seed, self.epoch if train else 0, index])
+        return self.sample(index % len(self.records)), train, rng
+
+
+class RefineDataset(_PatchDataset):
     """Training/validation items of the landmark refinement stage: each sample ``repeats`` times per
     epoch, each time with a patch around A and one around B, placed as the fine stage would miss them
     (:func:`~fluoronav.detection.refine.training_patch`). Validation items have the same jitter
@@ -363,20 +382,14 @@ class RefineDataset(CMDetectionDataset):
     def __init__(
         self, root: str | Path, *, repeats: int = 1, jitter: RefineJitter | None = None, **kw: object
     ) -> None:
-        super().__init__(root, **kw)  # type: ignore[arg-type]
+        super().__init__(root, repeats=repeats, **kw)
         if not self.config.refine_channels:
             raise ValueError("the model configuration has no refinement stage (refine_channels)")
-        self.repeats = int(repeats)
         self.jitter = jitter or RefineJitter()
 
-    def __len__(self) -> int:
-        return len(self.records) * self.repeats
-
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        s = self.sample(index % len(self.records))
+        s, train, rng = self._draw(index)
         cfg = self.config
-        train = self.augment is not None
-        rng = np.random.default_rng([self.seed, self.epoch if train else 0, index])
         images = np.zeros((2, 1, *cfg.refine_shape), np.float32)
         targets = np.full((2, 2), np.nan, np.float32)
         if s.landmarks_px is not None:
@@ -397,7 +410,7 @@ class RefineDataset(CMDetectionDataset):
         return {"refine_image": torch.from_numpy(images), "refine_landmarks": torch.from_numpy(targets)}
 
 
-class EndsDataset(CMDetectionDataset):
+class EndsDataset(_PatchDataset):
     """Training/validation items of the mask-end stage (``tube=False``): each sample ``repeats`` times
     per epoch, each time with a patch around A and one around B, placed as the refined landmarks
     would miss them (:func:`~fluoronav.detection.ends.training_end_patch`); or of the tube-mask stage
@@ -418,24 +431,18 @@ class EndsDataset(CMDetectionDataset):
         tube: bool = False,
         **kw: object,
     ) -> None:
-        super().__init__(root, **kw)  # type: ignore[arg-type]
+        super().__init__(root, repeats=repeats, **kw)
         if not (self.config.tube_channels if tube else self.config.ends_channels):
             raise ValueError(
                 "the model configuration has no "
                 + ("tube-mask stage (tube_channels)" if tube else "mask-end stage (ends_channels)")
             )
-        self.repeats = int(repeats)
         self.jitter = jitter or EndJitter()
         self.tube = tube
 
-    def __len__(self) -> int:
-        return len(self.records) * self.repeats
-
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        s = self.sample(index % len(self.records))
+        s, train, rng = self._draw(index)
         cfg = self.config
-        train = self.augment is not None
-        rng = np.random.default_rng([self.seed, self.epoch if train else 0, index])
         images = np.zeros((2, 1, *cfg.ends_shape), np.float32)
         masks = np.zeros((2, 1, *cfg.ends_shape), np.float32)
         valid = np.zeros(2, np.float32)
