@@ -21,6 +21,11 @@ from fluoronav.cli.main import main
         ),
         (["train", "--data", "x", "--out", "m.pt", "--stage", "middle"], "stages must be"),
         (["train", "--data", "x", "--out", "m.pt", "--keep-decoding"], "give --init"),
+        (["train", "--data", "x", "--out", "m.pt", "--coarse-size", "200"], "multiple of 16"),
+        (
+            ["train", "--data", "x", "--out", "m.pt", "--coarse-size", "256", "--stage", "fine"],
+            "needs --stage coarse",
+        ),
         (
             [
                 "simulate",

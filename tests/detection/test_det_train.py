@@ -108,6 +108,24 @@ def test_init_keeps_the_init_files_decoding_settings_only_when_asked(tmp_path: P
     assert Detector.load(reset, device="cpu").config == dataclasses.replace(default, roi_channels=(4, 8, 16))
 
 
+def test_coarse_size_retrains_the_coarse_stage_at_another_scale(tmp_path: Path) -> None:
+    data, cfg, first, w0 = _first_model(tmp_path, seed=11, steps=1)
+    coarse_cfg = dataclasses.replace(cfg, stages=("coarse",), lr=0.0)
+    wider = tmp_path / "wider.pt"
+    train(data, wider, config=coarse_cfg, init=first, keep_decoding=True, coarse_size=64, progress=False)
+    det = Detector.load(wider, device="cpu")
+    assert det.config == dataclasses.replace(TINY, input_size=64)  # only the coarse scale changed
+    w1 = torch.load(wider, weights_only=True)["state_dict"]
+    learned = [k for k in w0 if not k.endswith(("running_mean", "running_var", "num_batches_tracked"))]
+    assert all(torch.equal(w0[k], w1[k]) for k in learned)  # lr 0: the init's weights, now at 64²
+    assert det.net.coarse(torch.zeros(1, 1, 64, 64)).shape == (1, 3, 64, 64)
+    assert det.detect(torch.rand(96, 80).numpy()).mask.shape == (96, 80)
+    with pytest.raises(ValueError, match="multiple of 16"):
+        train(data, wider, config=coarse_cfg, init=first, coarse_size=40, progress=False)
+    with pytest.raises(ValueError, match="coarse stage"):
+        train(data, wider, config=dataclasses.replace(cfg, stages=("fine",)), coarse_size=64)
+
+
 def test_training_one_stage_leaves_the_other_untouched(tmp_path: Path) -> None:
     data, cfg, first, w0 = _first_model(tmp_path, seed=7, steps=2)
     tuned = tmp_path / "fine_only.pt"

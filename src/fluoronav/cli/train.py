@@ -68,6 +68,19 @@ def train_command(
         help="Probability of fitting a training sample's fine ROI to a part of its CM only (the CM runs "
         "out of the ROI, as after a coarse detection of part of it).",
     ),
+    max_steps_per_epoch: int | None = typer.Option(
+        None,
+        "--max-steps-per-epoch",
+        min=1,
+        help="End each epoch after this many steps (default: one pass over the training split).",
+    ),
+    coarse_size: int | None = typer.Option(
+        None,
+        "--coarse-size",
+        min=32,
+        help="Coarse stage working resolution in pixels (a multiple of 16), also against an --init "
+        "model's: its coarse weights are trained on at the new scale (needs --stage coarse).",
+    ),
     seed: int = SEED_OPTION,
     device: str = DEVICE_OPTION,
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
@@ -88,7 +101,12 @@ def train_command(
             collimate_prob=collimate_prob,
             partial_roi_prob=partial_roi_prob,
             refine_repeats=refine_repeats,
+            max_steps_per_epoch=max_steps_per_epoch,
         )
+        if coarse_size is not None and (coarse_size % 16 or "coarse" not in config.stages):
+            raise ValueError(
+                f"--coarse-size must be a multiple of 16 and needs --stage coarse, got {coarse_size}"
+            )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     if keep_decoding and init is None:
@@ -102,6 +120,7 @@ def train_command(
         resume=resume,
         init=init,
         keep_decoding=keep_decoding,
+        coarse_size=coarse_size,
         progress=progress,
     )
     typer.echo(json.dumps(metrics))

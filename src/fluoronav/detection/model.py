@@ -5,7 +5,7 @@ heatmaps (A = CM base origin, B = distal end of the last notch), trained jointly
 (Dice loss on the segmentation, L2 on the heatmaps).
 
 - Coarse stage: the whole image, area-resampled (isotropically, padded to a square) to
-  ``input_size``² (default 256), intensities normalised per image (1st/99th percentile → 0/1). It
+  ``input_size``² (default 128), intensities normalised per image (1st/99th percentile → 0/1). It
   finds the CM and places the region of interest.
 - Fine stage: a square region of interest around the coarse mask and landmarks (margin
   ``roi_margin_frac`` of its extent on each side), resampled from the *input* image to ``roi_size``²

@@ -398,6 +398,7 @@ def train(
     resume: bool = False,
     init: str | Path | None = None,
     keep_decoding: bool = False,
+    coarse_size: int | None = None,
     progress: bool = True,
 ) -> dict[str, float]:
     """Train the detector on one or more simulate data sets and write the model file ``out_path``.
@@ -411,9 +412,17 @@ def train(
     (:data:`ARCHITECTURE_FIELDS`); the decoding settings come from ``model_config`` (default: this
     version's), or with ``keep_decoding`` from the ``init`` file, ``model_config`` aside
     (fine-tuning a tuned model: the result decodes as it did); the optimiser and the learning-rate
-    schedule start afresh. ``resume`` wins over ``init``.
+    schedule start afresh. ``resume`` wins over ``init``. ``coarse_size`` sets the coarse stage's
+    working resolution (``input_size``, pixels; a multiple of 16), also against the ``init`` file's:
+    the U-Net is convolutional, so its weights carry over to the new scale and are trained there
+    (``coarse`` must be among the stages trained).
     """
     tcfg = config or TrainConfig()
+    if coarse_size is not None:
+        if coarse_size < 32 or coarse_size % 16:
+            raise ValueError(f"coarse_size must be a multiple of 16 of at least 32, got {coarse_size}")
+        if "coarse" not in tcfg.stages:
+            raise ValueError("coarse_size changes the coarse stage's scale: train the coarse stage too")
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     device = resolve_device(tcfg.device)
@@ -448,6 +457,8 @@ def train(
         init_state = start.net.state_dict()
         logger.info("starting from the weights of %s", init)
     mcfg = model_config or DetectorConfig()
+    if coarse_size is not None and ckpt is None:  # a resumed run keeps its checkpoint's configuration
+        mcfg = dataclasses.replace(mcfg, input_size=coarse_size)
     refining = tcfg.stages == ("refine",)
     tubing = tcfg.stages == ("tube",)
     ending = tubing or tcfg.stages == ("ends",)  # a patch-mask stage
