@@ -24,7 +24,7 @@ from fluoronav.cli.main import main
         (["train", "--data", "x", "--out", "m.pt", "--coarse-size", "200"], "multiple of 16"),
         (
             ["train", "--data", "x", "--out", "m.pt", "--coarse-size", "256", "--stage", "fine"],
-            "needs --stage coarse",
+            "train the coarse stage too",
         ),
         (
             [

@@ -86,7 +86,7 @@ def train_command(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
 ) -> None:
     """Train the detector (segmentation + landmark heatmaps, or the landmark refinement) and write MODEL."""
-    from fluoronav.detection.train import TrainConfig, train
+    from fluoronav.detection.train import TrainConfig, check_coarse_size, train
 
     try:  # TrainConfig holds the rules (which --stage combinations train, ranges)
         config = TrainConfig(
@@ -103,10 +103,7 @@ def train_command(
             refine_repeats=refine_repeats,
             max_steps_per_epoch=max_steps_per_epoch,
         )
-        if coarse_size is not None and (coarse_size % 16 or "coarse" not in config.stages):
-            raise ValueError(
-                f"--coarse-size must be a multiple of 16 and needs --stage coarse, got {coarse_size}"
-            )
+        check_coarse_size(coarse_size, config.stages)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     if keep_decoding and init is None:

@@ -141,6 +141,17 @@ ARCHITECTURE_FIELDS = (
 )
 
 
+def check_coarse_size(coarse_size: int | None, stages: Sequence[str]) -> None:
+    """Raise ValueError unless ``coarse_size`` is None or a multiple of 16 (≥ 32) with the coarse
+    stage among ``stages`` (a new scale for an untrained coarse stage would only spoil it)."""
+    if coarse_size is None:
+        return
+    if coarse_size < 32 or coarse_size % 16:
+        raise ValueError(f"coarse_size must be a multiple of 16 of at least 32, got {coarse_size}")
+    if "coarse" not in stages:
+        raise ValueError("coarse_size changes the coarse stage's scale: train the coarse stage too")
+
+
 def checkpoint_path(model_path: Path) -> Path:
     return model_path.with_name(model_path.name + ".ckpt")
 
@@ -418,11 +429,7 @@ def train(
     (``coarse`` must be among the stages trained).
     """
     tcfg = config or TrainConfig()
-    if coarse_size is not None:
-        if coarse_size < 32 or coarse_size % 16:
-            raise ValueError(f"coarse_size must be a multiple of 16 of at least 32, got {coarse_size}")
-        if "coarse" not in tcfg.stages:
-            raise ValueError("coarse_size changes the coarse stage's scale: train the coarse stage too")
+    check_coarse_size(coarse_size, tcfg.stages)
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     device = resolve_device(tcfg.device)
