@@ -15,6 +15,7 @@ from fluoronav.detection.augment import (
     apply_affine,
     augment_geometric,
     collimation_window,
+    edge_point,
     lower_dose,
     view_affine,
 )
@@ -333,3 +334,32 @@ def test_partial_roi_leaves_the_far_landmark_out_of_the_fine_view() -> None:
         part = fine_view_for(s, cfg, np.random.default_rng(seed), augment=partial)
         assert inside(part).sum() == 1  # one end in the view, the other beyond its edge
         assert inside(fine_view_for(s, cfg, np.random.default_rng(seed))).all()  # no partial ROIs: both
+
+
+def test_edge_point_lies_on_the_strongest_edges() -> None:
+    # a bright disk (radius 30 px) on a flat background: its rim is the only edge
+    v, u = np.mgrid[0:128, 0:160]
+    r = np.hypot(u - 90.0, v - 60.0)
+    image = (r < 30.0).astype(np.float32) + np.float32(0.2)
+    rng = np.random.default_rng(3)
+    pts = np.array([edge_point(image, rng) for _ in range(200)])
+    assert np.all(np.abs(np.hypot(pts[:, 0] - 90.0, pts[:, 1] - 60.0) - 30.0) <= 3.0)
+    assert len({(int(p[0]), int(p[1])) for p in pts}) > 50  # spread along the rim, not one pixel
+    flat = edge_point(np.zeros((8, 8), np.float32), rng)  # no edge at all: any pixel
+    assert 0 <= flat[0] < 8 and 0 <= flat[1] < 8
+
+
+def test_edge_negative_roi_is_centred_on_an_edge_only_when_asked() -> None:
+    v, u = np.mgrid[0:200, 0:200]
+    image = (np.hypot(u - 140.0, v - 60.0) < 20.0).astype(np.float32)  # one small disk, top right
+    s = Sample("n", image, np.zeros_like(image, bool), None, 0.5)
+    cfg = DetectorConfig()
+    on_edges = AugmentConfig(p_edge_negative_roi=1.0)
+    for seed in range(20):
+        view = fine_view_for(s, cfg, np.random.default_rng(seed), augment=on_edges)
+        centre = np.array([view.x0, view.y0]) + view.side / 2.0 - 0.5
+        assert abs(np.hypot(centre[0] - 140.0, centre[1] - 60.0) - 20.0) <= 3.0
+    # off (the default): the same draws as before the option existed, a window anywhere
+    off = [fine_view_for(s, cfg, np.random.default_rng(seed), augment=AugmentConfig()) for seed in range(20)]
+    plain = [fine_view_for(s, cfg, np.random.default_rng(seed)) for seed in range(20)]
+    assert [(a.x0, a.y0, a.side) for a in off] == [(b.x0, b.y0, b.side) for b in plain]

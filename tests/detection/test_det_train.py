@@ -129,7 +129,9 @@ def test_coarse_size_retrains_the_coarse_stage_at_another_scale(tmp_path: Path) 
 def test_training_one_stage_leaves_the_other_untouched(tmp_path: Path) -> None:
     data, cfg, first, w0 = _first_model(tmp_path, seed=7, steps=2)
     tuned = tmp_path / "fine_only.pt"
-    fine_cfg = dataclasses.replace(cfg, stages=("fine",), collimate_prob=0.5, partial_roi_prob=0.5)
+    fine_cfg = dataclasses.replace(
+        cfg, stages=("fine",), collimate_prob=0.5, partial_roi_prob=0.5, edge_negative_prob=0.5
+    )
     train(data, tuned, config=fine_cfg, init=first, progress=False)
     w1 = torch.load(tuned, weights_only=True)["state_dict"]
     # the coarse stage is not run at all: weights and batch-norm statistics stay bit-identical
@@ -142,10 +144,13 @@ def test_training_one_stage_leaves_the_other_untouched(tmp_path: Path) -> None:
     assert side["stages"] == ["fine"]
     assert side["augmentation"]["p_collimate"] == 0.5 and side["collimate_prob"] == 0.5
     assert side["augmentation"]["p_partial_roi"] == 0.5 and side["partial_roi_prob"] == 0.5
+    assert side["augmentation"]["p_edge_negative_roi"] == 0.5 and side["edge_negative_prob"] == 0.5
     assert AugmentConfig().p_collimate == 0.0  # off unless asked for (--collimate-prob)
     assert AugmentConfig().p_partial_roi == 0.0  # off unless asked for (--partial-roi-prob)
     with pytest.raises(ValueError, match="collimate_prob"):
         TrainConfig(collimate_prob=1.5)
+    with pytest.raises(ValueError, match="edge_negative_prob"):
+        TrainConfig(edge_negative_prob=-0.1)
     with pytest.raises(ValueError, match="partial_roi_prob"):
         TrainConfig(partial_roi_prob=-0.1)
     with pytest.raises(ValueError, match="stages"):

@@ -68,6 +68,14 @@ def train_command(
         help="Probability of fitting a training sample's fine ROI to a part of its CM only (the CM runs "
         "out of the ROI, as after a coarse detection of part of it).",
     ),
+    edge_negative_prob: float = typer.Option(
+        0.0,
+        "--edge-negative-prob",
+        min=0.0,
+        max=1.0,
+        help="Probability of centring a CM-free training sample's fine ROI on a strong edge of its image "
+        "(bone rims, the joint: where false alarms start) instead of anywhere.",
+    ),
     max_steps_per_epoch: int | None = typer.Option(
         None,
         "--max-steps-per-epoch",
@@ -100,6 +108,7 @@ def train_command(
             stages=tuple(dict.fromkeys(stage)),
             collimate_prob=collimate_prob,
             partial_roi_prob=partial_roi_prob,
+            edge_negative_prob=edge_negative_prob,
             refine_repeats=refine_repeats,
             max_steps_per_epoch=max_steps_per_epoch,
         )

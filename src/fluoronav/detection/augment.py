@@ -42,6 +42,11 @@ class AugmentConfig:
             then segment the CM up to the ROI's edge (which adds a pass on a wider ROI) instead of
             ending it inside.
         partial_frac: range of the fraction of the CM's length (along A–B) that such a ROI is fitted to.
+        p_edge_negative_roi: probability that a CM-free sample's fine ROI is centred on a strong edge
+            of the image (:func:`edge_point`: bone rims, the hip joint) instead of anywhere: the coarse
+            stage's false alarms start on such structures, which a random window seldom shows.
+        edge_quantile: such a centre is drawn uniformly among the pixels whose smoothed gradient
+            magnitude is at or above this quantile of the image's.
     """
 
     p_flip: float = 0.5
@@ -59,6 +64,26 @@ class AugmentConfig:
     min_field_frac: float = 0.35
     p_partial_roi: float = 0.0
     partial_frac: tuple[float, float] = (0.35, 0.75)
+    p_edge_negative_roi: float = 0.0
+    edge_quantile: float = 0.95
+
+
+def edge_point(
+    image: np.ndarray, rng: np.random.Generator, *, quantile: float = 0.95, sigma_px: float = 2.0
+) -> np.ndarray:
+    """A pixel (u, v) of ``image`` (rows, cols) drawn uniformly among those whose gradient magnitude,
+    after a Gaussian blur of ``sigma_px``, is at or above its ``quantile`` over the pixels that have
+    a gradient (strong edges: bone rims and the joint in an X-ray; the blur keeps noise out of the
+    choice). A flat image gives a pixel drawn uniformly."""
+    img = np.asarray(image, dtype=np.float32)
+    smooth = cv2.GaussianBlur(img, (0, 0), sigma_px)
+    gu = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)
+    gv = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)
+    mag = np.hypot(gu, gv)
+    live = mag > 1e-6 * float(mag.max()) if mag.max() > 0 else np.ones(mag.shape, bool)
+    v, u = np.nonzero(live & (mag >= np.quantile(mag[live], quantile)))
+    k = int(rng.integers(len(u)))
+    return np.array([u[k], v[k]], dtype=np.float64)
 
 
 def collimation_window(

@@ -26,6 +26,7 @@ from fluoronav.detection.augment import (
     augment_geometric,
     augment_photometric,
     collimation_window,
+    edge_point,
     lower_dose,
 )
 from fluoronav.detection.centerline import extract_centerline
@@ -183,12 +184,17 @@ def fine_view_for(
 ) -> View:
     """The ROI of a sample: around its mask and landmarks (jittered when ``rng`` is given; with
     probability ``augment.p_partial_roi`` around a part of the CM, :func:`partial_cm_points`); a
-    random window for negatives."""
+    random window for negatives (with probability ``augment.p_edge_negative_roi`` centred on a strong
+    edge, :func:`~fluoronav.detection.augment.edge_point`)."""
     rows, cols = sample.image.shape
     if sample.landmarks_px is None:
         r = rng if rng is not None else np.random.default_rng(0)
         side = float(r.uniform(0.1, 0.5)) * max(rows, cols)
         centre = r.uniform([0, 0], [cols, rows])
+        edges = augment is not None and rng is not None and augment.p_edge_negative_roi > 0.0
+        # no extra draw when off, so that earlier training runs reproduce
+        if edges and augment is not None and r.random() < augment.p_edge_negative_roi:
+            centre = edge_point(sample.image, r, quantile=augment.edge_quantile)
         return roi_view(centre[None], config.roi_size, margin_frac=0.0, min_side_px=max(side, 2.0))
     pts = _cm_extent_points(sample.mask, sample.landmarks_px)
     if rng is None:

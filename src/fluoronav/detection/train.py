@@ -79,6 +79,8 @@ class TrainConfig:
             (:class:`~fluoronav.detection.dataset.RefineDataset`), adding it to a model without one;
             ``("ends",)`` the mask-end stage alone (:class:`~fluoronav.detection.dataset.EndsDataset`,
             BCE + Dice on the patch masks), likewise; ``("tube",)`` the tube-mask stage alone, likewise.
+        edge_negative_prob: probability that a CM-free sample's fine ROI is centred on a strong edge
+            of its image (``AugmentConfig.p_edge_negative_roi``) rather than anywhere.
         refine_repeats: patches per landmark and sample in an epoch of the refinement or the mask-end
             stage.
         collimate_prob: probability that a training sample is cropped to a collimated field of view
@@ -104,6 +106,7 @@ class TrainConfig:
     stages: tuple[str, ...] = ("coarse", "fine")
     collimate_prob: float = 0.0
     partial_roi_prob: float = 0.0
+    edge_negative_prob: float = 0.0
     refine_repeats: int = 5
 
     def __post_init__(self) -> None:
@@ -119,6 +122,8 @@ class TrainConfig:
             raise ValueError(f"collimate_prob must be in [0, 1], got {self.collimate_prob}")
         if not 0.0 <= self.partial_roi_prob <= 1.0:
             raise ValueError(f"partial_roi_prob must be in [0, 1], got {self.partial_roi_prob}")
+        if not 0.0 <= self.edge_negative_prob <= 1.0:
+            raise ValueError(f"edge_negative_prob must be in [0, 1], got {self.edge_negative_prob}")
 
 
 #: the architecture fields of the refinement stage
@@ -500,7 +505,11 @@ def train(
         logger.info("resuming from %s at epoch %d", ckpt_file, start_epoch)
 
     aug = (
-        AugmentConfig(p_collimate=tcfg.collimate_prob, p_partial_roi=tcfg.partial_roi_prob)
+        AugmentConfig(
+            p_collimate=tcfg.collimate_prob,
+            p_partial_roi=tcfg.partial_roi_prob,
+            p_edge_negative_roi=tcfg.edge_negative_prob,
+        )
         if tcfg.augment
         else None
     )
