@@ -191,9 +191,9 @@ def fine_view_for(
         r = rng if rng is not None else np.random.default_rng(0)
         side = float(r.uniform(0.1, 0.5)) * max(rows, cols)
         centre = r.uniform([0, 0], [cols, rows])
-        edges = augment is not None and rng is not None and augment.p_edge_negative_roi > 0.0
-        # no extra draw when off, so that earlier training runs reproduce
-        if edges and augment is not None and r.random() < augment.p_edge_negative_roi:
+        # no extra draw when off (short-circuit), so that earlier training runs reproduce
+        p_edge = augment.p_edge_negative_roi if augment is not None and rng is not None else 0.0
+        if augment is not None and p_edge > 0.0 and r.random() < p_edge:
             centre = edge_point(sample.image, r, quantile=augment.edge_quantile)
         return roi_view(centre[None], config.roi_size, margin_frac=0.0, min_side_px=max(side, 2.0))
     pts = _cm_extent_points(sample.mask, sample.landmarks_px)
