@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk  # noqa: N813
 import torch
+from scipy import ndimage
 from torch import nn
 
 import fluoronav.detection.detector as detector_module
@@ -647,6 +648,7 @@ def test_second_look_is_off_by_default_and_never_adds_a_detection(monkeypatch: p
     # an image without a detection (landmarks below min_confidence) is not looked at again
     looked.config = dataclasses.replace(looked.config, min_confidence=0.99)
     assert not looked.detect(img).found and calls == [1]
+    assert not DetectorConfig.from_dict({"heatmap": "softmax"}).fine_wide_unfound  # unless asked for
     for bad in (
         {"fine_wide_factors": (0.8,)},
         {"fine_wide_factors": (5.0,)},
@@ -767,3 +769,89 @@ def test_another_coarse_blob_is_a_hypothesis_too(
         ).coarse_other_min_px
         == 3
     )
+
+
+@pytest.mark.parametrize(
+    ("blur_px", "min_ratio", "unsure_below", "found"),
+    [
+        (0.0, 0.0, 1.0, True),  # unsure, checked: the bar's boundary is a sharp edge
+        (12.0, 0.0, 1.0, False),  # unsure, checked: a soft blob (ratio 2.0), no edge where its mask ends
+        (12.0, 0.0, 0.5, True),  # its landmarks (0.85, 1.0) are sure enough not to need 2.5
+        (12.0, 2.5, 0.0, False),  # every detection needs 2.5
+        (12.0, 1.5, 0.0, True),  # every detection needs 1.5: it has that
+        (12.0, 0.0, 0.0, True),  # the checks off
+    ],
+)
+def test_a_detection_needs_an_edge_on_its_mask_boundary(
+    blur_px: float, min_ratio: float, unsure_below: float, found: bool
+) -> None:
+    img, _, lm = drawn_cm()
+    bar = np.zeros_like(img)
+    cv2.line(bar, (60, 70), (190, 130), 1.0, thickness=24)
+    bar = ndimage.gaussian_filter(bar, blur_px) if blur_px else bar
+    rng = np.random.default_rng(0)
+    img = bar + 0.02 * rng.standard_normal(img.shape).astype(np.float32)
+    img[68:73, 58:63] = 4.0  # the oracle's landmark markers, as drawn_cm's
+    img[128:133, 188:193] = -3.0
+    config = dataclasses.replace(
+        TINY, min_edge_ratio=min_ratio, unsure_below_confidence=unsure_below, unsure_min_edge_ratio=2.5
+    )
+    net = DetectorNet(config)
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    res = Detector(net, device="cpu").detect(img, pixel_spacing_mm=0.582)
+    assert res.found is found
+    if found:
+        np.testing.assert_allclose(res.landmarks_px, lm, atol=2.0)
+    else:
+        assert res.landmarks_px is None and res.centerline_px is None
+        assert res.landmark_confidence.min() > 0.5  # reported, as for any rejected detection
+        assert res.mask.any()
+
+
+def test_edge_check_settings_are_validated() -> None:
+    with pytest.raises(ValueError, match="unsure_below_confidence"):
+        dataclasses.replace(TINY, unsure_below_confidence=1.5)
+    with pytest.raises(ValueError, match="min_edge_ratio"):
+        dataclasses.replace(TINY, min_edge_ratio=-1.0)
+    with pytest.raises(ValueError, match="unsure_min_edge_ratio"):
+        dataclasses.replace(TINY, unsure_min_edge_ratio=-1.0)
+    # model files without the keys read as off
+    cfg = DetectorConfig.from_dict({"heatmap": "softmax"})
+    assert cfg.min_edge_ratio == cfg.unsure_below_confidence == cfg.unsure_min_edge_ratio == 0.0
+
+
+@pytest.mark.parametrize(
+    ("unfound", "surer", "looked", "found"),
+    [
+        (False, True, False, False),  # off (the default): a result under the floor is no detection
+        (True, False, True, False),  # looked at again, no surer hypothesis: still none
+        (True, True, True, True),  # looked at again, a hypothesis that counts: a detection
+    ],
+)
+def test_fine_wide_unfound_looks_again_at_a_result_under_the_floor(
+    monkeypatch: pytest.MonkeyPatch, unfound: bool, surer: bool, looked: bool, found: bool
+) -> None:
+    img, _, lm = drawn_cm()
+    # the oracle's landmark confidences (about 0.8-0.9) are under this floor
+    config = dataclasses.replace(
+        TINY, fine_wide_factors=(2.2,), min_confidence=0.99, fine_wide_unfound=unfound
+    )
+    net = DetectorNet(config)
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    det = Detector(net, device="cpu")
+    seen: list[detector_module.FineResult] = []
+
+    def second_look(image: np.ndarray, first: detector_module.FineResult, **kwargs: object) -> object:
+        seen.append(first)
+        accept = kwargs["accept"]
+        assert callable(accept) and not accept(first)
+        sure = dataclasses.replace(first, confidence=np.array([0.995, 0.995]))
+        assert accept(sure)  # the detection's own test decides
+        return sure if surer else first
+
+    monkeypatch.setattr(det, "second_look", second_look)
+    res = det.detect(img)
+    assert bool(seen) is looked and res.found is found
+    if found:
+        np.testing.assert_allclose(res.landmarks_px, lm, atol=2.0)
+        np.testing.assert_allclose(res.landmark_confidence, 0.995)

@@ -37,6 +37,7 @@ from scipy import ndimage as ndi
 
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.ends import end_zone_paste, sample_patches, tube_frames, tube_paste
+from fluoronav.detection.evidence import mask_edge_ratio
 from fluoronav.detection.heatmaps import decode_landmarks
 from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet
 from fluoronav.detection.refine import RefinePatch, decode_refine_logits, refine_patch
@@ -368,7 +369,10 @@ class Detector:
         Returns a :class:`Detection` in the input's pixels; ``found`` is False when the coarse mask is
         smaller than ``min_mask_px`` or a landmark confidence is below ``min_confidence`` (a weak coarse
         mask, between ``weak_mask_px`` and ``min_mask_px``, needs ``weak_min_confidence`` instead), or
-        when the final mask covers less than ``min_mask_mm2`` at the detector.
+        when the final mask covers less than ``min_mask_mm2`` at the detector, or when its boundary
+        lies on no edge of the image (``min_edge_ratio``, ``unsure_min_edge_ratio`` for a landmark
+        confidence below ``unsure_below_confidence``;
+        :func:`~fluoronav.detection.evidence.mask_edge_ratio`).
         ``pixel_spacing_mm`` (mm per input pixel at the detector), where given, lets an image smaller
         than ``coarse_min_field_mm`` be seen by the coarse stage at the scale of a whole field; such a
         detection needs ``padded_min_confidence``.
@@ -403,17 +407,27 @@ class Detector:
             res = self._coarse_hypotheses(
                 img, cv, c_mask, c_pts, res, accept=accepted, first_mask=first_mask, both=both
             )
+        # the second look takes only hypotheses that are a detection; where the first result is none,
+        # it is looked at again only with fine_wide_unfound
+        if accepted(res) or (cfg.fine_wide_unfound and res.mask.any()):
+            res = self.second_look(img, res, pixel_spacing_mm=pixel_spacing_mm, accept=accepted)
         if not accepted(res):
             conf = res.confidence.astype(np.float64)
             return Detection(False, None, conf, res.mask, None, pixel_spacing_mm)
-        # only a detection is looked at again, and only by hypotheses that are one: it adds none
-        res = self.second_look(img, res, pixel_spacing_mm=pixel_spacing_mm, accept=accepted)
         f_pts, f_conf, mask = res.landmarks_px, res.confidence, res.mask
         f_pts = self.refine(img, f_pts, mask, pixel_spacing_mm=pixel_spacing_mm)
         # the centreline of the fine mask: the patch-mask stages move its edges by a pixel or less
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])
         mask = self.mask_tube(img, centerline, mask, pixel_spacing_mm=pixel_spacing_mm)
         mask = self.mask_ends(img, f_pts, mask, pixel_spacing_mm=pixel_spacing_mm)
+        need_ratio = cfg.min_edge_ratio
+        if float(f_conf.min()) < cfg.unsure_below_confidence:
+            need_ratio = max(need_ratio, cfg.unsure_min_edge_ratio)
+        if need_ratio > 0.0:
+            ratio = mask_edge_ratio(img, mask, pixel_spacing_mm=spacing_mm)
+            if ratio < need_ratio:
+                logger.debug("no edge on the mask's boundary (ratio %.2f < %.2f): no CM", ratio, need_ratio)
+                return Detection(False, None, f_conf.astype(np.float64), mask, None, pixel_spacing_mm)
         return Detection(True, f_pts, f_conf.astype(np.float64), mask, centerline, pixel_spacing_mm)
 
     @torch.no_grad()

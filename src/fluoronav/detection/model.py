@@ -100,6 +100,10 @@ class DetectorConfig:
             second look (1: every detection does). The fine stage's confidence tops out near 0.86
             (a prediction as sharp as the training targets), so a detection above 0.86 minus
             ``fine_wide_min_gain`` cannot be replaced and the look would only cost time.
+        fine_wide_unfound: True: a fine result that is no detection (a landmark confidence under the
+            floor) gets the second look too, and is one if a wider view's hypothesis is (a CM the
+            first ROI showed in part can be too unsure to count, and so missed); False: only
+            detections get it.
         coarse_split: where the two confident coarse landmarks lie on different connected components
             of the coarse mask, the fine stage also runs from each component alone with its
             landmark (two more hypotheses; by default the ROI holds both components: one CM cut in
@@ -135,6 +139,14 @@ class DetectorConfig:
             coarse pixels that the whole fields of training gave it. 0: off (the image alone).
         padded_min_confidence: the fine landmark confidence both landmarks need where the coarse
             view was widened by ``coarse_min_field_mm`` (repeated edges can look like a tube).
+        min_edge_ratio: the boundary-to-surroundings gradient ratio every detection's final mask
+            needs (:func:`fluoronav.detection.evidence.mask_edge_ratio`: the mean image gradient on
+            the mask's boundary over its median around the mask); 0: off. A CM's tube is bounded by
+            a strong step; false alarms on CM-free images are blobs on bone whose boundary lies on
+            no edge.
+        unsure_below_confidence, unsure_min_edge_ratio: a detection whose smaller landmark
+            confidence is below the first needs the second ratio instead, where it is larger (an
+            unsure detection needs clearer evidence); 0: off.
         refine_channels: feature channels per level of the landmark refinement U-Net
             (:mod:`fluoronav.detection.refine`); empty (the default): no refinement stage.
             ``fluoronav train --stage refine`` adds one of :data:`DEFAULT_REFINE_CHANNELS`.
@@ -191,6 +203,7 @@ class DetectorConfig:
     fine_wide_min_shift_mm: float = 5.0
     fine_wide_min_gain: float = 0.15
     fine_wide_max_confidence: float = 1.0
+    fine_wide_unfound: bool = False
     coarse_split: bool = False
     coarse_other_min_px: int = 0
     mask_threshold: float = 0.5
@@ -204,6 +217,9 @@ class DetectorConfig:
     high_pct: float = 99.0
     coarse_min_field_mm: float = 0.0
     padded_min_confidence: float = 0.0
+    min_edge_ratio: float = 0.0
+    unsure_below_confidence: float = 0.0
+    unsure_min_edge_ratio: float = 0.0
     refine_channels: tuple[int, ...] = ()
     refine_shape: tuple[int, int] = (48, 80)
     refine_step_mm: float = 0.291
@@ -254,6 +270,13 @@ class DetectorConfig:
             raise ValueError(f"coarse_min_field_mm must be 0 or more, got {self.coarse_min_field_mm}")
         if not 0.0 <= self.padded_min_confidence <= 1.0:
             raise ValueError(f"padded_min_confidence must be in [0, 1], got {self.padded_min_confidence}")
+        if not (self.min_edge_ratio >= 0.0 and self.unsure_min_edge_ratio >= 0.0):
+            raise ValueError(
+                "min_edge_ratio and unsure_min_edge_ratio must be 0 or more, got "
+                f"{self.min_edge_ratio} and {self.unsure_min_edge_ratio}"
+            )
+        if not 0.0 <= self.unsure_below_confidence <= 1.0:
+            raise ValueError(f"unsure_below_confidence must be in [0, 1], got {self.unsure_below_confidence}")
         if not self.refine_shifts_px or not all(abs(float(d)) <= 16.0 for d in self.refine_shifts_px):
             raise ValueError(
                 f"refine_shifts_px must be 1 or more shifts in [-16, 16], got {self.refine_shifts_px}"
