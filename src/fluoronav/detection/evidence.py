@@ -11,7 +11,10 @@ smoothing scale, so the ratio does not depend on the image's scaling, dose or pi
 from __future__ import annotations
 
 import numpy as np
+import torch
 from scipy import ndimage as ndi
+
+from fluoronav.registration.roi import area_downsample
 
 __all__ = ["mask_edge_ratio"]
 
@@ -59,7 +62,8 @@ def mask_edge_ratio(
     # for the 0.194 mm pixels of a full-resolution detector image
     factor = int(sigma_mm / 2.0 / pixel_spacing_mm + 0.25)
     if factor >= 2:
-        img, m = _bin(img, factor), _bin(m.astype(np.float64), factor) >= 0.5
+        binned = area_downsample(torch.from_numpy(np.stack([img, m.astype(np.float64)])), factor).numpy()
+        img, m = binned[0], binned[1] >= 0.5
         sigma_px, inner_px, outer_px = sigma_px / factor, inner_px / factor, outer_px / factor
         if not m.any():
             return 0.0
@@ -73,9 +77,3 @@ def mask_edge_ratio(
     if ref <= 0.0:
         return float("inf")
     return float(grad[boundary].mean()) / ref
-
-
-def _bin(a: np.ndarray, factor: int) -> np.ndarray:
-    """Mean over factor × factor blocks (the last partial row and column of blocks dropped)."""
-    rows, cols = (a.shape[0] // factor) * factor, (a.shape[1] // factor) * factor
-    return a[:rows, :cols].reshape(rows // factor, factor, cols // factor, factor).mean(axis=(1, 3))
