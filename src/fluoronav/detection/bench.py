@@ -99,7 +99,7 @@ def run(quick: bool = False) -> dict[str, float]:
             d.mask_tube(image, line, mask, pixel_spacing_mm=spacing_mm),
             pixel_spacing_mm=spacing_mm,
         )
-        if d.config.min_edge_ratio > 0.0 or d.config.unsure_min_edge_ratio > 0.0:
+        if d.config.needed_edge_ratio(float(res.confidence.min())) > 0.0:
             mask_edge_ratio(image, final, pixel_spacing_mm=spacing_mm)
 
     def baseline() -> None:

@@ -420,9 +420,7 @@ class Detector:
         centerline = extract_centerline(mask, f_pts[0], f_pts[1])
         mask = self.mask_tube(img, centerline, mask, pixel_spacing_mm=pixel_spacing_mm)
         mask = self.mask_ends(img, f_pts, mask, pixel_spacing_mm=pixel_spacing_mm)
-        need_ratio = cfg.min_edge_ratio
-        if float(f_conf.min()) < cfg.unsure_below_confidence:
-            need_ratio = max(need_ratio, cfg.unsure_min_edge_ratio)
+        need_ratio = cfg.needed_edge_ratio(float(f_conf.min()))
         if need_ratio > 0.0:
             ratio = mask_edge_ratio(img, mask, pixel_spacing_mm=spacing_mm)
             if ratio < need_ratio:

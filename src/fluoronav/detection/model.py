@@ -324,6 +324,12 @@ class DetectorConfig:
         """``mask_threshold`` as a logit (the networks' segmentation output)."""
         return float(math.log(self.mask_threshold / (1.0 - self.mask_threshold)))
 
+    def needed_edge_ratio(self, smaller_confidence: float) -> float:
+        """The edge ratio a detection with this smaller landmark confidence needs (0: no check)."""
+        if smaller_confidence < self.unsure_below_confidence:
+            return max(self.min_edge_ratio, self.unsure_min_edge_ratio)
+        return self.min_edge_ratio
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["channels"], d["roi_channels"] = list(self.channels), list(self.roi_channels)
