@@ -855,3 +855,128 @@ def test_fine_wide_unfound_looks_again_at_a_result_under_the_floor(
     if found:
         np.testing.assert_allclose(res.landmarks_px, lm, atol=2.0)
         np.testing.assert_allclose(res.landmark_confidence, 0.995)
+
+
+def _stub_detection() -> tuple[np.ndarray, np.ndarray]:
+    """A 20-px tube from (40, 100) to (200, 100) (u, v), bright on a dark background with noise, and
+    the mask of all of it: a CM from A (100, 100) to B (195, 100) on a shaft stub to (40, 100), whose
+    far end the fine stage took for A."""
+    img = np.zeros((200, 260), np.float32)
+    cv2.line(img, (40, 100), (200, 100), 1.0, thickness=20)
+    mask = img > 0.5
+    img += 0.05 * np.random.default_rng(0).standard_normal(img.shape).astype(np.float32)
+    return img, mask
+
+
+@pytest.mark.parametrize(
+    ("fine_a", "next_a", "cut_at", "moved"),
+    [
+        ((45.0, 100.0), (100.0, 100.0), 100, True),  # A on the stub's free end, its next mode at the junction
+        ((45.0, 100.0), None, 100, False),  # the same, but A is too unsure to be looked at (floor 0.6)
+        ((45.0, 100.0), (150.0, 100.0), 40, False),  # the next place is mid-tube (no shaft around): stays
+        ((45.0, 100.0), (100.0, 160.0), 100, False),  # the next place is off the mask: stays
+        ((45.0, 100.0), (197.0, 100.0), 100, False),  # beyond B (its tip goes on there): stays
+        ((100.0, 100.0), None, 100, False),  # A where the shaft goes on: not looked at again
+    ],
+)
+def test_a_landmark_on_a_free_end_is_read_again_where_the_cm_meets_its_shaft(
+    monkeypatch: pytest.MonkeyPatch,
+    fine_a: tuple[float, float],
+    next_a: tuple[float, float] | None,
+    cut_at: int,
+    moved: bool,
+) -> None:
+    img, stub_mask = _stub_detection()
+    min_confidence = 0.6 if (next_a is None and fine_a[0] < 100.0) else 0.45
+    config = dataclasses.replace(
+        TINY, free_end_max_continuation=0.35, free_end_min_confidence=min_confidence, fine_scales=(1.0, 1.2)
+    )
+    det = Detector(empty_net(config), device="cpu")
+    fine_mask = stub_mask.copy()
+    if fine_a[0] >= 100.0:
+        fine_mask[:, :100] = False  # the fine stage stopped at the junction
+    view = detector_module.View(0, 60, 200, 64)
+    pts = np.array([fine_a, [195.0, 100.0]])
+    res = detector_module.FineResult(pts, np.array([0.5, 0.8]), fine_mask, view)
+    final = (res.landmarks_px.copy(), np.zeros((2, 2)), fine_mask.copy())
+    calls: list[tuple[int, np.ndarray, float]] = []
+
+    def fine_views(image: np.ndarray, views: list, **kwargs: object) -> tuple:
+        disk = kwargs["exclude_disk"]
+        assert isinstance(disk, tuple)
+        calls.append(disk)
+        assert len(views) == 2  # the last pass's views at every scale
+        pts = np.tile(np.array([next_a, [195.0, 100.0]]), (len(views), 1, 1))
+        return None, pts, np.full((len(views), 2), 0.5)
+
+    finished: list[np.ndarray] = []
+
+    def finish(fine_pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        finished.append(fine_pts)
+        m = stub_mask.copy()
+        m[:, :cut_at] = False  # the mask-end stage redraws the end at the new A
+        return fine_pts.copy(), np.zeros((2, 2)), m
+
+    monkeypatch.setattr(det, "fine_views", fine_views)
+    out = det.off_free_end(img, res, final, finish)
+    if next_a is None:
+        assert not calls and out is final
+        return
+    k, centre, radius = calls[0]
+    assert k == 0 and np.allclose(centre, fine_a) and radius == pytest.approx(20.0, abs=2.0)
+    if moved:
+        np.testing.assert_allclose(out[0], [next_a, [195.0, 100.0]])
+        assert not out[2][:, :100].any()
+    else:
+        assert out is final
+        # a place off the mask or not short of B is not even finished
+        assert bool(finished) is (next_a[0] < 190.0 and next_a[1] == 100.0)
+
+
+def test_the_free_end_exclusion_reaches_the_heatmap_decoding(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the disk is drawn in each view's pixels: a landmark peaking inside it is taken outside it
+    det = Detector(empty_net(dataclasses.replace(TINY, fine_min_separation_px=0.0)), device="cpu")
+    size = TINY.roi_size
+    view = detector_module.View(0, 0, 2 * size, size)  # 2 input px per view px
+
+    class Peaks(nn.Module):
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            out = torch.full((x.shape[0], 3, size, size), -20.0)
+            out[:, 1, 10, 10] = 10.0  # A's best peak, at input (21, 21)
+            out[:, 1, 40, 50] = 5.0  # its second mode, at input (101, 81)
+            out[:, 2, 50, 50] = 10.0
+            return out
+
+    det.net.fine = Peaks()
+    img = np.random.default_rng(0).standard_normal((2 * size, 2 * size)).astype(np.float32)
+    _, pts, _ = det.fine_views(img, [view], tta=1)
+    np.testing.assert_allclose(pts[0, 0], [21.0, 21.0], atol=1.0)
+    _, pts, _ = det.fine_views(img, [view], tta=1, exclude_disk=(0, np.array([21.0, 21.0]), 10.0))
+    np.testing.assert_allclose(pts[0, 0], [101.0, 81.0], atol=1.0)
+    np.testing.assert_allclose(pts[0, 1], [101.0, 101.0], atol=1.0)  # B's map is not excluded
+
+
+def test_free_end_setting_is_validated_and_off_by_default() -> None:
+    with pytest.raises(ValueError, match="free_end_max_continuation"):
+        dataclasses.replace(TINY, free_end_max_continuation=1.5)
+    with pytest.raises(ValueError, match="free_end_min_confidence"):
+        dataclasses.replace(TINY, free_end_min_confidence=-0.1)
+    cfg = DetectorConfig.from_dict({"heatmap": "softmax"})
+    assert cfg.free_end_max_continuation == cfg.free_end_min_confidence == 0.0
+
+
+def test_channels_last_weights_on_the_cpu_give_the_same_outputs() -> None:
+    # the CPU detector keeps its weights channels-last (faster with oneDNN); every stage must
+    # compute what the plain layout computes, to fp32 rounding
+    torch.manual_seed(3)
+    config = dataclasses.replace(TINY, heatmap="softmax", fine_tta=8)
+    det = Detector(DetectorNet(config), device="cpu")
+    conv = next(m for m in det.net.fine.modules() if isinstance(m, nn.Conv2d))
+    assert conv.weight.is_contiguous(memory_format=torch.channels_last)
+    plain = Detector(DetectorNet(config), device="cpu")
+    plain.net.load_state_dict(det.net.state_dict())
+    plain.net = plain.net.to(memory_format=torch.contiguous_format)  # type: ignore[call-overload]
+    views = np.random.default_rng(0).standard_normal((3, 64, 64)).astype(np.float32)
+    ours, theirs = det._run(det.net.fine, views, tta=8), plain._run(plain.net.fine, views, tta=8)
+    for a, b in zip(ours, theirs, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)

@@ -7,9 +7,10 @@ The image is a physics-simulated 1536² detector image of the CM over the hip ph
 0.194 mm pixels). The pipeline is timed stage by stage on the region of interest and the mask of the
 simulated CM, so the figure covers the whole path (coarse, every fine pass with its test-time
 transforms and ROI scales, mask mapping, the second look where the detection is unsure enough,
-landmark refinement, centreline, the tube-mask and mask-end stages where the model has them, and
-the check that the mask ends on an image edge where the model's decoding asks for it)
-whatever the weights detect. ``detect_second_look_ms`` times the
+landmark refinement, centreline, the tube-mask and mask-end stages where the model has them, the
+check that landmark A is not on a free end of a tube and the check that the mask ends on an image
+edge, where the model's decoding asks for them) whatever the weights detect; reading A again where
+it is on a free end (rare) is not timed. ``detect_second_look_ms`` times the
 same path with the second look forced (its wider view and, where that moves a landmark far enough, a
 second run of the fine stage): what an unsure detection costs.
 """
@@ -28,7 +29,7 @@ from torch.nn import functional as tnf
 
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.detector import Detector, shipped_model_path
-from fluoronav.detection.evidence import mask_edge_ratio
+from fluoronav.detection.evidence import end_continuation, mask_edge_ratio
 from fluoronav.detection.model import DetectorConfig, DetectorNet
 from fluoronav.detection.views import roi_view
 
@@ -88,7 +89,7 @@ def run(quick: bool = False) -> dict[str, float]:
         d.coarse(image, pixel_spacing_mm=spacing_mm)
         # every fine pass (the last at each of the configured ROI scales), the second look where the
         # detection is unsure enough, landmark refinement, the centreline, the mask's redrawing
-        # along it and at its ends (the patch-mask stages) and the check of its edges, as
+        # along it and at its ends (the patch-mask stages), the check of A's end and of its edges, as
         # ``Detector.detect`` runs them
         res = d.second_look(image, d.fine_stage(image, roi), pixel_spacing_mm=spacing_mm)
         d.refine(image, res.landmarks_px, res.mask, pixel_spacing_mm=spacing_mm)
@@ -99,6 +100,8 @@ def run(quick: bool = False) -> dict[str, float]:
             d.mask_tube(image, line, mask, pixel_spacing_mm=spacing_mm),
             pixel_spacing_mm=spacing_mm,
         )
+        if d.config.free_end_max_continuation > 0.0:
+            end_continuation(image, final, ends[0], pixel_spacing_mm=spacing_mm)
         if d.config.needed_edge_ratio(float(res.confidence.min())) > 0.0:
             mask_edge_ratio(image, final, pixel_spacing_mm=spacing_mm)
 

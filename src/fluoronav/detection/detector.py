@@ -37,7 +37,7 @@ from scipy import ndimage as ndi
 
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.ends import end_zone_paste, sample_patches, tube_frames, tube_paste
-from fluoronav.detection.evidence import mask_edge_ratio
+from fluoronav.detection.evidence import end_continuation, local_tube_width_px, mask_edge_ratio
 from fluoronav.detection.heatmaps import decode_landmarks
 from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet
 from fluoronav.detection.refine import RefinePatch, decode_refine_logits, refine_patch
@@ -103,10 +103,7 @@ class Detection:
         end). All False when nothing was found."""
         if not self.found or self.landmarks_px is None or not self.mask.any():
             return np.zeros(2, dtype=bool)
-        vv, uu = np.nonzero(self.mask)
-        pixels = np.stack([uu, vv], axis=1).astype(np.float64)
-        lm = np.asarray(self.landmarks_px, dtype=np.float64).reshape(2, 1, 2)
-        dist_px = np.sqrt(((pixels[None] - lm) ** 2).sum(axis=-1)).min(axis=1)
+        dist_px = np.array([_distance_to_mask(self.mask, p) for p in np.asarray(self.landmarks_px)])
         return dist_px * (self.pixel_spacing_mm or ASSUMED_SPACING_MM) > OFF_MASK_MM
 
     @property
@@ -242,6 +239,11 @@ class Detector:
     ) -> None:
         self.device = resolve_device(device)
         self.net = net.to(self.device).eval()
+        if self.device.type == "cpu":
+            # oneDNN runs these small-channel convolutions, the transposed ones above all, 10-30 %
+            # faster on channels-last weights (the inputs follow); the results are the same to fp32
+            # rounding. Module.to takes memory_format at run time; torch's stubs leave it out.
+            self.net = self.net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
         self.config: DetectorConfig = net.config
         self.source = source
 
@@ -285,6 +287,7 @@ class Detector:
         tta: int = 1,
         min_separation_px: float = 0.0,
         support_px: float = 0.0,
+        exclude: torch.Tensor | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N, S, S) normalised views → seg logits (N, S, S), landmarks (N, 2, 2) view px, confidences (N, 2).
 
@@ -292,7 +295,8 @@ class Detector:
         logits over that many dihedral transforms of each view (each mapped back): the network's small
         orientation biases cancel, which sharpens mask edges and landmarks. ``min_separation_px``: see
         :func:`~fluoronav.detection.heatmaps.separation_exclusion`; ``support_px``: see
-        :func:`off_support_exclusion`.
+        :func:`off_support_exclusion`; ``exclude``: (N, 2, S, S) bool heatmap pixels that may not
+        be a landmark besides.
         """
         x = torch.from_numpy(np.ascontiguousarray(view_images, dtype=np.float32))[:, None].to(self.device)
         transforms = DIHEDRAL[:tta]
@@ -305,11 +309,13 @@ class Detector:
             .mean(0)
             .float()
         )  # (N, 3, S, S)
-        exclude = None
+        if exclude is not None:
+            exclude = exclude.to(out.device)
         if support_px > 0.0:
-            exclude = off_support_exclusion(
+            off = off_support_exclusion(
                 out[:, 0], out[:, 1:], threshold_logit=self.config.mask_threshold_logit, support_px=support_px
             )
+            exclude = off if exclude is None else exclude | off
         pts, conf = decode_landmarks(
             out[:, 1:],
             mode=self.config.heatmap,
@@ -347,19 +353,37 @@ class Detector:
         return logits[0], pts[0], conf[0]
 
     def fine_views(
-        self, image: np.ndarray, views: list[View], *, tta: int | None = None
+        self,
+        image: np.ndarray,
+        views: list[View],
+        *,
+        tta: int | None = None,
+        exclude_disk: tuple[int, np.ndarray, float] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fine stage on several ROIs in one batch: seg logits (N, R, R), landmarks (N, 2, 2) in input
-        px, confidences (N, 2). ``tta``: dihedral transforms per view (None: ``fine_tta``)."""
+        px, confidences (N, 2). ``tta``: dihedral transforms per view (None: ``fine_tta``).
+        ``exclude_disk``: (landmark index, centre (2,) input px, radius input px), a disk where that
+        landmark may not be taken."""
         stack = np.stack([self._view_input(image, v) for v in views])
         tta = self.config.fine_tta if tta is None else tta
         cfg = self.config
+        exclude = None
+        if exclude_disk is not None:
+            k, centre, radius = exclude_disk
+            size = stack.shape[-1]
+            exclude = torch.zeros((len(views), 2, size, size), dtype=torch.bool)
+            grid = np.arange(size, dtype=np.float64)
+            for i, v in enumerate(views):
+                cu, cv_ = v.from_input(np.asarray(centre, dtype=np.float64))
+                disk = np.hypot(grid[None, :] - cu, grid[:, None] - cv_) <= radius / v.scale
+                exclude[i, k] = torch.from_numpy(disk)
         logits, pts, conf = self._run(
             self.net.fine,
             stack,
             tta=tta,
             min_separation_px=cfg.fine_min_separation_px,
             support_px=cfg.fine_support_px,
+            exclude=exclude,
         )
         return logits, np.stack([v.to_input(p) for v, p in zip(views, pts, strict=True)]), conf
 
@@ -414,12 +438,21 @@ class Detector:
         if not accepted(res):
             conf = res.confidence.astype(np.float64)
             return Detection(False, None, conf, res.mask, None, pixel_spacing_mm)
-        f_pts, f_conf, mask = res.landmarks_px, res.confidence, res.mask
-        f_pts = self.refine(img, f_pts, mask, pixel_spacing_mm=pixel_spacing_mm)
-        # the centreline of the fine mask: the patch-mask stages move its edges by a pixel or less
-        centerline = extract_centerline(mask, f_pts[0], f_pts[1])
-        mask = self.mask_tube(img, centerline, mask, pixel_spacing_mm=pixel_spacing_mm)
-        mask = self.mask_ends(img, f_pts, mask, pixel_spacing_mm=pixel_spacing_mm)
+        f_conf = res.confidence
+
+        def finish(fine_pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            """Refined landmarks, the centreline and the final mask from the fine landmarks."""
+            pts = self.refine(img, fine_pts, res.mask, pixel_spacing_mm=pixel_spacing_mm)
+            # the centreline of the fine mask: the patch-mask stages move its edges by a pixel or less
+            line = extract_centerline(res.mask, pts[0], pts[1])
+            m = self.mask_tube(img, line, res.mask, pixel_spacing_mm=pixel_spacing_mm)
+            return pts, line, self.mask_ends(img, pts, m, pixel_spacing_mm=pixel_spacing_mm)
+
+        f_pts, centerline, mask = finish(res.landmarks_px)
+        if cfg.free_end_max_continuation > 0.0:
+            f_pts, centerline, mask = self.off_free_end(
+                img, res, (f_pts, centerline, mask), finish, pixel_spacing_mm=pixel_spacing_mm
+            )
         need_ratio = cfg.needed_edge_ratio(float(f_conf.min()))
         if need_ratio > 0.0:
             ratio = mask_edge_ratio(img, mask, pixel_spacing_mm=spacing_mm)
@@ -624,6 +657,67 @@ class Detector:
             accept = _has_mask
         return self._surest(image, first, starts, accept=accept, what="second look")
 
+    def off_free_end(
+        self,
+        image: np.ndarray,
+        res: FineResult,
+        final: tuple[np.ndarray, np.ndarray, np.ndarray],
+        finish: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+        *,
+        pixel_spacing_mm: float | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``final`` (landmarks (2, 2) input px, centreline, mask), or the same with landmark A read
+        again away from the free end of a tube.
+
+        A is where the CM meets its shaft, so the tube goes on beyond it. Where A's fine confidence
+        is at least ``free_end_min_confidence`` and the image has less tube around the final A
+        outside the final mask than ``free_end_max_continuation``
+        (:func:`~fluoronav.detection.evidence.end_continuation`), A is on a free end, such as the
+        far end of a short shaft stub that the fine stage took for part of the CM; the heatmap of A
+        then has a second mode where the CM meets that stub. The last pass's views go through the
+        fine stage again with A's map excluded within one tube width of the fine A; ``finish``
+        (refinement, centreline and patch-mask stages) runs from the new fine landmarks, and its
+        result replaces ``final`` where the new A lies on the fine mask, a quarter of a tube width or
+        more short of B along the line from the free end to B (the stub's end, A and B lie in this
+        order; the CM's tip goes on beyond B, as a shaft does beyond A), and has more tube than that
+        fraction around it. B's fine landmark, the fine mask and the confidences stay.
+        ``pixel_spacing_mm`` (mm per input pixel, where known) lets finer images be binned for the
+        measure.
+        """
+        cfg = self.config
+        pts, _, mask = final
+        if float(res.confidence[0]) < cfg.free_end_min_confidence:
+            return final
+        c = end_continuation(image, mask, pts[0], pixel_spacing_mm=pixel_spacing_mm)
+        if c is None or c >= cfg.free_end_max_continuation:
+            return final
+        width_px = local_tube_width_px(mask, pts[0])
+        assert width_px is not None  # end_continuation is None for an empty mask
+        fine_a = res.landmarks_px[0]
+        views = [_scaled_view(res.view, f) for f in cfg.fine_scales]
+        _, view_pts, _ = self.fine_views(image, views, exclude_disk=(0, fine_a, width_px))
+        fine_pts = res.landmarks_px.copy()
+        fine_pts[0] = np.median(view_pts[:, 0], axis=0)
+        if _distance_to_mask(res.mask, fine_pts[0]) > 1.0:
+            logger.debug("A on a free end (continuation %.2f); its next place is off the mask", c)
+            return final
+        # the stub's far end, A and B lie in this order along the tube: a place not a quarter of a
+        # tube width short of B is at B's end (the CM's tip goes on beyond B as a shaft beyond A)
+        axis = fine_pts[1] - fine_a
+        if float((fine_pts[1] - fine_pts[0]) @ axis) < 0.25 * width_px * float(np.linalg.norm(axis)):
+            logger.debug("A on a free end (continuation %.2f); its next place is not short of B", c)
+            return final
+        other = finish(fine_pts)
+        c_new = end_continuation(image, other[2], other[0][0], pixel_spacing_mm=pixel_spacing_mm)
+        if c_new is None or c_new <= cfg.free_end_max_continuation:
+            logger.debug("A on a free end (continuation %.2f); no better place (%s)", c, c_new)
+            return final
+        moved = float(np.linalg.norm(other[0][0] - pts[0]))
+        logger.debug(
+            "A on a free end (continuation %.2f): moved %.1f px (continuation %.2f)", c, moved, c_new
+        )
+        return other
+
     def fine_stage(self, image: np.ndarray, view: View) -> FineResult:
         """All fine passes from a first ROI: landmarks (2, 2) in input px, confidences (2,), the mask
         (rows, cols) bool at the input size and the last pass's ROI (at scale 1).
@@ -770,6 +864,14 @@ def off_support_exclusion(
         if off.any():
             exclude[i, torch.from_numpy(off)] = torch.from_numpy(far)
     return exclude.to(heatmaps.device)
+
+
+def _distance_to_mask(mask: np.ndarray, point_px: np.ndarray) -> float:
+    """Distance (px) from a point (u, v) to the nearest pixel of a mask (inf for an empty mask)."""
+    vv, uu = np.nonzero(mask)
+    if vv.size == 0:
+        return float("inf")
+    return float(np.sqrt(((uu - point_px[0]) ** 2 + (vv - point_px[1]) ** 2).min()))
 
 
 def _has_mask(r: FineResult) -> bool:

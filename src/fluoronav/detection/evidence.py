@@ -6,6 +6,11 @@ false alarm on CM-free images (a bone's rim or the hip joint, seen with low land
 a blob whose boundary lies on no such edge. :func:`mask_edge_ratio` measures this: the mean image
 gradient on the mask's boundary over the median gradient in a ring around the mask, both at one
 smoothing scale, so the ratio does not depend on the image's scaling, dose or pixel size.
+
+:func:`end_continuation` asks another question of one end of a detection: does a tube go on beyond
+it? Landmark A, where the notches begin, sits where the CM meets its mounting shaft, so the tube
+continues there; the free end of a tube (the CM's tip, or the far end of a short shaft stub that the
+fine stage can take for A) has only background around it.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ from scipy import ndimage as ndi
 
 from fluoronav.registration.roi import area_downsample
 
-__all__ = ["mask_edge_ratio"]
+__all__ = ["end_continuation", "local_tube_width_px", "mask_edge_ratio"]
 
 
 def mask_edge_ratio(
@@ -77,3 +82,123 @@ def mask_edge_ratio(
     if ref <= 0.0:
         return float("inf")
     return float(grad[boundary].mean()) / ref
+
+
+def local_tube_width_px(mask: np.ndarray, point_px: np.ndarray) -> float | None:
+    """Width of a tube's mask near a point, pixels: twice the largest inscribed radius (distance
+    transform) among the mask pixels within 3 typical radii (its 95th percentile) of ``point_px``
+    (u, v); None for an empty mask."""
+    m = np.asarray(mask, dtype=bool)
+    p = np.asarray(point_px, dtype=np.float64).reshape(2)
+    rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+    if rows.size == 0:
+        return None
+    # the mask's bounding box only: a 1536² image costs what a 512² one does
+    box = m[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    dt = ndi.distance_transform_edt(np.pad(box, 1))[1:-1, 1:-1]
+    radius = float(np.percentile(dt[box], 95))
+    vv, uu = np.nonzero(box)
+    near = np.hypot(uu + cols[0] - p[0], vv + rows[0] - p[1]) <= 3.0 * radius
+    return 2.0 * float(dt[vv[near], uu[near]].max() if near.any() else radius)
+
+
+def end_continuation(
+    image: np.ndarray,
+    mask: np.ndarray,
+    point_px: np.ndarray,
+    *,
+    pixel_spacing_mm: float | None = None,
+    radius_frac: float = 1.3,
+    n_angles: int = 72,
+) -> float | None:
+    """How much tube there is around a mask's end point outside the mask, as a fraction of the tube.
+
+    The tube's width ``w`` is twice the mask's largest inscribed radius near the point. On a circle of
+    radius ``radius_frac`` · ``w`` around the point, the image 0.15 ``w`` or more outside the mask
+    (just beside it, the tube's own blurred edge is half bright) is scaled so that the background
+    around the mask (its median in a band 0.5–1.5 ``w`` outside the mask) is 0 and the tube (the
+    median of the mask within ``w`` of the point) is 1; the result is the largest value on that
+    circle after a running median over 5 angles. A junction with a shaft (landmark A) gives
+    about 1 or more in the shaft's direction; a free end of a tube gives about 0.
+
+    Args:
+        image: (H, W) image, bright = attenuating (any scale).
+        mask: (H, W) bool mask of the object.
+        point_px: (2,) (u, v) the end point, input pixels.
+        pixel_spacing_mm: image pixel size at the detector, mm, where known: images finer than
+            about 0.58 mm are binned to about that first (the measure is in tube widths, so it does
+            not change; a 1536² detector image then costs what a 512² one does).
+        radius_frac: radius of the circle, in tube widths.
+        n_angles: samples on the circle.
+
+    Returns:
+        The fraction, or None where it is undefined: an empty mask, a tube narrower than 3 pixels,
+        no circle sample outside the mask, no background band, or a tube no brighter than its
+        background.
+    """
+    img = np.asarray(image)
+    m = np.asarray(mask, dtype=bool)
+    if img.shape != m.shape or img.ndim != 2:
+        raise ValueError(f"image and mask must be 2-D of one shape, got {img.shape} and {m.shape}")
+    if pixel_spacing_mm is not None and not pixel_spacing_mm > 0.0:
+        raise ValueError(f"pixel_spacing_mm must be positive, got {pixel_spacing_mm}")
+    p = np.asarray(point_px, dtype=np.float64).reshape(2)
+    factor = int(_BIN_MM / pixel_spacing_mm + 0.25) if pixel_spacing_mm else 1
+    rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+    if factor >= 2 and rows.size:
+        # the tube's width from the binned mask, then the window of 3 widths around the point that
+        # the circle and the band need, binned
+        box = m[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1].astype(np.float32)
+        box_binned = area_downsample(torch.from_numpy(box), factor).numpy() >= 0.5
+        p_box = (p - np.array([cols[0], rows[0]], dtype=np.float64) + 0.5) / factor - 0.5
+        half = factor * int(np.ceil(3.0 * (local_tube_width_px(box_binned, p_box) or 1.0) + 2.0))
+        r0, c0 = max(int(p[1]) - half, 0), max(int(p[0]) - half, 0)
+        r1, c1 = min(int(p[1]) + half + 1, m.shape[0]), min(int(p[0]) + half + 1, m.shape[1])
+        crop = np.stack([img[r0:r1, c0:c1].astype(np.float64), m[r0:r1, c0:c1].astype(np.float64)])
+        binned = area_downsample(torch.from_numpy(crop), factor).numpy()
+        img, m = binned[0], binned[1] >= 0.5
+        p = (p - np.array([c0, r0], dtype=np.float64) + 0.5) / factor - 0.5
+    return _continuation(img, m, p, radius_frac=radius_frac, n_angles=n_angles)
+
+
+#: pixel size (mm at the detector) that :func:`end_continuation` bins finer images to
+_BIN_MM = 0.582
+
+
+def _continuation(
+    img: np.ndarray, m: np.ndarray, p: np.ndarray, *, radius_frac: float, n_angles: int
+) -> float | None:
+    """:func:`end_continuation` on an image at its working pixel size."""
+    w = local_tube_width_px(m, p)
+    if w is None or w < 3.0:
+        return None
+    half = int(np.ceil(3.0 * w))
+    r0, c0 = max(int(p[1]) - half, 0), max(int(p[0]) - half, 0)
+    r1, c1 = min(int(p[1]) + half + 1, m.shape[0]), min(int(p[0]) + half + 1, m.shape[1])
+    if r1 <= r0 or c1 <= c0:
+        return None
+    sub, win = m[r0:r1, c0:c1], img[r0:r1, c0:c1].astype(np.float64)
+    yy, xx = np.mgrid[r0:r1, c0:c1]
+    dist = np.hypot(xx - p[0], yy - p[1])
+    inside = sub & (dist <= w)
+    dist_out = ndi.distance_transform_edt(~sub)
+    band = ~sub & (dist_out >= 0.5 * w) & (dist_out <= 1.5 * w) & (dist <= 2.5 * w)
+    if not inside.any() or int(band.sum()) < 10:
+        return None
+    tube, background = float(np.median(win[inside])), float(np.median(win[band]))
+    if tube <= background:
+        return None
+    angles = np.linspace(0.0, 2.0 * np.pi, n_angles, endpoint=False)
+    circle = p + radius_frac * w * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    # the circle lies in the window (radius 1.3 w < 3 w) or, where the window is cut by the image's
+    # border, beyond the image, where "nearest" repeats the same border pixels
+    coords = [circle[:, 1] - r0, circle[:, 0] - c0]
+    # clear of the mask by 0.15 w: just beside it the tube's own edge (a pixel or two of blur or of
+    # a mask drawn a pixel short) is half bright
+    clear = ndi.map_coordinates(dist_out, coords, order=1, mode="nearest") >= 0.15 * w
+    if not clear.any():
+        return None
+    values = (ndi.map_coordinates(win, coords, order=1, mode="nearest") - background) / (tube - background)
+    # one bright pixel (noise, a bone edge) must not count: the tube spans several angles
+    values = ndi.median_filter(values, size=5, mode="wrap")
+    return float(values[clear].max())

@@ -147,6 +147,14 @@ class DetectorConfig:
         unsure_below_confidence, unsure_min_edge_ratio: a detection whose smaller landmark
             confidence is below the first needs the second ratio instead, where it is larger (an
             unsure detection needs clearer evidence); 0: off.
+        free_end_max_continuation: where landmark A has less tube than this around it outside the
+            mask (:func:`fluoronav.detection.evidence.end_continuation`: 0 for a free end of a
+            tube, about 1 where the shaft goes on), A is on the free end of a tube, not where the CM
+            meets its shaft (the fine stage can take the far end of a short shaft stub for A); A is
+            then read again from the last fine pass's heatmap away from that end, and that place is
+            taken where it has more tube around it than this. 0: off.
+        free_end_min_confidence: the fine confidence of A that the free-end check needs: an unsure
+            A in a noisy view, its shaft pointing at the source, has little tube around it too.
         refine_channels: feature channels per level of the landmark refinement U-Net
             (:mod:`fluoronav.detection.refine`); empty (the default): no refinement stage.
             ``fluoronav train --stage refine`` adds one of :data:`DEFAULT_REFINE_CHANNELS`.
@@ -220,6 +228,8 @@ class DetectorConfig:
     min_edge_ratio: float = 0.0
     unsure_below_confidence: float = 0.0
     unsure_min_edge_ratio: float = 0.0
+    free_end_max_continuation: float = 0.0
+    free_end_min_confidence: float = 0.0
     refine_channels: tuple[int, ...] = ()
     refine_shape: tuple[int, int] = (48, 80)
     refine_step_mm: float = 0.291
@@ -281,6 +291,12 @@ class DetectorConfig:
             raise ValueError(
                 f"refine_shifts_px must be 1 or more shifts in [-16, 16], got {self.refine_shifts_px}"
             )
+        if not 0.0 <= self.free_end_max_continuation <= 1.0:
+            raise ValueError(
+                f"free_end_max_continuation must be in [0, 1], got {self.free_end_max_continuation}"
+            )
+        if not 0.0 <= self.free_end_min_confidence <= 1.0:
+            raise ValueError(f"free_end_min_confidence must be in [0, 1], got {self.free_end_min_confidence}")
         if self.refine_tta not in (1, 2):
             raise ValueError(f"refine_tta must be 1 or 2, got {self.refine_tta}")
         if self.refine_channels:
