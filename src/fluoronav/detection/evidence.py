@@ -67,8 +67,7 @@ def mask_edge_ratio(
     # for the 0.194 mm pixels of a full-resolution detector image
     factor = int(sigma_mm / 2.0 / pixel_spacing_mm + 0.25)
     if factor >= 2:
-        binned = area_downsample(torch.from_numpy(np.stack([img, m.astype(np.float64)])), factor).numpy()
-        img, m = binned[0], binned[1] >= 0.5
+        img, m = _bin_image_and_mask(img, m, factor)
         sigma_px, inner_px, outer_px = sigma_px / factor, inner_px / factor, outer_px / factor
         if not m.any():
             return 0.0
@@ -82,6 +81,14 @@ def mask_edge_ratio(
     if ref <= 0.0:
         return float("inf")
     return float(grad[boundary].mean()) / ref
+
+
+def _bin_image_and_mask(img: np.ndarray, mask: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """An image (float64) and its bool mask binned by ``factor`` (area mean; the mask where at least
+    half a bin is in it)."""
+    both = np.stack([np.asarray(img, dtype=np.float64), mask.astype(np.float64)])
+    binned = area_downsample(torch.from_numpy(both), factor).numpy()
+    return binned[0], binned[1] >= 0.5
 
 
 def local_tube_width_px(mask: np.ndarray, point_px: np.ndarray) -> float | None:
@@ -154,9 +161,7 @@ def end_continuation(
         half = factor * int(np.ceil(3.0 * (local_tube_width_px(box_binned, p_box) or 1.0) + 2.0))
         r0, c0 = max(int(p[1]) - half, 0), max(int(p[0]) - half, 0)
         r1, c1 = min(int(p[1]) + half + 1, m.shape[0]), min(int(p[0]) + half + 1, m.shape[1])
-        crop = np.stack([img[r0:r1, c0:c1].astype(np.float64), m[r0:r1, c0:c1].astype(np.float64)])
-        binned = area_downsample(torch.from_numpy(crop), factor).numpy()
-        img, m = binned[0], binned[1] >= 0.5
+        img, m = _bin_image_and_mask(img[r0:r1, c0:c1], m[r0:r1, c0:c1], factor)
         p = (p - np.array([c0, r0], dtype=np.float64) + 0.5) / factor - 0.5
     return _continuation(img, m, p, radius_frac=radius_frac, n_angles=n_angles)
 
