@@ -103,7 +103,7 @@ class Detection:
         end). All False when nothing was found."""
         if not self.found or self.landmarks_px is None or not self.mask.any():
             return np.zeros(2, dtype=bool)
-        dist_px = np.array([_distance_to_mask(self.mask, p) for p in np.asarray(self.landmarks_px)])
+        dist_px = _distances_to_mask(self.mask, np.asarray(self.landmarks_px))
         return dist_px * (self.pixel_spacing_mm or ASSUMED_SPACING_MM) > OFF_MASK_MM
 
     @property
@@ -698,7 +698,7 @@ class Detector:
         _, view_pts, _ = self.fine_views(image, views, exclude_disk=(0, fine_a, width_px))
         fine_pts = res.landmarks_px.copy()
         fine_pts[0] = np.median(view_pts[:, 0], axis=0)
-        if _distance_to_mask(res.mask, fine_pts[0]) > 1.0:
+        if _distances_to_mask(res.mask, fine_pts[:1])[0] > 1.0:
             logger.debug("A on a free end (continuation %.2f); its next place is off the mask", c)
             return final
         # the stub's far end, A and B lie in this order along the tube: a place not a quarter of a
@@ -866,12 +866,15 @@ def off_support_exclusion(
     return exclude.to(heatmaps.device)
 
 
-def _distance_to_mask(mask: np.ndarray, point_px: np.ndarray) -> float:
-    """Distance (px) from a point (u, v) to the nearest pixel of a mask (inf for an empty mask)."""
+def _distances_to_mask(mask: np.ndarray, points_px: np.ndarray) -> np.ndarray:
+    """(N,) distances (px) from points (N, 2) (u, v) to the nearest pixel of a mask (inf for an
+    empty mask); the mask's pixels are listed once for all the points."""
     vv, uu = np.nonzero(mask)
+    pts = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
     if vv.size == 0:
-        return float("inf")
-    return float(np.sqrt(((uu - point_px[0]) ** 2 + (vv - point_px[1]) ** 2).min()))
+        return np.full(len(pts), np.inf)
+    pixels = np.stack([uu, vv], axis=1).astype(np.float64)
+    return np.sqrt(((pixels[None] - pts[:, None]) ** 2).sum(axis=-1)).min(axis=1)
 
 
 def _has_mask(r: FineResult) -> bool:
