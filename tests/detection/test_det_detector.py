@@ -16,6 +16,7 @@ from torch import nn
 
 import fluoronav.detection.detector as detector_module
 from fluoronav.detection.detector import Detection, Detector, load_image, truncated_landmarks, write_detection
+from fluoronav.detection.ends import patch_grid_px
 from fluoronav.detection.model import DetectorConfig, DetectorNet
 from fluoronav.detection.train import save_model
 from fluoronav.errors import FluoronavError, InputError
@@ -898,7 +899,7 @@ def test_a_landmark_on_a_free_end_is_read_again_where_the_cm_meets_its_shaft(
     view = detector_module.View(0, 60, 200, 64)
     pts = np.array([fine_a, [195.0, 100.0]])
     res = detector_module.FineResult(pts, np.array([0.5, 0.8]), fine_mask, view)
-    final = (res.landmarks_px.copy(), np.zeros((2, 2)), fine_mask.copy())
+    final = detector_module.Finished(res.landmarks_px.copy(), np.zeros((2, 2)), fine_mask.copy())
     calls: list[tuple[int, np.ndarray, float]] = []
 
     def fine_views(image: np.ndarray, views: list, **kwargs: object) -> tuple:
@@ -911,11 +912,11 @@ def test_a_landmark_on_a_free_end_is_read_again_where_the_cm_meets_its_shaft(
 
     finished: list[np.ndarray] = []
 
-    def finish(fine_pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def finish(fine_pts: np.ndarray) -> detector_module.Finished:
         finished.append(fine_pts)
         m = stub_mask.copy()
         m[:, :cut_at] = False  # the mask-end stage redraws the end at the new A
-        return fine_pts.copy(), np.zeros((2, 2)), m
+        return detector_module.Finished(fine_pts.copy(), np.zeros((2, 2)), m)
 
     monkeypatch.setattr(det, "fine_views", fine_views)
     out = det.off_free_end(img, res, final, finish)
@@ -925,8 +926,8 @@ def test_a_landmark_on_a_free_end_is_read_again_where_the_cm_meets_its_shaft(
     k, centre, radius = calls[0]
     assert k == 0 and np.allclose(centre, fine_a) and radius == pytest.approx(20.0, abs=2.0)
     if moved:
-        np.testing.assert_allclose(out[0], [next_a, [195.0, 100.0]])
-        assert not out[2][:, :100].any()
+        np.testing.assert_allclose(out.landmarks_px, [next_a, [195.0, 100.0]])
+        assert not out.mask[:, :100].any()
     else:
         assert out is final
         # a place off the mask or not short of B is not even finished
@@ -980,3 +981,92 @@ def test_channels_last_weights_on_the_cpu_give_the_same_outputs() -> None:
     ours, theirs = det._run(det.net.fine, views, tta=8), plain._run(plain.net.fine, views, tta=8)
     for a, b in zip(ours, theirs, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("cm_from_u", "strength", "reread_a", "expect_a"),
+    [
+        (100.0, 5.0, (101.0, 100.0), (101.0, 100.0)),  # A on the shaft: the fine stage's new A, on the CM
+        (100.0, 5.0, (60.0, 100.0), None),  # its new A back on the shaft: the centreline's cut point
+        (100.0, 1.5, None, None),  # the stage sees nothing clearly (logits under shaft_min_cm_logit)
+        (40.0, 5.0, None, None),  # the shaft stage's CM begins at A: nothing moves
+        (48.0, 5.0, None, None),  # it begins 6 px (3.5 mm at 0.582 mm) beyond A: under shaft_cut_min_mm
+    ],
+)
+def test_a_on_the_shaft_is_read_again_where_the_shaft_stage_says_the_cm_begins(
+    monkeypatch: pytest.MonkeyPatch,
+    cm_from_u: float,
+    strength: float,
+    reread_a: tuple[float, float] | None,
+    expect_a: tuple[float, float] | None,
+) -> None:
+    img, stub_mask = _stub_detection()  # a CM from u = 100 to B at 195 on a shaft from u = 40
+    config = dataclasses.replace(
+        TINY,
+        shaft_channels=(4, 8, 16, 32),
+        shaft_cut_min_mm=5.0,
+        shaft_min_cm_logit=2.0,
+        fine_scales=(1.0, 1.2),
+        tube_spacing_px=16.0,
+        tube_band_px=8.0,
+    )
+    det = Detector(empty_net(config), device="cpu")
+    res = detector_module.FineResult(
+        np.array([[42.0, 100.0], [195.0, 100.0]]),
+        np.array([0.5, 0.8]),
+        stub_mask,
+        detector_module.View(0, 60, 200, 64),
+    )
+    line = np.stack([np.linspace(42.0, 195.0, 100), np.full(100, 100.0)], axis=1)
+    final = detector_module.Finished(res.landmarks_px.copy(), line, stub_mask.copy())
+
+    def patch_logits(net: nn.Module, image: np.ndarray, frames: list) -> np.ndarray:
+        # the shaft stage: CM where u ≥ cm_from_u, each patch pixel by its input position
+        out = []
+        for f in frames:
+            uv = patch_grid_px(f)
+            out.append(np.where(uv[..., 0] >= cm_from_u, strength, -strength).astype(np.float32))
+        return np.stack(out)
+
+    views_seen: list[list] = []
+
+    def fine_views(image: np.ndarray, views: list, **kwargs: object) -> tuple:
+        views_seen.append(views)
+        pts = np.tile(np.array([reread_a, [195.0, 100.0]]), (len(views), 1, 1))
+        return None, pts, np.full((len(views), 2), 0.5)
+
+    finished: list[np.ndarray] = []
+
+    def finish(fine_pts: np.ndarray) -> detector_module.Finished:
+        finished.append(fine_pts.copy())
+        return detector_module.Finished(fine_pts.copy(), line, stub_mask.copy())
+
+    monkeypatch.setattr(det, "_patch_logits", patch_logits)
+    monkeypatch.setattr(det, "fine_views", fine_views)
+    out = det.off_shaft(img, res, final, finish)
+    if reread_a is None:
+        assert out is final and not finished and not views_seen
+        return
+    # the re-read sees the CM without the shaft: its ROI starts near u = 100 - margin, not at 40
+    assert len(views_seen) == 1 and len(views_seen[0]) == 2 and views_seen[0][0].x0 > 60
+    a = finished[0][0]
+    if expect_a is not None:
+        np.testing.assert_allclose(a, expect_a)
+    else:
+        assert abs(a[0] - 100.0) <= 3.0 and a[1] == pytest.approx(100.0)
+    np.testing.assert_allclose(finished[0][1], [195.0, 100.0])  # B's fine landmark stays
+    assert not out.mask[:, :95].any() and out.mask[:, 110:190].any()  # the shaft is out of the mask
+    # without a shaft stage, or with the setting off: unchanged
+    det.net.shaft = None
+    assert det.off_shaft(img, res, final, finish) is final
+
+
+def test_shaft_settings_are_validated_and_off_by_default() -> None:
+    with pytest.raises(ValueError, match="shaft_cut_min_mm"):
+        dataclasses.replace(TINY, shaft_cut_min_mm=-1.0)
+    with pytest.raises(ValueError, match="shaft_cut_run_mm"):
+        dataclasses.replace(TINY, shaft_cut_run_mm=0.0)
+    cfg = DetectorConfig()
+    assert cfg.shaft_cut_min_mm == 0.0 and cfg.shaft_channels == ()
+    assert DetectorNet(cfg).shaft is None
+    assert DetectorConfig.from_dict({"shaft_channels": [4, 8]}).shaft_channels == (4, 8)

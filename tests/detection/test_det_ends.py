@@ -13,13 +13,14 @@ from det_synthetic import write_dataset
 from torch import nn
 
 from fluoronav.detection.dataset import EndsDataset
-from fluoronav.detection.detector import Detector
+from fluoronav.detection.detector import Detector, cm_start_index
 from fluoronav.detection.ends import (
     EndJitter,
     end_zone_paste,
     patch_grid_px,
     sample_patches,
     training_end_patch,
+    training_tube_patch,
     tube_frames,
     tube_paste,
 )
@@ -218,6 +219,31 @@ def test_training_the_ends_stage_adds_it_and_leaves_the_others(tmp_path: Path) -
         and float(item["ends_mask"][0, 0, [0, -1], :].max()) == 0.0
     )
 
+    # the shaft stage: added as a copy of the tube-mask stage, which stays as it was, and trained alone
+    shaft = tmp_path / "shaft.pt"
+    m = train(
+        data,
+        shaft,
+        config=dataclasses.replace(cfg, stages=("shaft",), refine_repeats=1, tube_shaft_prob=0.5, lr=0.0),
+        init=tube,
+        progress=False,
+    )
+    det = Detector.load(shaft, device="cpu")
+    assert det.net.shaft is not None and det.config.shaft_channels == det.config.tube_channels
+    w4 = torch.load(shaft, weights_only=True)["state_dict"]
+    assert all(torch.equal(w2[k], w4[k]) for k in w2)
+    # lr 0: the copy is exact (BatchNorm's running statistics aside, which a training pass updates)
+    assert all(
+        torch.equal(w4["shaft." + k[len("tube.") :]], w2[k])
+        for k in w2
+        if k.startswith("tube.") and not k.endswith(("running_mean", "running_var", "num_batches_tracked"))
+    )
+    assert json.loads(sidecar_path(shaft).read_text())["train"]["tube_shaft_prob"] == 0.5
+    with pytest.raises(ValueError, match="tube_shaft_prob"):
+        TrainConfig(stages=("shaft",))
+    with pytest.raises(ValueError, match="tube_shaft_prob"):
+        TrainConfig(stages=("fine",), tube_shaft_prob=0.3)
+
 
 def test_tube_frames_follow_the_centreline_at_even_spacing() -> None:
     line = np.stack([np.linspace(10.0, 70.0, 61), np.full(61, 20.0)], axis=1)  # 60 px along +u
@@ -263,3 +289,65 @@ def test_patches_sampled_together_equal_those_sampled_one_by_one() -> None:
     got = sample_patches(image, frames)
     assert got.shape == (2, 16, 32) and got.dtype == np.float32
     np.testing.assert_allclose(got, np.stack([f.sample(image) for f in frames]), atol=0.02)
+
+
+def test_shaft_patches_lie_on_the_shaft_inside_the_image_and_label_it_not_cm() -> None:
+    # the CM runs along +u from A = (40.3, 40); its shaft goes from A along −u, out of the image at u = 0
+    mask, image, _ = _tube()
+    image = image + ((np.abs(np.mgrid[0:80, 0:160][0] - 40.0) <= 6.0) & (np.mgrid[0:80, 0:160][1] < 40))
+    line = np.stack([np.linspace(40.3, 149.0, 50), np.full(50, 40.0)], axis=1)
+    shaft = np.array([[40.3, 40.0], [-60.0, 40.0]])
+    centres = []
+    for seed in range(40):
+        got = training_tube_patch(
+            image,
+            mask,
+            line,
+            np.random.default_rng(seed),
+            step_px=0.5,
+            shape=(40, 24),  # 20 px across: the 12 px tube and background either side
+            jitter=NO_JITTER,
+            photometric=False,
+            shaft_px=shaft,
+            shaft_prob=1.0,
+        )
+        assert got is not None
+        patch, target = got
+        # the patch is centred on the shaft's axis (the tube runs along its middle rows) ...
+        across = patch.mean(axis=1)
+        assert across[14:26].min() > max(across[0], across[-1]) + 0.5
+        # ... and its label is the CM's mask only: 0 except where the patch reaches beyond A
+        centres.append(target.mean())
+    # (a patch is 12 px long, the shaft's part inside the image 40 px: most patches lie wholly on it)
+    assert np.mean(np.array(centres) == 0.0) > 0.6 and max(centres) < 0.6
+    # shaft_prob 0 draws on the CM's centreline only, with the draws of a call without a shaft
+    draws = []
+    for shaft_px in (shaft, None):
+        got = training_tube_patch(
+            image,
+            mask,
+            line,
+            np.random.default_rng(3),
+            step_px=0.5,
+            shape=(16, 24),
+            jitter=NO_JITTER,
+            photometric=False,
+            shaft_px=shaft_px,
+        )
+        assert got is not None
+        draws.append(got)
+    np.testing.assert_array_equal(draws[0][0], draws[1][0])
+    np.testing.assert_array_equal(draws[0][1], draws[1][1])
+    assert draws[0][1].mean() > 0.9
+
+
+def test_cm_start_index_skips_a_stretch_outside_the_mask() -> None:
+    line = np.stack([np.linspace(0.0, 99.0, 100), np.full(100, 5.0)], axis=1)
+    mask = np.zeros((10, 100), bool)
+    mask[:, 30:] = True
+    mask[:, 10:13] = True  # a short stretch inside: shorter than the run asked for
+    assert cm_start_index(line, mask, run_px=5.0) == 30
+    assert cm_start_index(line, mask, run_px=2.0) == 10
+    assert cm_start_index(line, np.zeros_like(mask), run_px=5.0) is None
+    # points outside the image count as outside the mask
+    assert cm_start_index(line - [40.0, 0.0], mask, run_px=5.0) == 70

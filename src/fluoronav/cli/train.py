@@ -43,9 +43,10 @@ def train_command(
     stage: list[str] = typer.Option(
         ["coarse", "fine"],
         "--stage",
-        help="Stage to train (repeatable: coarse, fine; or refine alone: the landmark refinement stage, "
-        "or ends alone: the mask-end stage, each added to an --init model without one); the others "
-        "keep their weights and are not run.",
+        help="Stage to train (repeatable: coarse, fine; or one alone: refine, the landmark refinement "
+        "stage; ends, the mask-end stage; tube, the tube-mask stage; shaft, the shaft stage (needs "
+        "--tube-shaft-prob); each added to an --init model without one); the others keep their "
+        "weights and are not run.",
     ),
     refine_repeats: int = typer.Option(
         5,
@@ -75,6 +76,15 @@ def train_command(
         max=1.0,
         help="Probability of centring a CM-free training sample's fine ROI on a strong edge of its image "
         "(bone rims, the joint: where false alarms start) instead of anywhere.",
+    ),
+    tube_shaft_prob: float = typer.Option(
+        0.0,
+        "--tube-shaft-prob",
+        min=0.0,
+        max=1.0,
+        help="--stage tube or shaft: probability of centring a patch on the projected mounting shaft "
+        "(labelled not-CM) instead of the CM's centreline, so that the stage tells a plain shaft from "
+        "the CM.",
     ),
     max_steps_per_epoch: int | None = typer.Option(
         None,
@@ -110,6 +120,7 @@ def train_command(
             partial_roi_prob=partial_roi_prob,
             edge_negative_prob=edge_negative_prob,
             refine_repeats=refine_repeats,
+            tube_shaft_prob=tube_shaft_prob,
             max_steps_per_epoch=max_steps_per_epoch,
         )
         check_coarse_size(coarse_size, config.stages)

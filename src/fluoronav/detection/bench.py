@@ -89,8 +89,8 @@ def run(quick: bool = False) -> dict[str, float]:
         d.coarse(image, pixel_spacing_mm=spacing_mm)
         # every fine pass (the last at each of the configured ROI scales), the second look where the
         # detection is unsure enough, landmark refinement, the centreline, the mask's redrawing
-        # along it and at its ends (the patch-mask stages), the check of A's end and of its edges, as
-        # ``Detector.detect`` runs them
+        # along it and at its ends (the patch-mask stages), the checks of A's end, of the shaft and of
+        # the mask's edges, as ``Detector.detect`` runs them
         res = d.second_look(image, d.fine_stage(image, roi), pixel_spacing_mm=spacing_mm)
         d.refine(image, res.landmarks_px, res.mask, pixel_spacing_mm=spacing_mm)
         line = extract_centerline(mask, ends[0], ends[1])
@@ -102,6 +102,7 @@ def run(quick: bool = False) -> dict[str, float]:
         )
         if d.config.free_end_max_continuation > 0.0:
             end_continuation(image, final, ends[0], pixel_spacing_mm=spacing_mm)
+        d.shaft_start(image, mask, line, pixel_spacing_mm=spacing_mm)  # None without a shaft stage
         if d.config.needed_edge_ratio(float(res.confidence.min())) > 0.0:
             mask_edge_ratio(image, final, pixel_spacing_mm=spacing_mm)
 

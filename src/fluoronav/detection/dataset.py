@@ -35,6 +35,8 @@ from fluoronav.detection.model import DetectorConfig
 from fluoronav.detection.refine import RefineJitter, training_patch
 from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
 from fluoronav.errors import InputError
+from fluoronav.geometry.camera import Camera
+from fluoronav.simulation.scene import shaft_ends_cm
 
 logger = logging.getLogger(__name__)
 
@@ -103,6 +105,23 @@ def shaft_length_of(root: str | Path) -> float:
     option."""
     value = _recorded(root, "spec", "shaft_length_mm")
     return float(value) if isinstance(value, (int, float)) and value >= 0 else 50.0
+
+
+def shaft_segment_px(record: dict, shaft_length_mm: float) -> np.ndarray | None:
+    """The projected mounting shaft of a manifest record: (2, 2) (u, v) stored px of A and of the
+    shaft's far end, ``shaft_length_mm`` behind A along −z of the CM's frame. None where the record
+    lacks the camera or the pose ``world_from_cm``, or ``shaft_length_mm`` is not positive."""
+    if not shaft_length_mm > 0.0 or record.get("camera") is None or record.get("world_from_cm") is None:
+        return None
+    try:
+        camera = Camera.from_dict(record["camera"], source=f"sample {record.get('id')}")
+        world_from_cm = np.asarray(record["world_from_cm"], dtype=np.float64)
+    except (InputError, TypeError, ValueError):
+        return None
+    if world_from_cm.shape != (4, 4):
+        return None
+    ends_world = shaft_ends_cm(shaft_length_mm) @ world_from_cm[:3, :3].T + world_from_cm[:3, 3]
+    return np.asarray(camera.project(ends_world), dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -435,6 +454,7 @@ class EndsDataset(_PatchDataset):
         repeats: int = 1,
         jitter: EndJitter | None = None,
         tube: bool = False,
+        shaft_prob: float = 0.0,
         **kw: object,
     ) -> None:
         super().__init__(root, repeats=repeats, **kw)
@@ -445,6 +465,8 @@ class EndsDataset(_PatchDataset):
             )
         self.jitter = jitter or EndJitter()
         self.tube = tube
+        self.shaft_prob = float(shaft_prob) if tube else 0.0
+        self.shaft_length_mm = shaft_length_of(self.root)
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         s, train, rng = self._draw(index)
@@ -455,18 +477,38 @@ class EndsDataset(_PatchDataset):
         if s.landmarks_px is not None:
             step = cfg.refine_step_px(s.pixel_spacing_mm)
             line = extract_centerline(s.mask > 0, s.landmarks_px[0], s.landmarks_px[1]) if self.tube else None
+            shaft = (
+                shaft_segment_px(self.records[index % len(self.records)], self.shaft_length_mm)
+                if self.shaft_prob > 0.0
+                else None
+            )
             for k in (0, 1):
-                # the tube-mask stage's patches lie on the centreline, the mask-end stage's on A and B
-                got = (training_tube_patch if line is not None else training_end_patch)(
-                    s.image,
-                    s.mask,
-                    line if line is not None else s.landmarks_px[k],
-                    rng,
-                    step_px=step,
-                    shape=cfg.ends_shape,
-                    jitter=self.jitter,
-                    photometric=train,
-                )
+                # the tube-mask stage's patches lie on the centreline (or the shaft), the mask-end
+                # stage's on A and B
+                if line is not None:
+                    got = training_tube_patch(
+                        s.image,
+                        s.mask,
+                        line,
+                        rng,
+                        step_px=step,
+                        shape=cfg.ends_shape,
+                        jitter=self.jitter,
+                        photometric=train,
+                        shaft_px=shaft,
+                        shaft_prob=self.shaft_prob,
+                    )
+                else:
+                    got = training_end_patch(
+                        s.image,
+                        s.mask,
+                        s.landmarks_px[k],
+                        rng,
+                        step_px=step,
+                        shape=cfg.ends_shape,
+                        jitter=self.jitter,
+                        photometric=train,
+                    )
                 if got is not None:
                     images[k, 0], masks[k, 0] = got
                     valid[k] = 1.0

@@ -29,6 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -135,6 +136,15 @@ class FineResult:
     confidence: np.ndarray
     mask: np.ndarray
     view: View
+
+
+class Finished(NamedTuple):
+    """A detection's last steps from its fine landmarks: refined landmarks (2, 2) input px, the
+    centreline (N, 2) and the final mask (rows, cols) bool."""
+
+    landmarks_px: np.ndarray
+    centerline_px: np.ndarray
+    mask: np.ndarray
 
 
 def truncated_landmarks(
@@ -440,19 +450,20 @@ class Detector:
             return Detection(False, None, conf, res.mask, None, pixel_spacing_mm)
         f_conf = res.confidence
 
-        def finish(fine_pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        def finish(fine_pts: np.ndarray) -> Finished:
             """Refined landmarks, the centreline and the final mask from the fine landmarks."""
             pts = self.refine(img, fine_pts, res.mask, pixel_spacing_mm=pixel_spacing_mm)
             # the centreline of the fine mask: the patch-mask stages move its edges by a pixel or less
             line = extract_centerline(res.mask, pts[0], pts[1])
             m = self.mask_tube(img, line, res.mask, pixel_spacing_mm=pixel_spacing_mm)
-            return pts, line, self.mask_ends(img, pts, m, pixel_spacing_mm=pixel_spacing_mm)
+            return Finished(pts, line, self.mask_ends(img, pts, m, pixel_spacing_mm=pixel_spacing_mm))
 
-        f_pts, centerline, mask = finish(res.landmarks_px)
+        final = finish(res.landmarks_px)
         if cfg.free_end_max_continuation > 0.0:
-            f_pts, centerline, mask = self.off_free_end(
-                img, res, (f_pts, centerline, mask), finish, pixel_spacing_mm=pixel_spacing_mm
-            )
+            final = self.off_free_end(img, res, final, finish, pixel_spacing_mm=pixel_spacing_mm)
+        if cfg.shaft_cut_min_mm > 0.0:
+            final = self.off_shaft(img, res, final, finish, pixel_spacing_mm=pixel_spacing_mm)
+        f_pts, centerline, mask = final.landmarks_px, final.centerline_px, final.mask
         need_ratio = cfg.needed_edge_ratio(float(f_conf.min()))
         if need_ratio > 0.0:
             ratio = mask_edge_ratio(img, mask, pixel_spacing_mm=spacing_mm)
@@ -661,13 +672,12 @@ class Detector:
         self,
         image: np.ndarray,
         res: FineResult,
-        final: tuple[np.ndarray, np.ndarray, np.ndarray],
-        finish: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+        final: Finished,
+        finish: Callable[[np.ndarray], Finished],
         *,
         pixel_spacing_mm: float | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``final`` (landmarks (2, 2) input px, centreline, mask), or the same with landmark A read
-        again away from the free end of a tube.
+    ) -> Finished:
+        """``final``, or the same with landmark A read again away from the free end of a tube.
 
         A is where the CM meets its shaft, so the tube goes on beyond it. Where A's fine confidence
         is at least ``free_end_min_confidence`` and the image has less tube around the final A
@@ -685,7 +695,7 @@ class Detector:
         measure.
         """
         cfg = self.config
-        pts, _, mask = final
+        pts, mask = final.landmarks_px, final.mask
         if float(res.confidence[0]) < cfg.free_end_min_confidence:
             return final
         c = end_continuation(image, mask, pts[0], pixel_spacing_mm=pixel_spacing_mm)
@@ -708,15 +718,109 @@ class Detector:
             logger.debug("A on a free end (continuation %.2f); its next place is not short of B", c)
             return final
         other = finish(fine_pts)
-        c_new = end_continuation(image, other[2], other[0][0], pixel_spacing_mm=pixel_spacing_mm)
+        c_new = end_continuation(image, other.mask, other.landmarks_px[0], pixel_spacing_mm=pixel_spacing_mm)
         if c_new is None or c_new <= cfg.free_end_max_continuation:
             logger.debug("A on a free end (continuation %.2f); no better place (%s)", c, c_new)
             return final
-        moved = float(np.linalg.norm(other[0][0] - pts[0]))
+        moved = float(np.linalg.norm(other.landmarks_px[0] - pts[0]))
         logger.debug(
             "A on a free end (continuation %.2f): moved %.1f px (continuation %.2f)", c, moved, c_new
         )
         return other
+
+    @torch.no_grad()
+    def shaft_start(
+        self,
+        image: np.ndarray,
+        mask: np.ndarray,
+        centerline_px: np.ndarray,
+        *,
+        pixel_spacing_mm: float | None = None,
+    ) -> tuple[int, np.ndarray] | None:
+        """Where the shaft stage says the CM begins along a centreline (N, 2) (u, v) px from A to B,
+        where that is ``shaft_cut_min_mm`` or more beyond A: the centreline's index and the fine
+        ``mask`` (rows, cols) bool redrawn by the shaft stage along it; None where A is on the CM,
+        or the stage cannot judge, or the model has no shaft stage or the check is off.
+
+        The shaft stage (a tube-mask network trained with patches on the mounting shaft too) redraws
+        the mask on the tube-mask stage's patches. It judges only where it sees the notched CM
+        clearly in one patch at least (``shaft_min_cm_logit``, :func:`core_logits`); A is off the CM
+        where most of the centreline's first ``shaft_cut_run_mm`` (mm at the detector) lies outside
+        its mask, and the CM begins at the centreline's first stretch of that length wholly inside
+        (:func:`cm_start_index`)."""
+        cfg, net = self.config, self.net.shaft
+        if net is None or cfg.shaft_cut_min_mm <= 0.0:
+            return None
+        spacing_mm = pixel_spacing_mm or cfg.refine_assumed_spacing_mm
+        step = cfg.refine_step_px(pixel_spacing_mm)
+        line = np.asarray(centerline_px, dtype=np.float64)
+        frames = tube_frames(line, step_px=step, shape=cfg.ends_shape, spacing_px=cfg.tube_spacing_px * step)
+        if not frames:
+            return None
+        logits = self._patch_logits(net, image, frames)
+        if core_logits(logits, band_px=cfg.tube_band_px).max() < cfg.shaft_min_cm_logit:
+            return None  # the stage does not see the notched CM clearly anywhere: it cannot judge
+        cm = tube_paste(mask, frames, logits, band_px=cfg.tube_band_px)
+        run_px = cfg.shaft_cut_run_mm / spacing_mm
+        inside, arc = along_centerline(line, cm)
+        if float(inside[arc < run_px].mean()) >= 0.5:  # the CM begins at A
+            return None
+        start = cm_start_index(line, cm, run_px=run_px)
+        if start is None or arc[start] * spacing_mm < cfg.shaft_cut_min_mm:
+            return None
+        return start, cm
+
+    def off_shaft(
+        self,
+        image: np.ndarray,
+        res: FineResult,
+        final: Finished,
+        finish: Callable[[np.ndarray], Finished],
+        *,
+        pixel_spacing_mm: float | None = None,
+    ) -> Finished:
+        """``final``, or the same with landmark A read again where the shaft stage's CM begins.
+
+        Where :meth:`shaft_start` finds the CM beginning well beyond A along the final centreline, the
+        fine stage took a plain stretch of shaft for part of the CM and put A on the shaft. The fine
+        stage's last pass then runs again on a ROI fitted to the rest of the CM (the component of
+        the fine mask, less what the shaft stage left out, that holds B) and B; its A is taken where
+        it lies on that rest, no more than 2 mm before the cut along the centreline, else the
+        centreline's point where the CM begins. ``finish`` (refinement, centreline and patch-mask
+        stages) runs from there, B's fine landmark staying; the pixels of the fine mask that the shaft
+        stage left out stay out of the final mask, which keeps the components that hold the
+        landmarks. Unchanged without a shaft stage."""
+        found = self.shaft_start(image, res.mask, final.centerline_px, pixel_spacing_mm=pixel_spacing_mm)
+        if found is None:
+            return final
+        start, cm = found
+        cfg = self.config
+        spacing_mm = pixel_spacing_mm or cfg.refine_assumed_spacing_mm
+        line = np.asarray(final.centerline_px, dtype=np.float64)
+        _, arc = along_centerline(line, cm)
+        fine_pts = res.landmarks_px.copy()
+        fine_pts[0] = line[start]
+        rest = _component_at(res.mask & cm, fine_pts[1:])
+        if rest.any():
+            # the fine stage sees the CM without the shaft: it places A where the notches begin
+            vv, uu = np.nonzero(rest)
+            corners = np.array([[uu.min() - 0.5, vv.min() - 0.5], [uu.max() + 0.5, vv.max() + 0.5]])
+            roi = roi_view(
+                np.concatenate([corners, fine_pts[1:]]),
+                cfg.roi_size,
+                margin_frac=cfg.roi_margin_frac,
+                min_side_px=cfg.roi_min_side_px,
+            )
+            _, view_pts, _ = self.fine_views(image, [_scaled_view(roi, f) for f in cfg.fine_scales])
+            a_new = np.median(view_pts[:, 0], axis=0)
+            at = int(np.argmin(np.linalg.norm(line - a_new, axis=1)))
+            if _distances_to_mask(rest, a_new[None])[0] <= 2.0 and arc[at] >= arc[start] - 2.0 / spacing_mm:
+                fine_pts[0] = a_new
+        logger.debug("A on the shaft: %.1f mm of the centreline not CM", arc[start] * spacing_mm)
+        other = finish(fine_pts)
+        # the shaft's end beyond the old A, outside every band, is left apart from the CM: dropped
+        kept = _component_at(other.mask & ~(res.mask & ~cm), other.landmarks_px)
+        return other._replace(mask=kept)
 
     def fine_stage(self, image: np.ndarray, view: View) -> FineResult:
         """All fine passes from a first ROI: landmarks (2, 2) in input px, confidences (2,), the mask
@@ -864,6 +968,44 @@ def off_support_exclusion(
         if off.any():
             exclude[i, torch.from_numpy(off)] = torch.from_numpy(far)
     return exclude.to(heatmaps.device)
+
+
+def core_logits(logits: np.ndarray, *, band_px: float, core_px: float = 8.0) -> np.ndarray:
+    """(P,) mean logit of each tube-aligned patch's core: the pixels (P, rows, cols) within
+    ``band_px`` patch px of its centre along the tube (cols) and ``core_px`` of its axis (rows)."""
+    _, rows, cols = logits.shape
+    along = np.abs(np.arange(cols) - (cols - 1) / 2.0) <= band_px
+    across = np.abs(np.arange(rows) - (rows - 1) / 2.0) <= core_px
+    return logits[:, across][:, :, along].mean(axis=(1, 2))
+
+
+def along_centerline(centerline_px: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each point of a centreline (N, 2) (u, v) px lies in ``mask`` (rows, cols) bool (nearest
+    pixel; points outside the image count as outside), (N,) bool, and its arc length (N,) px."""
+    line = np.asarray(centerline_px, dtype=np.float64).reshape(-1, 2)
+    h, w = mask.shape
+    iu, iv = np.rint(line[:, 0]).astype(int), np.rint(line[:, 1]).astype(int)
+    ok = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
+    inside = np.zeros(len(line), bool)
+    inside[ok] = mask[iv[ok], iu[ok]]
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+    return inside, arc[: len(line)]
+
+
+def cm_start_index(centerline_px: np.ndarray, mask: np.ndarray, *, run_px: float) -> int | None:
+    """Index of the first point of a centreline (N, 2) (u, v) px from which it runs ``run_px`` px of
+    arc length or more wholly inside ``mask`` (rows, cols) bool (:func:`along_centerline`); None
+    where it never does."""
+    inside, arc = along_centerline(centerline_px, mask)
+    run_start: int | None = None
+    for i, good in enumerate(inside):
+        if not good:
+            run_start = None
+            continue
+        run_start = i if run_start is None else run_start
+        if arc[i] - arc[run_start] >= run_px:
+            return run_start
+    return None
 
 
 def _distances_to_mask(mask: np.ndarray, points_px: np.ndarray) -> np.ndarray:

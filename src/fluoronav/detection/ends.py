@@ -226,16 +226,31 @@ def training_tube_patch(
     shape: tuple[int, int],
     jitter: EndJitter,
     photometric: bool,
+    shaft_px: np.ndarray | None = None,
+    shaft_prob: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """A training patch (rows, cols) float32 centred at a uniformly drawn point of the true
     centreline (N, 2), aligned with it (tangent jittered by ``angle_sigma_deg``, centre moved across
     by ``across_sigma_px`` patch px), and the true mask on its pixels (rows, cols) float32 0/1; None
-    where the centreline has no length."""
+    where the centreline has no length.
+
+    With probability ``shaft_prob`` the point is drawn instead on the part inside the image of the
+    projected mounting shaft ``shaft_px`` (2, 2) (A, then the shaft's far end; u, v), the patch
+    aligned with the shaft: the true mask there is the CM's only, so the stage learns that a plain
+    tube beyond A is not the CM (the fine stage sometimes takes a short shaft for part of it)."""
     pts = np.asarray(centerline_px, dtype=np.float64)
     length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) if len(pts) > 1 else 0.0
     if length <= 0.0:
         return None
-    c, t = _polyline_frame(pts, rng.uniform(0.0, length), chord_px=0.25 * shape[1] * step_px)
+    chord = 0.25 * shape[1] * step_px
+    inside = _inside_length_px(shaft_px, image.shape) if shaft_px is not None and shaft_prob > 0.0 else 0.0
+    if inside > 0.0 and rng.random() < shaft_prob:
+        assert shaft_px is not None
+        a, far = np.asarray(shaft_px, dtype=np.float64)
+        direction = (far - a) / np.linalg.norm(far - a)
+        c, t = a + rng.uniform(0.0, inside) * direction, -direction
+    else:
+        c, t = _polyline_frame(pts, rng.uniform(0.0, length), chord_px=chord)
     angle = rng.normal(0.0, jitter.angle_sigma_deg)
     if rng.random() < 0.5:  # either direction along the tube
         t = -t
@@ -247,6 +262,24 @@ def training_tube_patch(
         across_px=rng.normal(0.0, jitter.across_sigma_px),
     )
     return _patch_and_label(image, mask, frame, rng, jitter=jitter, photometric=photometric)
+
+
+def _inside_length_px(segment_px: np.ndarray, shape: tuple[int, ...]) -> float:
+    """Length (px) of the part of a segment (2, 2) (u, v) from its first point that stays inside an
+    image of ``shape`` (rows, cols); 0 where the first point is outside or the segment has no length."""
+    a, b = np.asarray(segment_px, dtype=np.float64)
+    length = float(np.linalg.norm(b - a))
+    h, w = shape[:2]
+    if length <= 0.0 or not (0.0 <= a[0] <= w - 1 and 0.0 <= a[1] <= h - 1):
+        return 0.0
+    d = (b - a) / length
+    t_max = length
+    for k, size in ((0, w), (1, h)):
+        if d[k] > 0.0:
+            t_max = min(t_max, (size - 1 - a[k]) / d[k])
+        elif d[k] < 0.0:
+            t_max = min(t_max, -a[k] / d[k])
+    return max(t_max, 0.0)
 
 
 def tube_paste(

@@ -26,11 +26,15 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from fluoronav.detection.dataset import collimate, load_sample, read_manifest, shaft_length_of, split_of
+from fluoronav.detection.dataset import (
+    collimate,
+    load_sample,
+    read_manifest,
+    shaft_length_of,
+    shaft_segment_px,
+    split_of,
+)
 from fluoronav.detection.detector import Detector
-from fluoronav.errors import InputError
-from fluoronav.geometry.camera import Camera
-from fluoronav.simulation.scene import projected_length_mm, shaft_ends_cm
 
 logger = logging.getLogger(__name__)
 
@@ -72,19 +76,14 @@ def projected_shaft_mm(record: dict[str, Any], shaft_length_mm: float) -> float 
     """Length (mm at the detector plane) of the projected mounting shaft of a manifest record.
 
     The shaft runs from the base origin A to ``shaft_length_mm`` behind it along −z of the CM's frame
-    (:func:`fluoronav.simulation.scene.projected_shaft_mm` for a record). None where the record lacks
-    the camera, the pose ``world_from_cm`` or the pixel spacing, or ``shaft_length_mm`` is not positive.
+    (:func:`~fluoronav.detection.dataset.shaft_segment_px`). None where the record lacks the camera,
+    the pose ``world_from_cm`` or the pixel spacing, or ``shaft_length_mm`` is not positive.
     """
-    if not shaft_length_mm > 0.0 or record.get("camera") is None or record.get("world_from_cm") is None:
+    segment = shaft_segment_px(record, shaft_length_mm)
+    spacing_mm = record.get("camera", {}).get("pixel_spacing_mm") if segment is not None else None
+    if segment is None or not isinstance(spacing_mm, (int, float)):
         return None
-    try:
-        camera = Camera.from_dict(record["camera"], source=f"sample {record.get('id')}")
-        world_from_cm = np.asarray(record["world_from_cm"], dtype=np.float64)
-    except (InputError, TypeError, ValueError):
-        return None
-    if world_from_cm.shape != (4, 4) or camera.pixel_spacing_mm is None:
-        return None
-    return projected_length_mm(camera, world_from_cm, shaft_ends_cm(shaft_length_mm))
+    return float(np.linalg.norm(segment[1] - segment[0]) * spacing_mm)
 
 
 def _classes(rows: list[dict[str, Any]], key: str, edges: tuple[float, ...]) -> list[dict[str, Any]]:

@@ -38,7 +38,14 @@ DEFAULT_TUBE_CHANNELS = (8, 16, 32, 64)
 
 
 #: the integer fields of the patch stages (refinement, mask ends)
-_PATCH_NET_FIELDS = ("refine_channels", "refine_shape", "ends_channels", "ends_shape", "tube_channels")
+_PATCH_NET_FIELDS = (
+    "refine_channels",
+    "refine_shape",
+    "ends_channels",
+    "ends_shape",
+    "tube_channels",
+    "shaft_channels",
+)
 
 
 @dataclass(frozen=True)
@@ -155,6 +162,16 @@ class DetectorConfig:
             taken where it has more tube around it than this. 0: off.
         free_end_min_confidence: the fine confidence of A that the free-end check needs: an unsure
             A in a noisy view, its shaft pointing at the source, has little tube around it too.
+        shaft_cut_min_mm: where the shaft stage (``shaft_channels``) leaves this much (mm at the
+            detector) or more of the centreline's start out of the CM's mask, A is on the mounting
+            shaft (the fine stage took a plain stretch of shaft for part of the CM); A is then read
+            again where the shaft stage's CM begins. 0: off.
+        shaft_cut_run_mm: the CM begins at the first stretch of the centreline of this length (mm at
+            the detector) that lies wholly in the shaft stage's mask.
+        shaft_min_cm_logit: the shaft stage judges only where it sees the notched CM clearly
+            somewhere along the centreline: the mean logit of a patch's core (within 8 patch px of
+            the axis, its band along the tube) of this or more in one patch at least. In heavy noise
+            its logits stay near 0 all along and its cut would be a guess.
         refine_channels: feature channels per level of the landmark refinement U-Net
             (:mod:`fluoronav.detection.refine`); empty (the default): no refinement stage.
             ``fluoronav train --stage refine`` adds one of :data:`DEFAULT_REFINE_CHANNELS`.
@@ -183,6 +200,11 @@ class DetectorConfig:
         tube_channels: feature channels per level of the tube-mask U-Net (patches of ``ends_shape``
             along the centreline; :mod:`fluoronav.detection.ends`); empty (the default): no such
             stage. ``fluoronav train --stage tube`` adds one of :data:`DEFAULT_TUBE_CHANNELS`.
+        shaft_channels: feature channels per level of the shaft U-Net: a tube-mask network (same
+            patches and bands) trained with patches on the mounting shaft too, labelled not-CM
+            (``fluoronav train --stage shaft --tube-shaft-prob P``, started from the tube-mask
+            stage's weights); it only decides where the CM begins along the centreline
+            (``shaft_cut_min_mm``), the tube-mask stage draws the mask. Empty: none.
         ends_tta: 2: the patch-mask stages (mask ends, tube mask) average their logits with those of
             the patch mirrored about the tube's axis; 1: the patch alone.
         tube_spacing_px: patch pixels of arc length between the tube-mask patches' centres.
@@ -230,6 +252,9 @@ class DetectorConfig:
     unsure_min_edge_ratio: float = 0.0
     free_end_max_continuation: float = 0.0
     free_end_min_confidence: float = 0.0
+    shaft_cut_min_mm: float = 0.0
+    shaft_cut_run_mm: float = 3.0
+    shaft_min_cm_logit: float = 0.0
     refine_channels: tuple[int, ...] = ()
     refine_shape: tuple[int, int] = (48, 80)
     refine_step_mm: float = 0.291
@@ -243,6 +268,7 @@ class DetectorConfig:
     ends_inner_px: float = 8.0
     ends_tta: int = 2
     tube_channels: tuple[int, ...] = ()
+    shaft_channels: tuple[int, ...] = ()
     tube_spacing_px: float = 16.0
     tube_band_px: float = 16.0
 
@@ -297,6 +323,11 @@ class DetectorConfig:
             )
         if not 0.0 <= self.free_end_min_confidence <= 1.0:
             raise ValueError(f"free_end_min_confidence must be in [0, 1], got {self.free_end_min_confidence}")
+        if self.shaft_cut_min_mm < 0.0 or self.shaft_cut_run_mm <= 0.0:
+            raise ValueError(
+                "shaft_cut_min_mm must be ≥ 0 and shaft_cut_run_mm > 0, got "
+                f"{self.shaft_cut_min_mm} and {self.shaft_cut_run_mm}"
+            )
         if self.refine_tta not in (1, 2):
             raise ValueError(f"refine_tta must be 1 or 2, got {self.refine_tta}")
         if self.refine_channels:
@@ -398,7 +429,8 @@ class DetectorNet(nn.Module):
     ``refine_channels`` is set, the landmark refinement U-Net (B, 1, rows, cols) → (B, 2, rows, cols)
     (heatmap logits of A and B; each patch uses the channel of its landmark), and where
     ``ends_channels`` is set, the mask-end U-Net (B, 1, rows, cols) → (B, 1, rows, cols) (seg logit),
-    and likewise the tube-mask U-Net where ``tube_channels`` is set."""
+    and likewise the tube-mask U-Net where ``tube_channels`` is set and the shaft U-Net where
+    ``shaft_channels`` is."""
 
     def __init__(self, config: DetectorConfig | None = None) -> None:
         super().__init__()
@@ -417,6 +449,9 @@ class DetectorNet(nn.Module):
         self.tube: nn.Module | None = None
         if c.tube_channels:
             self.tube = build_unet(c.tube_channels, num_res_units=c.num_res_units, out_channels=1)
+        self.shaft: nn.Module | None = None
+        if c.shaft_channels:
+            self.shaft = build_unet(c.shaft_channels, num_res_units=c.num_res_units, out_channels=1)
 
     def forward(self, coarse: torch.Tensor, fine: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, 1, input_size²), (B, 1, roi_size²) → their (B, 3, ·, ·) outputs."""

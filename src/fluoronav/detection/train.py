@@ -78,7 +78,9 @@ class TrainConfig:
             ``("refine",)`` trains the landmark refinement stage alone on tube-aligned patches
             (:class:`~fluoronav.detection.dataset.RefineDataset`), adding it to a model without one;
             ``("ends",)`` the mask-end stage alone (:class:`~fluoronav.detection.dataset.EndsDataset`,
-            BCE + Dice on the patch masks), likewise; ``("tube",)`` the tube-mask stage alone, likewise.
+            BCE + Dice on the patch masks), likewise; ``("tube",)`` the tube-mask stage alone, likewise;
+            ``("shaft",)`` the shaft stage alone (tube-mask patches, some on the mounting shaft:
+            ``tube_shaft_prob``), added to a model without one with the tube-mask stage's weights.
         edge_negative_prob: probability that a CM-free sample's fine ROI is centred on a strong edge
             of its image (``AugmentConfig.p_edge_negative_roi``) rather than anywhere.
         refine_repeats: patches per landmark and sample in an epoch of the refinement or the mask-end
@@ -87,6 +89,9 @@ class TrainConfig:
             first (:func:`~fluoronav.detection.augment.collimation_window`, ``p_collimate``).
         partial_roi_prob: probability that a training sample's fine ROI is fitted to a part of its
             CM only (``AugmentConfig.p_partial_roi``).
+        tube_shaft_prob: with ``("tube",)`` or ``("shaft",)``, probability that a patch is centred
+            on the projected mounting shaft instead of the CM's centreline (where the manifest has
+            the camera and the pose; :func:`~fluoronav.detection.ends.training_tube_patch`).
     """
 
     epochs: int = 10
@@ -108,12 +113,13 @@ class TrainConfig:
     partial_roi_prob: float = 0.0
     edge_negative_prob: float = 0.0
     refine_repeats: int = 5
+    tube_shaft_prob: float = 0.0
 
     def __post_init__(self) -> None:
-        alone = self.stages in (("refine",), ("ends",), ("tube",))
+        alone = self.stages in (("refine",), ("ends",), ("tube",), ("shaft",))
         if not alone and (not self.stages or not set(self.stages) <= {"coarse", "fine"}):
             raise ValueError(
-                "stages must be 'coarse' and/or 'fine', or one of 'refine', 'ends', 'tube' alone, "
+                "stages must be 'coarse' and/or 'fine', or one of 'refine', 'ends', 'tube', 'shaft' alone, "
                 f"got {self.stages}"
             )
         if self.refine_repeats < 1:
@@ -124,13 +130,19 @@ class TrainConfig:
             raise ValueError(f"partial_roi_prob must be in [0, 1], got {self.partial_roi_prob}")
         if not 0.0 <= self.edge_negative_prob <= 1.0:
             raise ValueError(f"edge_negative_prob must be in [0, 1], got {self.edge_negative_prob}")
+        if not 0.0 <= self.tube_shaft_prob <= 1.0:
+            raise ValueError(f"tube_shaft_prob must be in [0, 1], got {self.tube_shaft_prob}")
+        if self.tube_shaft_prob > 0.0 and self.stages not in (("tube",), ("shaft",)):
+            raise ValueError("tube_shaft_prob applies to the stages 'tube' and 'shaft' (trained alone)")
+        if self.stages == ("shaft",) and self.tube_shaft_prob <= 0.0:
+            raise ValueError("the shaft stage learns from patches on the shaft: give tube_shaft_prob > 0")
 
 
 #: the architecture fields of the refinement stage
 REFINE_FIELDS = ("refine_channels", "refine_shape", "refine_step_mm", "refine_sigma_px")
 
 #: the architecture fields of the patch-mask stages (their patch scale is ``refine_step_mm``)
-ENDS_FIELDS = ("ends_channels", "ends_shape", "tube_channels")
+ENDS_FIELDS = ("ends_channels", "ends_shape", "tube_channels", "shaft_channels")
 
 #: the model configuration fields fixed by trained weights (the rest only steer decoding)
 ARCHITECTURE_FIELDS = (
@@ -460,6 +472,7 @@ def train(
         c = start.config
         absent = {"ends_channels"} if not c.ends_channels else set()
         absent |= {"tube_channels"} if not c.tube_channels else set()
+        absent |= {"shaft_channels"} if not c.shaft_channels else set()
         if not (c.ends_channels or c.tube_channels):
             absent.add("ends_shape")
         keep = tuple(f for f in keep if f not in absent)
@@ -472,12 +485,21 @@ def train(
     if coarse_size is not None and ckpt is None:  # a resumed run keeps its checkpoint's configuration
         mcfg = dataclasses.replace(mcfg, input_size=coarse_size)
     refining = tcfg.stages == ("refine",)
-    tubing = tcfg.stages == ("tube",)
+    shafting = tcfg.stages == ("shaft",)
+    tubing = shafting or tcfg.stages == ("tube",)  # patches along the centreline
     ending = tubing or tcfg.stages == ("ends",)  # a patch-mask stage
     if refining and not mcfg.refine_channels:
         mcfg = dataclasses.replace(mcfg, refine_channels=DEFAULT_REFINE_CHANNELS)
-    if tubing and not mcfg.tube_channels:
+    if tubing and not shafting and not mcfg.tube_channels:
         mcfg = dataclasses.replace(mcfg, tube_channels=DEFAULT_TUBE_CHANNELS)
+    if shafting and not mcfg.shaft_channels:
+        # a new shaft stage starts as a copy of the tube-mask stage: it learns one thing more
+        mcfg = dataclasses.replace(mcfg, shaft_channels=mcfg.tube_channels or DEFAULT_TUBE_CHANNELS)
+        if init_state is not None and mcfg.shaft_channels == mcfg.tube_channels:
+            init_state = {
+                **init_state,
+                **{"shaft." + k[len("tube.") :]: v for k, v in init_state.items() if k.startswith("tube.")},
+            }
     if ending and not tubing and not mcfg.ends_channels:
         mcfg = dataclasses.replace(mcfg, ends_channels=DEFAULT_ENDS_CHANNELS)
 
@@ -485,14 +507,14 @@ def train(
     net = DetectorNet(mcfg).to(device)
     if init_state is not None:
         missing, unexpected = net.load_state_dict(init_state, strict=False)
-        if unexpected or any(not k.startswith(("refine.", "ends.", "tube.")) for k in missing):
+        if unexpected or any(not k.startswith(("refine.", "ends.", "tube.", "shaft.")) for k in missing):
             raise InputError(str(init), "weights do not match the model configuration")
-    for name in ("coarse", "fine", "refine", "ends", "tube"):
+    for name in ("coarse", "fine", "refine", "ends", "tube", "shaft"):
         module = getattr(net, name)
         if module is not None:
             module.requires_grad_(name in tcfg.stages)
     # the patch-mask stage that trains; None for the others (a model may carry one all the same)
-    patch_stage = (net.tube if tubing else net.ends) if ending else None
+    patch_stage = (net.shaft if shafting else net.tube if tubing else net.ends) if ending else None
     opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=tcfg.lr)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=tcfg.lr_step_epochs, gamma=tcfg.lr_gamma)
     start_epoch = 0
@@ -518,7 +540,9 @@ def train(
     make_ds = (
         functools.partial(RefineDataset, repeats=tcfg.refine_repeats)
         if refining
-        else functools.partial(EndsDataset, repeats=tcfg.refine_repeats, tube=tubing)
+        else functools.partial(
+            EndsDataset, repeats=tcfg.refine_repeats, tube=tubing, shaft_prob=tcfg.tube_shaft_prob
+        )
         if ending
         else CMDetectionDataset
     )
