@@ -17,9 +17,11 @@ from fluoronav.cli.main import main
         (["simulate", "--n", "zero", "--out", "x"], "Invalid value"),
         (
             ["train", "--data", "x", "--out", "m.pt", "--stage", "refine", "--stage", "fine"],
-            "'refine', 'ends', 'tube' alone",
+            "'refine', 'ends', 'tube', 'shaft' alone",
         ),
         (["train", "--data", "x", "--out", "m.pt", "--stage", "middle"], "stages must be"),
+        (["train", "--data", "x", "--out", "m.pt", "--stage", "shaft"], "give tube_shaft_prob > 0"),
+        (["train", "--data", "x", "--out", "m.pt", "--tube-shaft-prob", "0.3"], "stages 'tube' and 'shaft'"),
         (["train", "--data", "x", "--out", "m.pt", "--keep-decoding"], "give --init"),
         (["train", "--data", "x", "--out", "m.pt", "--coarse-size", "200"], "multiple of 16"),
         (
