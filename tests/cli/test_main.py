@@ -23,6 +23,8 @@ from fluoronav.cli.main import main
         (["train", "--data", "x", "--out", "m.pt", "--stage", "shaft"], "give tube_shaft_prob > 0"),
         (["train", "--data", "x", "--out", "m.pt", "--tube-shaft-prob", "0.3"], "stages 'tube' and 'shaft'"),
         (["train", "--data", "x", "--out", "m.pt", "--keep-decoding"], "give --init"),
+        (["detect", "x.png", "--out", "o", "--precision", "half"], "--precision: unknown precision 'half'"),
+        (["evaluate", "--data", "x", "--precision", "fp16"], "use auto, float32, bfloat16"),
         (["train", "--data", "x", "--out", "m.pt", "--coarse-size", "200"], "multiple of 16"),
         (
             ["train", "--data", "x", "--out", "m.pt", "--coarse-size", "256", "--stage", "fine"],

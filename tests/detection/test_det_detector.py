@@ -1070,3 +1070,55 @@ def test_shaft_settings_are_validated_and_off_by_default() -> None:
     assert cfg.shaft_cut_min_mm == 0.0 and cfg.shaft_channels == ()
     assert DetectorNet(cfg).shaft is None
     assert DetectorConfig.from_dict({"shaft_channels": [4, 8]}).shaft_channels == (4, 8)
+
+
+def test_precision_names_resolve_per_device(monkeypatch: pytest.MonkeyPatch) -> None:
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert detector_module.resolve_precision("float32", cpu) == "float32"
+    assert detector_module.resolve_precision("BFloat16", cuda) == "bfloat16"
+    monkeypatch.setattr(detector_module, "native_bf16", lambda: True)
+    assert detector_module.resolve_precision("auto", cpu) == "bfloat16"
+    assert detector_module.resolve_precision("auto", cuda) == "float32"  # measured on CPUs only
+    monkeypatch.setattr(detector_module, "native_bf16", lambda: False)
+    assert detector_module.resolve_precision("auto", cpu) == "float32"  # emulated bf16 is slower
+    with pytest.raises(InputError, match="--precision: unknown precision 'half'"):
+        detector_module.resolve_precision("half", cpu)
+    assert Detector(DetectorNet(TINY), device="cpu").precision == "float32"  # the default everywhere
+
+
+def test_bf16_stages_run_in_bfloat16_and_decode_in_float32() -> None:
+    torch.manual_seed(4)
+    config = dataclasses.replace(TINY, heatmap="softmax", fine_tta=8, bf16_stages=("fine",))
+    fast = Detector(DetectorNet(config), device="cpu", precision="bfloat16")
+    exact = Detector(DetectorNet(config), device="cpu", precision="float32")
+    exact.net.load_state_dict(fast.net.state_dict())
+    assert (fast.precision, exact.precision) == ("bfloat16", "float32")
+    dtypes: dict[str, torch.dtype] = {}
+    for det, tag in ((fast, "fast"), (exact, "exact")):
+        for name in ("coarse", "fine"):
+            getattr(det.net, name).register_forward_hook(
+                lambda _m, _i, out, key=f"{tag} {name}": dtypes.__setitem__(key, out.dtype)
+            )
+    views = np.random.default_rng(1).standard_normal((3, 64, 64)).astype(np.float32)
+    ours, theirs = fast._run(fast.net.fine, views, tta=8), exact._run(exact.net.fine, views, tta=8)
+    fast._run(fast.net.coarse, views[:1])
+    exact._run(exact.net.coarse, views[:1])
+    # only the listed stage, and only where the precision allows it
+    assert dtypes == {
+        "fast fine": torch.bfloat16,
+        "fast coarse": torch.float32,
+        "exact fine": torch.float32,
+        "exact coarse": torch.float32,
+    }
+    assert all(a.dtype == b.dtype for a, b in zip(ours, theirs, strict=True))
+    # bfloat16 keeps 8 bits of mantissa: logits to ~1 % of their range
+    scale = float(np.abs(theirs[0]).max())
+    np.testing.assert_allclose(ours[0], theirs[0], atol=0.02 * scale)
+
+
+def test_bf16_stages_are_validated_and_round_trip() -> None:
+    with pytest.raises(ValueError, match="bf16_stages"):
+        dataclasses.replace(TINY, bf16_stages=("fine", "decoder"))
+    config = dataclasses.replace(TINY, bf16_stages=("coarse", "fine"))
+    assert DetectorConfig.from_dict(config.to_dict()) == config
+    assert DetectorConfig.from_dict(TINY.to_dict()).bf16_stages == ()  # older files: float32 everywhere

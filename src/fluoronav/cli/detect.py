@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from fluoronav.cli.common import DEVICE_OPTION
+from fluoronav.cli.common import DEVICE_OPTION, PRECISION_OPTION
 
 
 def detect_command(
@@ -16,11 +16,12 @@ def detect_command(
         None, "--model", help="Model file from `fluoronav train` (default: the shipped weights)."
     ),
     device: str = DEVICE_OPTION,
+    precision: str = PRECISION_OPTION,
 ) -> None:
     """Detect the CM in each image and write the detection files."""
     from fluoronav.detection.detector import Detector, load_image, write_detection
 
-    detector = Detector.load(model, device=device)
+    detector = Detector.load(model, device=device, precision=precision)
     for path in images:
         image, spacing = load_image(path)
         det = detector.detect(image, pixel_spacing_mm=spacing)

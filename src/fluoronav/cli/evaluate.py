@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from fluoronav.cli.common import DEVICE_OPTION
+from fluoronav.cli.common import DEVICE_OPTION, PRECISION_OPTION
 
 
 def evaluate_command(
@@ -16,6 +16,7 @@ def evaluate_command(
     out: Path | None = typer.Option(None, "--out", help="Write the summary JSON here."),
     split: str = typer.Option("val", "--split", help="train, val (held out by id hash) or all."),
     device: str = DEVICE_OPTION,
+    precision: str = PRECISION_OPTION,
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
     field_frac: float | None = typer.Option(
         None,
@@ -55,7 +56,7 @@ def evaluate_command(
                     why = f"{exc.filename}: {why}"
                 raise InputError(path, f"cannot write here ({why})") from exc
     summary = evaluate(
-        Detector.load(model, device=device),
+        Detector.load(model, device=device, precision=precision),
         data,
         split=split,
         progress=progress,

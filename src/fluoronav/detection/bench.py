@@ -12,7 +12,9 @@ check that landmark A is not on a free end of a tube and the check that the mask
 edge, where the model's decoding asks for them) whatever the weights detect; reading A again where
 it is on a free end (rare) is not timed. ``detect_second_look_ms`` times the
 same path with the second look forced (its wider view and, where that moves a landmark far enough, a
-second run of the fine stage): what an unsure detection costs.
+second run of the fine stage): what an unsure detection costs. Both run every network in float32
+(the default precision); on a CPU with native bfloat16, ``detect_bfloat16_ms`` times the same
+pipeline with the model's ``bf16_stages`` in bfloat16 (``--precision bfloat16``).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import torch
 from torch.nn import functional as tnf
 
 from fluoronav.detection.centerline import extract_centerline
-from fluoronav.detection.detector import Detector, shipped_model_path
+from fluoronav.detection.detector import Detector, native_bf16, shipped_model_path
 from fluoronav.detection.evidence import end_continuation, mask_edge_ratio
 from fluoronav.detection.model import DetectorConfig, DetectorNet
 from fluoronav.detection.views import roi_view
@@ -69,7 +71,8 @@ def _median_ms(fn: Callable[[], object], repeats: int) -> float:
 
 
 def run(quick: bool = False) -> dict[str, float]:
-    """Median detection time (ms) of the detection pipeline and of the full-resolution baseline."""
+    """Median detection time (ms) of the detection pipeline and of the full-resolution baseline (and
+    of the pipeline in bfloat16 where this CPU runs it natively and the model names stages for it)."""
     if shipped_model_path().is_file():
         det = Detector.load(device="cpu")
     else:
@@ -119,6 +122,14 @@ def run(quick: bool = False) -> dict[str, float]:
     ms = _median_ms(pipeline, repeats)
     ms_baseline = _median_ms(baseline, 1 if quick else 3)
     out = {"detect_ms": ms, "detect_ms_baseline": ms_baseline, "detect_ms_speedup": ms_baseline / ms}
+    if cfg.bf16_stages and native_bf16():
+        fast = Detector(det.net, device="cpu", precision="bfloat16", source=det.source)
+        ms_fast = _median_ms(lambda: pipeline(fast), repeats)
+        out |= {
+            "detect_bfloat16_ms": ms_fast,
+            "detect_bfloat16_ms_baseline": ms_baseline,
+            "detect_bfloat16_ms_speedup": ms_baseline / ms_fast,
+        }
     if cfg.fine_wide_factors:
         # the same image with the second look forced (as for an unsure detection): its wider view
         # and, where that moves a landmark far enough, a second run of the fine stage

@@ -204,6 +204,30 @@ DIHEDRAL: tuple[tuple[int, bool], ...] = (
 )
 
 
+#: the precisions a :class:`Detector` runs its networks in
+PRECISIONS = ("auto", "float32", "bfloat16")
+
+
+def native_bf16() -> bool:
+    """Whether this CPU has native bfloat16 arithmetic (x86 AVX512-BF16 or AMX-BF16), where oneDNN
+    runs bfloat16 convolutions about twice as fast as float32 ones; elsewhere it would emulate them,
+    slower than float32."""
+    caps = torch.cpu.get_capabilities()
+    return bool(caps.get("avx512_bf16", False) or caps.get("amx_bf16", False))
+
+
+def resolve_precision(name: str, device: torch.device) -> str:
+    """``float32`` or ``bfloat16`` for a precision name of :data:`PRECISIONS` on ``device``: ``auto``
+    is ``bfloat16`` on a CPU with :func:`native_bf16`, else ``float32`` (on CUDA too: the shipped
+    model's bfloat16 results were measured on the CPU only)."""
+    key = str(name).lower()
+    if key not in PRECISIONS:
+        raise InputError("--precision", f"unknown precision {name!r}; use {', '.join(PRECISIONS)}")
+    if key == "auto":
+        return "bfloat16" if device.type == "cpu" and native_bf16() else "float32"
+    return key
+
+
 def _mirror_mean(net: torch.nn.Module, x: torch.Tensor, tta: int) -> torch.Tensor:
     """A patch network's output (N, C, rows, cols) on tube-aligned patches ``x`` (N, 1, rows, cols);
     with ``tta`` 2 averaged with its output on the patches mirrored about the tube's axis (rows
@@ -245,8 +269,18 @@ class Detector:
     """The CM detector (coarse, fine and, where the model has one, refinement stage) on one torch device."""
 
     def __init__(
-        self, net: DetectorNet, *, device: str | torch.device = "auto", source: str = "<memory>"
+        self,
+        net: DetectorNet,
+        *,
+        device: str | torch.device = "auto",
+        precision: str = "float32",
+        source: str = "<memory>",
     ) -> None:
+        """``precision``: ``float32`` (the default) runs every network in float32; ``bfloat16`` runs
+        the model's ``bf16_stages`` in bfloat16 (autocast; the decoding stays in float32): faster on
+        a CPU with native bfloat16 arithmetic, its logits ~0.05 off, which tips some ambiguous
+        views the other way; ``auto`` is ``bfloat16`` on a CPU with native bfloat16
+        (:func:`native_bf16`) and ``float32`` elsewhere. The chosen one is in :attr:`precision`."""
         self.device = resolve_device(device)
         self.net = net.to(self.device).eval()
         if self.device.type == "cpu":
@@ -256,10 +290,26 @@ class Detector:
             self.net = self.net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
         self.config: DetectorConfig = net.config
         self.source = source
+        self.precision = resolve_precision(precision, self.device)
+        names = self.config.bf16_stages if self.precision == "bfloat16" else ()
+        self._bf16_nets = [m for m in (getattr(self.net, n, None) for n in names) if m is not None]
+
+    def _autocast(self, net: torch.nn.Module) -> torch.autocast:
+        """The autocast context a network runs in: bfloat16 where it is one of the ``bf16_stages``
+        and the precision allows it, else off (float32)."""
+        on = any(net is m for m in self._bf16_nets)
+        return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16, enabled=on)
 
     @classmethod
-    def load(cls, path: str | Path | None = None, device: str | torch.device = "auto") -> Detector:
-        """Load a model file written by ``fluoronav train`` (None: the shipped weights)."""
+    def load(
+        cls,
+        path: str | Path | None = None,
+        device: str | torch.device = "auto",
+        *,
+        precision: str = "float32",
+    ) -> Detector:
+        """Load a model file written by ``fluoronav train`` (None: the shipped weights);
+        ``precision``: see :class:`Detector`."""
         if path is None:
             path = shipped_model_path()
             if not path.is_file():
@@ -286,7 +336,7 @@ class Detector:
             raise InputError(
                 path, f"weights do not match the model configuration ({exc.__class__.__name__})"
             ) from exc
-        return cls(net, device=device, source=str(path))
+        return cls(net, device=device, precision=precision, source=str(path))
 
     @torch.no_grad()
     def _run(
@@ -310,15 +360,12 @@ class Detector:
         """
         x = torch.from_numpy(np.ascontiguousarray(view_images, dtype=np.float32))[:, None].to(self.device)
         transforms = DIHEDRAL[:tta]
-        outs = net(torch.cat([_dihedral(x, k, f) for k, f in transforms]))
-        n = x.shape[0]
-        out = (
-            torch.stack(
-                [_dihedral_inverse(outs[i * n : (i + 1) * n], k, f) for i, (k, f) in enumerate(transforms)]
-            )
-            .mean(0)
-            .float()
-        )  # (N, 3, S, S)
+        with self._autocast(net):
+            outs = net(torch.cat([_dihedral(x, k, f) for k, f in transforms]))
+        outs, n = outs.float(), x.shape[0]  # the mean and the decoding in float32 (faster, too)
+        out = torch.stack(
+            [_dihedral_inverse(outs[i * n : (i + 1) * n], k, f) for i, (k, f) in enumerate(transforms)]
+        ).mean(0)  # (N, 3, S, S)
         if exclude is not None:
             exclude = exclude.to(out.device)
         if support_px > 0.0:
@@ -501,7 +548,8 @@ class Detector:
         if not todo:
             return landmarks_px
         x = torch.from_numpy(np.stack([fr.sample(image) for _, fr in todo]))[:, None].to(self.device)
-        out = _mirror_mean(net, x, cfg.refine_tta).float().cpu()
+        with self._autocast(net):
+            out = _mirror_mean(net, x, cfg.refine_tta).float().cpu()
         ks = np.array([k for k, _ in todo])
         sel = out[torch.arange(len(todo)), torch.from_numpy(ks)][:, None]
         # the prior stays at the fine stage's landmark in every shifted patch
@@ -575,7 +623,9 @@ class Detector:
         """(P, rows, cols) mask logits of a patch-mask stage on ``frames``' patches of ``image``, with
         ``ends_tta`` 2 each averaged with that of its mirror image about the tube's axis (one batch)."""
         x = torch.from_numpy(sample_patches(image, frames))[:, None].to(self.device)
-        return _mirror_mean(net, x, self.config.ends_tta)[:, 0].float().cpu().numpy()
+        with self._autocast(net):
+            out = _mirror_mean(net, x, self.config.ends_tta)
+        return out[:, 0].float().cpu().numpy()
 
     def _coarse_hypotheses(
         self,

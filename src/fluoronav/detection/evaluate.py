@@ -215,4 +215,5 @@ def evaluate(
         "field_frac": field_frac,
         "seed": seed if field_frac is not None else None,
         "model": detector.source,
+        "precision": detector.precision,
     }

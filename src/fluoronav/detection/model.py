@@ -36,6 +36,8 @@ DEFAULT_ENDS_CHANNELS = (16, 32, 64, 128)
 #: width (41 k parameters) did as well on validation (Dice 0.9613 against 0.9617) at a fifth of the cost
 DEFAULT_TUBE_CHANNELS = (8, 16, 32, 64)
 
+#: the detector's networks, as ``DetectorNet`` attributes (``bf16_stages`` names some of them)
+STAGES = ("coarse", "fine", "refine", "ends", "tube", "shaft")
 
 #: the integer fields of the patch stages (refinement, mask ends)
 _PATCH_NET_FIELDS = (
@@ -172,6 +174,9 @@ class DetectorConfig:
             somewhere along the centreline: the mean logit of a patch's core (within 8 patch px of
             the axis, its band along the tube) of this or more in one patch at least. In heavy noise
             its logits stay near 0 all along and its cut would be a guess.
+        bf16_stages: the networks (names from :data:`STAGES`) that run in bfloat16 where the
+            detector is asked for it (``Detector(precision="bfloat16")``, or ``"auto"`` on a CPU with
+            native bfloat16 arithmetic); the others, and every network by default, run in float32.
         refine_channels: feature channels per level of the landmark refinement U-Net
             (:mod:`fluoronav.detection.refine`); empty (the default): no refinement stage.
             ``fluoronav train --stage refine`` adds one of :data:`DEFAULT_REFINE_CHANNELS`.
@@ -255,6 +260,7 @@ class DetectorConfig:
     shaft_cut_min_mm: float = 0.0
     shaft_cut_run_mm: float = 3.0
     shaft_min_cm_logit: float = 0.0
+    bf16_stages: tuple[str, ...] = ()
     refine_channels: tuple[int, ...] = ()
     refine_shape: tuple[int, int] = (48, 80)
     refine_step_mm: float = 0.291
@@ -273,6 +279,8 @@ class DetectorConfig:
     tube_band_px: float = 16.0
 
     def __post_init__(self) -> None:
+        if not set(self.bf16_stages) <= set(STAGES):
+            raise ValueError(f"bf16_stages must be names from {STAGES}, got {self.bf16_stages}")
         for name in ("fine_tta", "fine_first_tta"):
             value = getattr(self, name)
             if value not in (1, 2, 4, 8) and not (name == "fine_first_tta" and value is None):
@@ -385,6 +393,7 @@ class DetectorConfig:
         d["refine_shifts_px"] = list(self.refine_shifts_px)
         d["ends_channels"], d["ends_shape"] = list(self.ends_channels), list(self.ends_shape)
         d["tube_channels"] = list(self.tube_channels)
+        d["bf16_stages"] = list(self.bf16_stages)
         return d
 
     @classmethod
@@ -400,6 +409,8 @@ class DetectorConfig:
         for key in ("fine_scales", "fine_wide_factors", "refine_shifts_px"):
             if key in kw:
                 kw[key] = tuple(float(f) for f in kw[key])
+        if "bf16_stages" in kw:
+            kw["bf16_stages"] = tuple(str(n) for n in kw["bf16_stages"])
         return cls(**kw)
 
 

@@ -1071,6 +1071,8 @@ def run_study(
         from fluoronav.anatomy.io import resolve_ct
 
         resolve_ct(cfg.ct)
+    detector = _detector_or_none(cfg.device)
+    cfg_dict["detector_precision"] = None if detector is None else detector.precision
     cfg_path.write_text(json.dumps(cfg_dict, indent=2), encoding="utf-8")
     csv_log = CsvLog(out / "trials.csv", _columns(cfg))
     fn = run_handeye_trial if cfg.workflow == "hand-eye" else run_navigation_trial

@@ -495,7 +495,9 @@ def run_study(
 
         resolve_ct(cfg.ct)  # fail early, in this process, on a bad CT
     if not cfg.oracle_landmarks:
-        _detector(cfg.device)  # fail early when no detector model is available
+        # fail early when no detector model is available; the precision its networks run in
+        # (bfloat16 on a CPU with native bfloat16) is part of the record
+        cfg_dict["detector_precision"] = _detector(cfg.device).precision
     cfg_path.write_text(json.dumps(cfg_dict, indent=2), encoding="utf-8")
     csv_log = CsvLog(out / "trials.csv", _columns(cfg.workflow))
     task = functools.partial(run_trial, cfg=cfg)
