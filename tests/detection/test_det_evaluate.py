@@ -13,7 +13,7 @@ from test_det_detector import empty_net
 from fluoronav.cli.main import main
 from fluoronav.detection.dataset import load_sample, read_manifest, shaft_length_of
 from fluoronav.detection.detector import Detection, Detector
-from fluoronav.detection.evaluate import dice_score, evaluate, projected_shaft_mm
+from fluoronav.detection.evaluate import _confidence_classes, dice_score, evaluate, projected_shaft_mm
 from fluoronav.detection.train import save_model
 
 
@@ -133,6 +133,10 @@ def test_evaluate_per_sample_records_and_foreshortening_classes(tmp_path: Path) 
         if inside:
             assert c["dice_mean"] == pytest.approx(np.mean([r["dice"] for r in inside]))
             assert c["found_rate"] == pytest.approx(np.mean([r["found"] for r in inside]))
+    # both landmarks of every found CM are sure (0.9, 0.8): one class holds all ten
+    sure = summary["by_landmark_confidence"][-1]
+    assert sure["confidence"] == [0.4, None] and sure["landmarks"] == 10
+    assert sure["landmark_mm_mean"] == pytest.approx(2.5) and sure["landmark_gross"] == 5
     # the CLI writes the same file
     model = tmp_path / "m.pt"
     save_model(model, empty_net(), extra={})
@@ -254,3 +258,26 @@ def test_shaft_length_of_a_data_set(tmp_path: Path) -> None:
     assert shaft_length_of(tmp_path) == 300.0
     (tmp_path / "dataset.json").write_text("{not json")
     assert shaft_length_of(tmp_path) == 50.0
+
+
+def test_landmarks_are_grouped_by_their_own_confidence() -> None:
+    rows = [
+        {"found": True, "confidence": [0.1, 0.5], "landmark_mm": [6.0, 0.2]},
+        {"found": True, "confidence": [0.3, 0.45], "landmark_mm": [1.0, 0.4]},
+        {"found": True, "confidence": [0.2, 0.9], "landmark_mm": [4.0, 0.3]},  # 0.2: the middle class
+        {"found": False, "confidence": [0.05, 0.05], "landmark_mm": None},  # a miss has no landmarks
+    ]
+    unsure, middling, sure = _confidence_classes(rows, (0.2, 0.4, np.inf))
+    assert unsure == {
+        "confidence": [0.0, 0.2],
+        "landmarks": 1,
+        "landmark_mm_mean": 6.0,
+        "landmark_mm_median": 6.0,
+        "landmark_gross": 1,
+    }
+    assert middling["confidence"] == [0.2, 0.4] and middling["landmarks"] == 2
+    assert middling["landmark_mm_mean"] == pytest.approx(2.5) and middling["landmark_gross"] == 1
+    assert sure["confidence"] == [0.4, None] and sure["landmarks"] == 3
+    assert sure["landmark_mm_median"] == pytest.approx(0.3) and sure["landmark_gross"] == 0
+    empty = _confidence_classes([], (0.5, np.inf))
+    assert [c["landmarks"] for c in empty] == [0, 0] and empty[0]["landmark_mm_mean"] is None

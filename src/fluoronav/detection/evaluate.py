@@ -72,6 +72,11 @@ GROSS_ERROR_MM = 3.0
 SHAFT_CLASS_EDGES_MM = (30.0, 60.0, math.inf)
 
 
+#: upper edges of the landmark-confidence classes of the summary: each found landmark by its own
+#: confidence (the heatmap's peak mass; unsure, middling, sure)
+CONFIDENCE_CLASS_EDGES = (0.2, 0.4, math.inf)
+
+
 def projected_shaft_mm(record: dict[str, Any], shaft_length_mm: float) -> float | None:
     """Length (mm at the detector plane) of the projected mounting shaft of a manifest record.
 
@@ -84,6 +89,33 @@ def projected_shaft_mm(record: dict[str, Any], shaft_length_mm: float) -> float 
     if segment is None or not isinstance(spacing_mm, (int, float)):
         return None
     return float(np.linalg.norm(segment[1] - segment[0]) * spacing_mm)
+
+
+def _confidence_classes(rows: list[dict[str, Any]], edges: tuple[float, ...]) -> list[dict[str, Any]]:
+    """The found landmarks of the positives (rows of :func:`evaluate`'s per-sample records) grouped
+    by their own confidence into ``[0, edges[0]), [edges[0], edges[1]), …``: how far off a landmark
+    of that confidence is (mm at the detector)."""
+    pairs = [
+        (c, e)
+        for r in rows
+        if r["found"] and r["landmark_mm"] is not None
+        for c, e in zip(r["confidence"], r["landmark_mm"], strict=True)
+    ]
+    out = []
+    lo = 0.0
+    for hi in edges:
+        errs = [e for c, e in pairs if lo <= c < hi]
+        out.append(
+            {
+                "confidence": [lo, None if math.isinf(hi) else hi],
+                "landmarks": len(errs),
+                "landmark_mm_mean": float(np.mean(errs)) if errs else None,
+                "landmark_mm_median": float(np.median(errs)) if errs else None,
+                "landmark_gross": sum(e > GROSS_ERROR_MM for e in errs),
+            }
+        )
+        lo = hi
+    return out
 
 
 def _classes(rows: list[dict[str, Any]], key: str, edges: tuple[float, ...]) -> list[dict[str, Any]]:
@@ -209,6 +241,7 @@ def evaluate(
         },
         "by_projected_ab": _classes(positives, "ab_mm", AB_CLASS_EDGES_MM),
         "by_projected_shaft": _classes(positives, "shaft_mm", SHAFT_CLASS_EDGES_MM),
+        "by_landmark_confidence": _confidence_classes(positives, CONFIDENCE_CLASS_EDGES),
         "found_rate": found_pos / n_pos if n_pos else None,
         "false_positive_rate": found_neg / n_neg if n_neg else None,
         "detect_ms": _stats([1e3 * x for x in seconds]),
