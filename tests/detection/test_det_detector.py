@@ -1114,6 +1114,11 @@ def test_bf16_stages_run_in_bfloat16_and_decode_in_float32() -> None:
     # bfloat16 keeps 8 bits of mantissa: logits to ~1 % of their range
     scale = float(np.abs(theirs[0]).max())
     np.testing.assert_allclose(ours[0], theirs[0], atol=0.02 * scale)
+    # the patch stages' mirror mean hands float32 on, whatever the network ran in
+    with fast._autocast(fast.net.fine):
+        patches = torch.randn(2, 1, 64, 64)
+        assert detector_module._mirror_mean(fast.net.fine, patches, 2).dtype == torch.float32
+        assert detector_module._mirror_mean(fast.net.fine, patches, 1).dtype == torch.float32
 
 
 def test_bf16_stages_are_validated_and_round_trip() -> None:

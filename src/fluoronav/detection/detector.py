@@ -231,11 +231,11 @@ def resolve_precision(name: str, device: torch.device) -> str:
 def _mirror_mean(net: torch.nn.Module, x: torch.Tensor, tta: int) -> torch.Tensor:
     """A patch network's output (N, C, rows, cols) on tube-aligned patches ``x`` (N, 1, rows, cols);
     with ``tta`` 2 averaged with its output on the patches mirrored about the tube's axis (rows
-    flipped), both in one batch."""
+    flipped), both in one batch; float32 whatever precision the network ran in."""
     if tta == 1:
-        return net(x)
+        return net(x).float()
     n = x.shape[0]
-    out = net(torch.cat([x, x.flip(-2)]))
+    out = net(torch.cat([x, x.flip(-2)])).float()
     return 0.5 * (out[:n] + out[n:].flip(-2))
 
 
@@ -549,7 +549,7 @@ class Detector:
             return landmarks_px
         x = torch.from_numpy(np.stack([fr.sample(image) for _, fr in todo]))[:, None].to(self.device)
         with self._autocast(net):
-            out = _mirror_mean(net, x, cfg.refine_tta).float().cpu()
+            out = _mirror_mean(net, x, cfg.refine_tta).cpu()
         ks = np.array([k for k, _ in todo])
         sel = out[torch.arange(len(todo)), torch.from_numpy(ks)][:, None]
         # the prior stays at the fine stage's landmark in every shifted patch
@@ -625,7 +625,7 @@ class Detector:
         x = torch.from_numpy(sample_patches(image, frames))[:, None].to(self.device)
         with self._autocast(net):
             out = _mirror_mean(net, x, self.config.ends_tta)
-        return out[:, 0].float().cpu().numpy()
+        return out[:, 0].cpu().numpy()
 
     def _coarse_hypotheses(
         self,
