@@ -18,7 +18,13 @@ from torch import nn
 import fluoronav.detection.detector as detector_module
 from fluoronav.detection.detector import Detection, Detector, load_image, truncated_landmarks, write_detection
 from fluoronav.detection.ends import patch_grid_px
-from fluoronav.detection.model import DetectorConfig, DetectorNet, fold_batch_norm
+from fluoronav.detection.model import (
+    DetectorConfig,
+    DetectorNet,
+    PackedConvolution,
+    fold_batch_norm,
+    pack_for_cpu,
+)
 from fluoronav.detection.train import save_model
 from fluoronav.errors import FluoronavError, InputError
 
@@ -1033,6 +1039,52 @@ def test_a_detector_runs_a_folded_copy_and_leaves_the_callers_networks_trainable
     theirs = det._run(net.eval().fine, views, tta=2)
     for a, b in zip(ours, theirs, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.skipif(not torch.backends.mkldnn.is_available(), reason="this PyTorch has no oneDNN")
+def test_packed_convolutions_compute_the_eager_blocks() -> None:
+    torch.manual_seed(7)
+    config = dataclasses.replace(TINY, refine_channels=(4, 8))
+    eager = fold_batch_norm(_with_batch_statistics(DetectorNet(config), 7).eval())
+    packed = pack_for_cpu(copy.deepcopy(eager))
+    blocks = [m for m in packed.modules() if isinstance(m, PackedConvolution)]
+    # every block of the three U-Nets: per level but the last a down and an up block, and the bottom
+    # one (channels (4, 8, 16): 5 blocks, (4, 8): 3); each net's output layer has no PReLU
+    assert len(blocks) == 5 + 5 + 3
+    assert sum(b.slope is None for b in blocks) == 3
+    x = torch.randn(3, 1, 64, 64)
+    with torch.no_grad():
+        for stage in ("coarse", "fine", "refine"):
+            ref, out = getattr(eager, stage)(x), getattr(packed, stage)(x)
+            torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5 * float(ref.abs().max()))
+        # a copy packs its own weights; a change of the weights is seen
+        copied = copy.deepcopy(packed)
+        torch.testing.assert_close(copied.fine(x), packed.fine(x), rtol=0.0, atol=0.0)
+        for net in (eager, packed):
+            net.fine.model[0].conv.weight.mul_(2.0)  # type: ignore[index, union-attr]
+        torch.testing.assert_close(packed.fine(x), eager.fine(x), rtol=1e-5, atol=1e-4)
+        # autocast, float64: the eager block's function
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            assert packed.fine(x).dtype == torch.bfloat16
+        torch.testing.assert_close(
+            copy.deepcopy(packed).double().fine(x.double()), copy.deepcopy(eager).double().fine(x.double())
+        )
+    # with autograd too (oneDNN's fused calls have no backward)
+    y = packed.fine(x.requires_grad_())
+    y.sum().backward()
+    assert x.grad is not None
+
+
+def test_a_cpu_detector_runs_packed_networks_with_the_eager_result() -> None:
+    torch.manual_seed(8)
+    net = _with_batch_statistics(DetectorNet(dataclasses.replace(TINY, heatmap="softmax")), 8)
+    det = Detector(net, device="cpu")
+    packed = any(isinstance(m, PackedConvolution) for m in det.net.modules())
+    assert packed == torch.backends.mkldnn.is_available()
+    views = np.random.default_rng(2).standard_normal((3, 64, 64)).astype(np.float32)
+    eager = fold_batch_norm(copy.deepcopy(net).eval())
+    for a, b in zip(det._run(det.net.fine, views, tta=8), det._run(eager.fine, views, tta=8), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.parametrize(

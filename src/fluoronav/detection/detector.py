@@ -41,7 +41,13 @@ from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.ends import end_zone_paste, sample_patches, tube_frames, tube_paste
 from fluoronav.detection.evidence import end_continuation, local_tube_width_px, mask_edge_ratio
 from fluoronav.detection.heatmaps import decode_landmarks
-from fluoronav.detection.model import MODEL_FORMAT_VERSION, DetectorConfig, DetectorNet, fold_batch_norm
+from fluoronav.detection.model import (
+    MODEL_FORMAT_VERSION,
+    DetectorConfig,
+    DetectorNet,
+    fold_batch_norm,
+    pack_for_cpu,
+)
 from fluoronav.detection.refine import RefinePatch, decode_refine_logits, refine_patch
 from fluoronav.detection.views import View, full_view, normalize_intensity, paste, resample, roi_view
 from fluoronav.device import resolve_device
@@ -323,6 +329,8 @@ class Detector:
             # faster on channels-last weights (the inputs follow); the results are the same to fp32
             # rounding. Module.to takes memory_format at run time; torch's stubs leave it out.
             self.net = self.net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+            # each convolution and its activation as one oneDNN call on weights reordered once
+            self.net = pack_for_cpu(self.net)
         self.config: DetectorConfig = net.config
         self.source = source
         self.precision = resolve_precision(precision, self.device)

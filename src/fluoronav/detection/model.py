@@ -16,12 +16,14 @@ heatmaps (A = CM base origin, B = distal end of the last notch), trained jointly
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import asdict, dataclass, fields
 
 import torch
 from monai.networks.nets import UNet
 from torch import nn
+from torch.nn import functional as tnf
 from torch.nn.utils import fuse_conv_bn_eval
 
 #: version of the model file layout (state_dict + config)
@@ -491,6 +493,106 @@ def fold_batch_norm(module: nn.Module) -> nn.Module:
             continue  # no norm, or an activation before it
         block.conv = fuse_conv_bn_eval(conv, norm, transpose=isinstance(conv, nn.ConvTranspose2d))
         adn.N = nn.Identity()
+    return module
+
+
+class PackedConvolution(nn.Module):
+    """A MONAI ``Convolution`` block after :func:`fold_batch_norm` (a convolution or transposed
+    convolution, then a one-slope PReLU or nothing) as one oneDNN call on weights reordered once.
+
+    For CPU inference in float32: eager PyTorch reorders the weights on every call and runs the
+    activation as a separate pass; here both go. The result is bit-identical to the eager block for
+    batches of two or more (to float32 rounding for one). Under autograd, autocast, another device or
+    dtype the block runs eagerly, with the same function. The reordered weights are made on the
+    first call and again when the weights change.
+    """
+
+    def __init__(self, conv: nn.Conv2d | nn.ConvTranspose2d, slope: float | None) -> None:
+        super().__init__()
+        self.conv = conv
+        self.slope = slope
+        self._packed: tuple[int, torch.Tensor] | None = None  # (weight version, reordered weight)
+
+    def __deepcopy__(self, memo: dict) -> PackedConvolution:
+        # the reordered weight is an opaque oneDNN tensor: a copy makes its own
+        return PackedConvolution(copy.deepcopy(self.conv, memo), self.slope)
+
+    def _eager(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.conv(x)
+        return y if self.slope is None else tnf.leaky_relu(y, self.slope)
+
+    def _weight(self) -> torch.Tensor:
+        c, w = self.conv, self.conv.weight.detach()
+        if self._packed is None or self._packed[0] != w._version:
+            pad, stride, dil = list(c.padding), list(c.stride), list(c.dilation)  # type: ignore[arg-type]
+            if isinstance(c, nn.ConvTranspose2d):
+                out_pad = list(c.output_padding)
+                packed = torch.ops.mkldnn._reorder_convolution_transpose_weight(
+                    w, pad, out_pad, stride, dil, c.groups, None
+                )
+            else:
+                packed = torch._C._nn.mkldnn_reorder_conv2d_weight(
+                    w.to_mkldnn(), pad, stride, dil, c.groups, None
+                )
+            self._packed = (w._version, packed)
+        return self._packed[1]
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        c = self.conv
+        if (
+            torch.is_grad_enabled()
+            or x.device.type != "cpu"
+            or x.dtype != torch.float32
+            or c.weight.dtype != torch.float32
+            or torch.is_autocast_enabled("cpu")
+        ):
+            return self._eager(x)
+        attr, scalars = ("none", []) if self.slope is None else ("leaky_relu", [self.slope])
+        pad, stride, dil = list(c.padding), list(c.stride), list(c.dilation)  # type: ignore[arg-type]
+        if isinstance(c, nn.ConvTranspose2d):
+            out_pad = list(c.output_padding)
+            return torch.ops.mkldnn._convolution_transpose_pointwise(
+                x, self._weight(), c.bias, pad, out_pad, stride, dil, c.groups, attr, scalars, ""
+            )
+        return torch.ops.mkldnn._convolution_pointwise(
+            x, self._weight(), c.bias, pad, stride, dil, c.groups, attr, scalars, ""
+        )
+
+
+def _packable(block: nn.Module) -> tuple[bool, float | None]:
+    """Whether a MONAI ``Convolution`` block is a plain 2-D convolution followed by nothing but
+    identities, eval-mode dropout and at most a one-slope PReLU (last), and that slope."""
+    conv = getattr(block, "conv", None)
+    if not isinstance(block, nn.Sequential) or not isinstance(conv, (nn.Conv2d, nn.ConvTranspose2d)):
+        return False, None
+    if conv.padding_mode != "zeros" or isinstance(conv.padding, str) or conv.bias is None:
+        return False, None
+    names = list(block._modules)
+    if names not in (["conv"], ["conv", "adn"]):
+        return False, None
+    slope: float | None = None
+    if names == ["conv", "adn"]:
+        parts = list(block.adn._modules.values())  # type: ignore[union-attr]
+        for i, m in enumerate(parts):
+            if isinstance(m, nn.PReLU) and m.weight.numel() == 1 and i == len(parts) - 1:
+                slope = float(m.weight.detach())
+            elif not isinstance(m, (nn.Identity, nn.Dropout)) or (isinstance(m, nn.Dropout) and m.training):
+                return False, None
+    return True, slope
+
+
+def pack_for_cpu(module: nn.Module) -> nn.Module:
+    """Replace, in place, each MONAI ``Convolution`` block of ``module`` that :func:`fold_batch_norm`
+    left as a convolution and a one-slope PReLU (or a convolution alone) with a
+    :class:`PackedConvolution`; returns ``module``. A no-op where this PyTorch has no oneDNN.
+    Inference only (eval mode); ~15-25 % off a U-Net's time on this CPU (see docs/detector.md)."""
+    if not (torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")):
+        return module
+    for parent in list(module.modules()):
+        for name, child in list(parent.named_children()):
+            ok, slope = _packable(child)
+            if ok:
+                setattr(parent, name, PackedConvolution(child.conv, slope))  # type: ignore[arg-type]
     return module
 
 
