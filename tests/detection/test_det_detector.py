@@ -1193,10 +1193,18 @@ def test_precision_names_resolve_per_device(monkeypatch: pytest.MonkeyPatch) -> 
 def test_bf16_stages_run_in_bfloat16_and_decode_in_float32() -> None:
     torch.manual_seed(4)
     config = dataclasses.replace(TINY, heatmap="softmax", fine_tta=8, bf16_stages=("fine",))
-    fast = Detector(DetectorNet(config), device="cpu", precision="bfloat16")
-    exact = Detector(DetectorNet(config), device="cpu", precision="float32")
-    exact.net.load_state_dict(fast.net.state_dict())
+    net = DetectorNet(config)
+    fast = Detector(net, device="cpu", precision="bfloat16")
+    exact = Detector(net, device="cpu", precision="float32")
     assert (fast.precision, exact.precision) == ("bfloat16", "float32")
+    # a bfloat16 stage runs as trained (its batch norms in float32 under autocast, as at stop 43);
+    # the float32 ones folded
+    has_norm = {
+        f"{tag} {name}": any(isinstance(m, nn.BatchNorm2d) for m in getattr(det.net, name).modules())
+        for det, tag in ((fast, "fast"), (exact, "exact"))
+        for name in ("coarse", "fine")
+    }
+    assert has_norm == {"fast coarse": False, "fast fine": True, "exact coarse": False, "exact fine": False}
     dtypes: dict[str, torch.dtype] = {}
     for det, tag in ((fast, "fast"), (exact, "exact")):
         for name in ("coarse", "fine"):

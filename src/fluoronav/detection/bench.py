@@ -30,7 +30,7 @@ import torch
 from torch.nn import functional as tnf
 
 from fluoronav.detection.centerline import extract_centerline
-from fluoronav.detection.detector import Detector, native_bf16, shipped_model_path
+from fluoronav.detection.detector import Detector, load_net, native_bf16, shipped_model_path
 from fluoronav.detection.evidence import end_continuation, mask_edge_ratio
 from fluoronav.detection.model import DetectorConfig, DetectorNet
 from fluoronav.detection.views import roi_view
@@ -74,10 +74,11 @@ def run(quick: bool = False) -> dict[str, float]:
     """Median detection time (ms) of the detection pipeline and of the full-resolution baseline (and
     of the pipeline in bfloat16 where this CPU runs it natively and the model names stages for it)."""
     if shipped_model_path().is_file():
-        det = Detector.load(device="cpu")
+        net, source = load_net(), str(shipped_model_path())
     else:
         torch.manual_seed(0)
-        det = Detector(DetectorNet(DetectorConfig()), device="cpu", source="random weights")
+        net, source = DetectorNet(DetectorConfig()), "random weights"
+    det = Detector(net, device="cpu", source=source)
     cfg = det.config
     image, mask, ends, spacing_mm = _bench_image(1536)
     vv, uu = np.nonzero(mask)
@@ -123,7 +124,8 @@ def run(quick: bool = False) -> dict[str, float]:
     ms_baseline = _median_ms(baseline, 1 if quick else 3)
     out = {"detect_ms": ms, "detect_ms_baseline": ms_baseline, "detect_ms_speedup": ms_baseline / ms}
     if cfg.bf16_stages and native_bf16():
-        fast = Detector(det.net, device="cpu", precision="bfloat16", source=det.source)
+        # from the trained networks: a bfloat16 stage keeps its batch norms
+        fast = Detector(net, device="cpu", precision="bfloat16", source=source)
         ms_fast = _median_ms(lambda: pipeline(fast), repeats)
         out |= {
             "detect_bfloat16_ms": ms_fast,
