@@ -512,6 +512,9 @@ class PackedConvolution(nn.Module):
         self.conv = conv
         self.slope = slope
         self._packed: tuple[int, torch.Tensor] | None = None  # (weight version, reordered weight)
+        # padding, output padding (transposed only), stride, dilation, as oneDNN's calls take them
+        self._pad, self._stride, self._dil = list(conv.padding), list(conv.stride), list(conv.dilation)
+        self._out_pad = list(conv.output_padding) if isinstance(conv, nn.ConvTranspose2d) else []
 
     def __deepcopy__(self, memo: dict) -> PackedConvolution:
         # the reordered weight is an opaque oneDNN tensor: a copy makes its own
@@ -524,11 +527,10 @@ class PackedConvolution(nn.Module):
     def _weight(self) -> torch.Tensor:
         c, w = self.conv, self.conv.weight.detach()
         if self._packed is None or self._packed[0] != w._version:
-            pad, stride, dil = list(c.padding), list(c.stride), list(c.dilation)
+            pad, stride, dil = self._pad, self._stride, self._dil
             if isinstance(c, nn.ConvTranspose2d):
-                out_pad = list(c.output_padding)
                 packed = torch.ops.mkldnn._reorder_convolution_transpose_weight(
-                    w, pad, out_pad, stride, dil, c.groups, None
+                    w, pad, self._out_pad, stride, dil, c.groups, None
                 )
             else:
                 packed = torch._C._nn.mkldnn_reorder_conv2d_weight(w.to_mkldnn(), pad, stride, dil, c.groups)
@@ -546,11 +548,10 @@ class PackedConvolution(nn.Module):
         ):
             return self._eager(x)
         attr, scalars = ("none", []) if self.slope is None else ("leaky_relu", [self.slope])
-        pad, stride, dil = list(c.padding), list(c.stride), list(c.dilation)
+        pad, stride, dil = self._pad, self._stride, self._dil
         if isinstance(c, nn.ConvTranspose2d):
-            out_pad = list(c.output_padding)
             return torch.ops.mkldnn._convolution_transpose_pointwise(
-                x, self._weight(), c.bias, pad, out_pad, stride, dil, c.groups, attr, scalars, ""
+                x, self._weight(), c.bias, pad, self._out_pad, stride, dil, c.groups, attr, scalars, ""
             )
         return torch.ops.mkldnn._convolution_pointwise(
             x, self._weight(), c.bias, pad, stride, dil, c.groups, attr, scalars, ""
