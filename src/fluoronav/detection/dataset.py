@@ -30,9 +30,10 @@ from fluoronav.detection.augment import (
     lower_dose,
 )
 from fluoronav.detection.centerline import extract_centerline
-from fluoronav.detection.ends import EndJitter, training_end_patch, training_tube_patch
+from fluoronav.detection.ends import EndJitter, inside_length_px, training_end_patch, training_tube_patch
 from fluoronav.detection.model import DetectorConfig
 from fluoronav.detection.refine import RefineJitter, training_patch
+from fluoronav.detection.strip import StripJitter, training_strip
 from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
 from fluoronav.errors import InputError
 from fluoronav.geometry.camera import Camera
@@ -516,4 +517,76 @@ class EndsDataset(_PatchDataset):
             "ends_image": torch.from_numpy(images),
             "ends_mask": torch.from_numpy(masks),
             "ends_valid": torch.from_numpy(valid),
+        }
+
+
+class StripDataset(_PatchDataset):
+    """Training/validation items of the strip stage: each sample ``repeats`` times per epoch, each
+    time with two strips along paths drawn from its true geometry
+    (:func:`~fluoronav.detection.strip.training_path`: the true centreline from the sample's mask and
+    landmarks, the projected mounting shaft from the manifest's camera and pose). Validation items
+    have the same paths every epoch and no photometric augmentation.
+
+    Items: ``strip_image`` (2, 1, rows, cols), ``strip_valid`` (2, cols) bool (the path's columns),
+    ``strip_a`` (2,) A's column (−1: not on the path), ``strip_ok`` (2,) 1 where the strip exists
+    (0: negatives; a path without length).
+    """
+
+    def __init__(
+        self, root: str | Path, *, repeats: int = 1, jitter: StripJitter | None = None, **kw: object
+    ) -> None:
+        super().__init__(root, repeats=repeats, **kw)
+        if not self.config.strip_channels:
+            raise ValueError("the model configuration has no strip stage (strip_channels)")
+        self.jitter = jitter or StripJitter()
+        self.shaft_length_mm = shaft_length_of(self.root)
+        self._lines: dict[int, np.ndarray] = {}
+
+    def _centerline(self, i: int, s: Sample) -> np.ndarray:
+        """The true centreline (N, 2) from A to B (cached: it is the same every epoch)."""
+        if i not in self._lines:
+            assert s.landmarks_px is not None
+            a, b = s.landmarks_px
+            line = np.asarray(extract_centerline(s.mask > 0, a, b), dtype=np.float64)
+            self._lines[i] = np.concatenate([a[None], line, b[None]]) if len(line) else np.stack([a, b])
+        return self._lines[i]
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        s, train, rng = self._draw(index)
+        cfg = self.config
+        rows, cols = cfg.strip_shape
+        images = np.zeros((2, 1, rows, cols), np.float32)
+        valid = np.zeros((2, cols), bool)
+        a_col = np.full(2, -1.0, np.float32)
+        ok = np.zeros(2, np.float32)
+        if s.landmarks_px is not None:
+            i = index % len(self.records)
+            spacing = s.pixel_spacing_mm or cfg.refine_assumed_spacing_mm
+            shaft = shaft_segment_px(self.records[i], self.shaft_length_mm)
+            direction, inside = None, 0.0
+            if shaft is not None and float(np.linalg.norm(shaft[1] - shaft[0])) > 0.0:
+                direction = (shaft[1] - shaft[0]) / np.linalg.norm(shaft[1] - shaft[0])
+                inside = inside_length_px(np.stack([s.landmarks_px[0], shaft[1]]), s.image.shape)
+            line = self._centerline(i, s)
+            for k in (0, 1):
+                got = training_strip(
+                    s.image,
+                    line,
+                    rng,
+                    step_px=cfg.refine_step_px(s.pixel_spacing_mm),
+                    px_per_mm=1.0 / spacing,
+                    shape=cfg.strip_shape,
+                    shaft_inside_px=inside,
+                    shaft_direction=direction,
+                    jitter=self.jitter,
+                    photometric=train,
+                )
+                if got is not None:
+                    images[k, 0], valid[k], a_col[k] = got
+                    ok[k] = 1.0
+        return {
+            "strip_image": torch.from_numpy(images),
+            "strip_valid": torch.from_numpy(valid),
+            "strip_a": torch.from_numpy(a_col),
+            "strip_ok": torch.from_numpy(ok),
         }

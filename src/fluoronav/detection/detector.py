@@ -49,6 +49,7 @@ from fluoronav.detection.model import (
     pack_for_cpu,
 )
 from fluoronav.detection.refine import RefinePatch, decode_refine_logits, refine_patch
+from fluoronav.detection.strip import path_strips, strip_log_probs, v_apex, window_probability
 from fluoronav.detection.views import View, full_view, normalize_intensity, paste, resample, roi_view
 from fluoronav.device import resolve_device
 from fluoronav.errors import FluoronavError, InputError
@@ -531,8 +532,12 @@ class Detector:
         final = finish(res.landmarks_px)
         if cfg.free_end_max_continuation > 0.0:
             final = self.off_free_end(img, res, final, finish, pixel_spacing_mm=pixel_spacing_mm)
+        cut = final
         if cfg.shaft_cut_min_mm > 0.0:
-            final = self.off_shaft(img, res, final, finish, pixel_spacing_mm=pixel_spacing_mm)
+            cut = self.off_shaft(img, res, final, finish, pixel_spacing_mm=pixel_spacing_mm)
+        if cut is final and cfg.apex_max_confidence > 0.0:  # the shaft stage moved nothing
+            cut = self.off_apex(img, res, final, finish, pixel_spacing_mm=pixel_spacing_mm)
+        final = cut
         f_pts, centerline, mask = final.landmarks_px, final.centerline_px, final.mask
         need_ratio = cfg.needed_edge_ratio(float(f_conf.min()))
         if need_ratio > 0.0:
@@ -894,6 +899,68 @@ class Detector:
         # the shaft's end beyond the old A, outside every band, is left apart from the CM: dropped
         kept = _component_at(other.mask & ~(res.mask & ~cm), other.landmarks_px)
         return other._replace(mask=kept)
+
+    @torch.no_grad()
+    def strip_probabilities(
+        self, image: np.ndarray, paths_px: list[np.ndarray], *, pixel_spacing_mm: float | None = None
+    ) -> np.ndarray:
+        """The strip stage's probabilities (P, cols + 1) of A at each column of each path (N, 2) (u,
+        v) input px, the last of A on none of its columns (:func:`~fluoronav.detection.strip.
+        strip_log_probs`; one batch). Raises ValueError where the model has no strip stage."""
+        net, cfg = self.net.strip, self.config
+        if net is None:
+            raise ValueError("the model has no strip stage (strip_channels)")
+        strips, valid = path_strips(
+            image, paths_px, step_px=cfg.refine_step_px(pixel_spacing_mm), shape=cfg.strip_shape
+        )
+        x = torch.from_numpy(strips)[:, None].to(self.device)
+        with self._autocast(net):
+            logits = net(x)
+        return strip_log_probs(logits, torch.from_numpy(valid).to(self.device)).exp().cpu().numpy()
+
+    def off_apex(
+        self,
+        image: np.ndarray,
+        res: FineResult,
+        final: Finished,
+        finish: Callable[[np.ndarray], Finished],
+        *,
+        pixel_spacing_mm: float | None = None,
+    ) -> Finished:
+        """``final``, or the same with landmark A moved to the apex of a V-shaped final mask.
+
+        Where A's fine confidence is under ``apex_max_confidence`` and the final mask's farthest
+        pixel from the segment A–B lies more than ``apex_min_offset_mm`` from it, the mask may be a
+        foreshortened shaft stub and the CM meeting at a corner, A taken at the stub's far end
+        (:mod:`fluoronav.detection.strip`). The strip stage then reads two paths: the detection's
+        own centreline and A → apex (:func:`~fluoronav.detection.strip.v_apex`) → B. A moves to the
+        apex where the first gives A within ± ``apex_window_mm`` of its start a probability under
+        ``apex_start_max_prob`` and the second A within as much of the apex over ``apex_min_prob``
+        and over the first's; ``finish`` runs from there, B's fine landmark staying. Unchanged
+        without a strip stage."""
+        cfg = self.config
+        if self.net.strip is None or float(res.confidence[0]) >= cfg.apex_max_confidence:
+            return final
+        spacing_mm = pixel_spacing_mm or cfg.refine_assumed_spacing_mm
+        a, b = final.landmarks_px
+        found = v_apex(final.mask, a, b)
+        if found is None or found[1] * spacing_mm <= cfg.apex_min_offset_mm:
+            return final
+        apex = found[0]
+        step_px = cfg.refine_step_px(pixel_spacing_mm)
+        paths = [np.asarray(final.centerline_px), np.stack([a, apex, b])]
+        probs = self.strip_probabilities(image, paths, pixel_spacing_mm=pixel_spacing_mm)
+        half = max(round(cfg.apex_window_mm / cfg.refine_step_mm), 1)
+        at_start = window_probability(probs[0], 0.0, half)
+        apex_col = float(np.linalg.norm(apex - a)) / step_px
+        # an apex near the strip's far end is read from a truncated neighbourhood: no evidence
+        at_apex = window_probability(probs[1], apex_col, half) if apex_col < cfg.strip_shape[1] - 4 else 0.0
+        if not (at_start < cfg.apex_start_max_prob and at_apex > cfg.apex_min_prob and at_apex > at_start):
+            return final
+        logger.debug("A at the V's apex: P(start) %.2f, P(apex) %.2f", at_start, at_apex)
+        fine_pts = res.landmarks_px.copy()
+        fine_pts[0] = apex
+        return finish(fine_pts)
 
     def fine_stage(self, image: np.ndarray, view: View) -> FineResult:
         """All fine passes from a first ROI: landmarks (2, 2) in input px, confidences (2,), the mask

@@ -27,6 +27,7 @@ from fluoronav.detection.refine import RefinePatch, moved_frame, photometric_cha
 __all__ = [
     "EndJitter",
     "end_zone_paste",
+    "inside_length_px",
     "patch_grid_px",
     "sample_patches",
     "training_end_patch",
@@ -243,7 +244,7 @@ def training_tube_patch(
     if length <= 0.0:
         return None
     chord = 0.25 * shape[1] * step_px
-    inside = _inside_length_px(shaft_px, image.shape) if shaft_px is not None and shaft_prob > 0.0 else 0.0
+    inside = inside_length_px(shaft_px, image.shape) if shaft_px is not None and shaft_prob > 0.0 else 0.0
     if inside > 0.0 and rng.random() < shaft_prob:
         assert shaft_px is not None
         a, far = np.asarray(shaft_px, dtype=np.float64)
@@ -264,7 +265,7 @@ def training_tube_patch(
     return _patch_and_label(image, mask, frame, rng, jitter=jitter, photometric=photometric)
 
 
-def _inside_length_px(segment_px: np.ndarray, shape: tuple[int, ...]) -> float:
+def inside_length_px(segment_px: np.ndarray, shape: tuple[int, ...]) -> float:
     """Length (px) of the part of a segment (2, 2) (u, v) from its first point that stays inside an
     image of ``shape`` (rows, cols); 0 where the first point is outside or the segment has no length."""
     a, b = np.asarray(segment_px, dtype=np.float64)

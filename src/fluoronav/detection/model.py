@@ -39,8 +39,11 @@ DEFAULT_ENDS_CHANNELS = (16, 32, 64, 128)
 #: width (41 k parameters) did as well on validation (Dice 0.9613 against 0.9617) at a fifth of the cost
 DEFAULT_TUBE_CHANNELS = (8, 16, 32, 64)
 
+#: channels of the strip U-Net that ``train --stage strip`` adds to a model without one
+DEFAULT_STRIP_CHANNELS = (16, 32, 64, 128)
+
 #: the detector's networks, as ``DetectorNet`` attributes (``bf16_stages`` names some of them)
-STAGES = ("coarse", "fine", "refine", "ends", "tube", "shaft")
+STAGES = ("coarse", "fine", "refine", "ends", "tube", "shaft", "strip")
 
 #: the integer fields of the patch stages (refinement, mask ends)
 _PATCH_NET_FIELDS = (
@@ -50,6 +53,8 @@ _PATCH_NET_FIELDS = (
     "ends_shape",
     "tube_channels",
     "shaft_channels",
+    "strip_channels",
+    "strip_shape",
 )
 
 
@@ -219,6 +224,25 @@ class DetectorConfig:
         tube_band_px: each tube-mask patch decides the mask within this many patch pixels of its
             centre along the tube (where bands overlap, their mean logit); the mask-end stage then
             redraws the ends.
+        strip_channels: feature channels per level of the strip U-Net
+            (:mod:`fluoronav.detection.strip`; ``fluoronav train --stage strip`` adds one of
+            :data:`DEFAULT_STRIP_CHANNELS`): per position along a path, where A lies on it, or that
+            it lies nowhere on it. Empty (the default): none.
+        strip_shape: (rows, cols) of its strips (across × along the path, from the path's start),
+            at ``refine_step_mm`` per strip pixel.
+        strip_sigma_px: σ of its training targets along the strip, strip pixels.
+        apex_max_confidence: the strip stage judges detections whose A has a fine confidence under
+            this (0: off): where the final mask is a V (its farthest pixel from the segment A–B
+            more than ``apex_min_offset_mm`` from it, mm at the detector), the fine stage may have
+            taken the far end of a foreshortened shaft for A, and the V's apex
+            (:func:`~fluoronav.detection.strip.v_apex`) is A.
+        apex_min_offset_mm: see ``apex_max_confidence``.
+        apex_window_mm: the strip stage's probabilities are summed over ± this (mm at the
+            detector) around a place on a path.
+        apex_start_max_prob: A moves to the apex only where the strip stage gives the detection's
+            own centreline less than this probability of A at its start ...
+        apex_min_prob: ... and the path A → apex → B more than this of A at the apex (and more
+            than the first).
     """
 
     input_size: int = 128
@@ -280,6 +304,14 @@ class DetectorConfig:
     shaft_channels: tuple[int, ...] = ()
     tube_spacing_px: float = 16.0
     tube_band_px: float = 16.0
+    strip_channels: tuple[int, ...] = ()
+    strip_shape: tuple[int, int] = (64, 384)
+    strip_sigma_px: float = 2.0
+    apex_max_confidence: float = 0.0
+    apex_min_offset_mm: float = 8.0
+    apex_window_mm: float = 2.0
+    apex_start_max_prob: float = 0.3
+    apex_min_prob: float = 0.3
 
     def __post_init__(self) -> None:
         if not set(self.bf16_stages) <= set(STAGES):
@@ -352,6 +384,20 @@ class DetectorConfig:
                 len(self.ends_shape) != 2 or any(int(n) <= 0 or int(n) % div for n in self.ends_shape)
             ):
                 raise ValueError(f"ends_shape must be 2 sizes divisible by {div}, got {self.ends_shape}")
+        if self.strip_channels:
+            div = 2 ** (len(self.strip_channels) - 1)
+            if len(self.strip_shape) != 2 or any(int(n) <= 0 or int(n) % div for n in self.strip_shape):
+                raise ValueError(f"strip_shape must be 2 sizes divisible by {div}, got {self.strip_shape}")
+        if not self.strip_sigma_px > 0.0:
+            raise ValueError(f"strip_sigma_px must be > 0, got {self.strip_sigma_px}")
+        for name in ("apex_max_confidence", "apex_start_max_prob", "apex_min_prob"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if not (self.apex_min_offset_mm >= 0.0 and self.apex_window_mm > 0.0):
+            raise ValueError(
+                "apex_min_offset_mm must be ≥ 0 and apex_window_mm > 0, got "
+                f"{self.apex_min_offset_mm} and {self.apex_window_mm}"
+            )
         if self.ends_tta not in (1, 2):
             raise ValueError(f"ends_tta must be 1 or 2, got {self.ends_tta}")
         if not (self.tube_spacing_px > 0 and 0 < self.tube_band_px <= self.ends_shape[1] / 2):
@@ -396,6 +442,7 @@ class DetectorConfig:
         d["refine_shifts_px"] = list(self.refine_shifts_px)
         d["ends_channels"], d["ends_shape"] = list(self.ends_channels), list(self.ends_shape)
         d["tube_channels"] = list(self.tube_channels)
+        d["strip_channels"], d["strip_shape"] = list(self.strip_channels), list(self.strip_shape)
         d["bf16_stages"] = list(self.bf16_stages)
         return d
 
@@ -444,7 +491,8 @@ class DetectorNet(nn.Module):
     (heatmap logits of A and B; each patch uses the channel of its landmark), and where
     ``ends_channels`` is set, the mask-end U-Net (B, 1, rows, cols) → (B, 1, rows, cols) (seg logit),
     and likewise the tube-mask U-Net where ``tube_channels`` is set and the shaft U-Net where
-    ``shaft_channels`` is."""
+    ``shaft_channels`` is, and where ``strip_channels`` is, the strip U-Net (B, 1, rows, cols) →
+    (B, 2, rows, cols) (:mod:`fluoronav.detection.strip`)."""
 
     def __init__(self, config: DetectorConfig | None = None) -> None:
         super().__init__()
@@ -466,6 +514,9 @@ class DetectorNet(nn.Module):
         self.shaft: nn.Module | None = None
         if c.shaft_channels:
             self.shaft = build_unet(c.shaft_channels, num_res_units=c.num_res_units, out_channels=1)
+        self.strip: nn.Module | None = None
+        if c.strip_channels:
+            self.strip = build_unet(c.strip_channels, num_res_units=c.num_res_units, out_channels=2)
 
     def forward(self, coarse: torch.Tensor, fine: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, 1, input_size²), (B, 1, roi_size²) → their (B, 3, ·, ·) outputs."""

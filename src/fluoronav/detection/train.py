@@ -35,19 +35,22 @@ from tqdm import tqdm
 
 from fluoronav import __version__
 from fluoronav.detection.augment import AugmentConfig
-from fluoronav.detection.dataset import CMDetectionDataset, EndsDataset, RefineDataset
+from fluoronav.detection.dataset import CMDetectionDataset, EndsDataset, RefineDataset, StripDataset
 from fluoronav.detection.ends import EndJitter
 from fluoronav.detection.heatmaps import decode_landmarks, gaussian_heatmaps, heatmap_cross_entropy
 from fluoronav.detection.model import (
     DEFAULT_ENDS_CHANNELS,
     DEFAULT_REFINE_CHANNELS,
+    DEFAULT_STRIP_CHANNELS,
     DEFAULT_TUBE_CHANNELS,
     MODEL_FORMAT_VERSION,
+    STAGES,
     DetectorConfig,
     DetectorNet,
     count_parameters,
 )
 from fluoronav.detection.refine import RefineJitter, decode_refine_logits
+from fluoronav.detection.strip import StripJitter, strip_log_probs, strip_targets
 from fluoronav.device import resolve_device
 from fluoronav.errors import InputError
 
@@ -80,7 +83,9 @@ class TrainConfig:
             ``("ends",)`` the mask-end stage alone (:class:`~fluoronav.detection.dataset.EndsDataset`,
             BCE + Dice on the patch masks), likewise; ``("tube",)`` the tube-mask stage alone, likewise;
             ``("shaft",)`` the shaft stage alone (tube-mask patches, some on the mounting shaft:
-            ``tube_shaft_prob``), added to a model without one with the tube-mask stage's weights.
+            ``tube_shaft_prob``), added to a model without one with the tube-mask stage's weights;
+            ``("strip",)`` the strip stage alone (:class:`~fluoronav.detection.dataset.StripDataset`,
+            cross-entropy of A's place along paths), added to a model without one.
         edge_negative_prob: probability that a CM-free sample's fine ROI is centred on a strong edge
             of its image (``AugmentConfig.p_edge_negative_roi``) rather than anywhere.
         refine_repeats: patches per landmark and sample in an epoch of the refinement or the mask-end
@@ -116,10 +121,11 @@ class TrainConfig:
     tube_shaft_prob: float = 0.0
 
     def __post_init__(self) -> None:
-        alone = self.stages in (("refine",), ("ends",), ("tube",), ("shaft",))
+        alone = self.stages in (("refine",), ("ends",), ("tube",), ("shaft",), ("strip",))
         if not alone and (not self.stages or not set(self.stages) <= {"coarse", "fine"}):
             raise ValueError(
-                "stages must be 'coarse' and/or 'fine', or one of 'refine', 'ends', 'tube', 'shaft' alone, "
+                "stages must be 'coarse' and/or 'fine', or one of 'refine', 'ends', 'tube', 'shaft', "
+                "'strip' alone, "
                 f"got {self.stages}"
             )
         if self.refine_repeats < 1:
@@ -144,6 +150,9 @@ REFINE_FIELDS = ("refine_channels", "refine_shape", "refine_step_mm", "refine_si
 #: the architecture fields of the patch-mask stages (their patch scale is ``refine_step_mm``)
 ENDS_FIELDS = ("ends_channels", "ends_shape", "tube_channels", "shaft_channels")
 
+#: the architecture fields of the strip stage (its scale is ``refine_step_mm`` too)
+STRIP_FIELDS = ("strip_channels", "strip_shape", "strip_sigma_px")
+
 #: the model configuration fields fixed by trained weights (the rest only steer decoding)
 ARCHITECTURE_FIELDS = (
     "input_size",
@@ -155,6 +164,7 @@ ARCHITECTURE_FIELDS = (
     "heatmap",
     *REFINE_FIELDS,
     *ENDS_FIELDS,
+    *STRIP_FIELDS,
 )
 
 
@@ -375,6 +385,64 @@ def validate_ends(
     }
 
 
+def strip_outputs(
+    stage: nn.Module, batch: dict[str, torch.Tensor], device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Log-probabilities (N, cols + 1) of the strip ``stage`` (:func:`strip_log_probs`), the paths'
+    columns (N, cols) and A's columns (N,) (−1: none) of the strips that exist (N ≤ 2 × the batch)."""
+    x = batch["strip_image"].to(device)  # (B, 2, 1, rows, cols)
+    ok = batch["strip_ok"].to(device).reshape(-1) > 0
+    valid = batch["strip_valid"].to(device).reshape(-1, x.shape[-1])[ok]
+    logp = strip_log_probs(stage(x.reshape(-1, *x.shape[2:])[ok]), valid)
+    return logp, valid, batch["strip_a"].to(device).reshape(-1)[ok]
+
+
+def strip_loss(
+    stage: nn.Module, batch: dict[str, torch.Tensor], device: torch.device, cfg: DetectorConfig
+) -> torch.Tensor:
+    """Cross-entropy of the strip stage's distributions against :func:`strip_targets` (0 without
+    strips)."""
+    logp, valid, a_col = strip_outputs(stage, batch, device)
+    if logp.shape[0] == 0:
+        return logp.sum()
+    target = strip_targets(valid, a_col, sigma_px=cfg.strip_sigma_px)
+    return -(target * logp).sum(dim=1).mean()
+
+
+@torch.no_grad()
+def validate_strip(
+    stage: nn.Module, loader: DataLoader, device: torch.device, cfg: DetectorConfig
+) -> dict[str, float]:
+    """Validation loss of the strip stage; on paths without A the fraction told so
+    (``val_none_right``), on paths through A the fraction said to have none (``val_a_missed``), the
+    median error of the most likely column (``val_a_median_mm``, mm at the detector) and the fraction
+    of those more than 3 mm off (``val_a_gross``)."""
+    stage.eval()
+    losses, none_right, missed, errs = [], [], [], []
+    for batch in loader:
+        logp, valid, a_col = strip_outputs(stage, batch, device)
+        if logp.shape[0] == 0:
+            continue
+        target = strip_targets(valid, a_col, sigma_px=cfg.strip_sigma_px)
+        losses.append(float(-(target * logp).sum(dim=1).mean()))
+        best = logp.argmax(dim=1).cpu().numpy()
+        a = a_col.cpu().numpy()
+        none = logp.shape[1] - 1
+        none_right.extend((best[a < 0] == none).tolist())
+        has = a >= 0
+        missed.extend((best[has] == none).tolist())
+        found = has & (best != none)
+        errs.extend((np.abs(best[found] - a[found]) * cfg.refine_step_mm).tolist())
+    stage.train()
+    return {
+        "val_loss": _mean_or_nan(losses),
+        "val_none_right": _mean_or_nan(none_right),
+        "val_a_missed": _mean_or_nan(missed),
+        "val_a_median_mm": float(np.median(errs)) if errs else float("nan"),
+        "val_a_gross": _mean_or_nan([e > 3.0 for e in errs]),
+    }
+
+
 @torch.no_grad()
 def validate(
     net: DetectorNet,
@@ -473,6 +541,7 @@ def train(
         absent = {"ends_channels"} if not c.ends_channels else set()
         absent |= {"tube_channels"} if not c.tube_channels else set()
         absent |= {"shaft_channels"} if not c.shaft_channels else set()
+        absent |= set(STRIP_FIELDS) if not c.strip_channels else set()
         if not (c.ends_channels or c.tube_channels):
             absent.add("ends_shape")
         keep = tuple(f for f in keep if f not in absent)
@@ -485,6 +554,7 @@ def train(
     if coarse_size is not None and ckpt is None:  # a resumed run keeps its checkpoint's configuration
         mcfg = dataclasses.replace(mcfg, input_size=coarse_size)
     refining = tcfg.stages == ("refine",)
+    stripping = tcfg.stages == ("strip",)
     shafting = tcfg.stages == ("shaft",)
     tubing = shafting or tcfg.stages == ("tube",)  # patches along the centreline
     ending = tubing or tcfg.stages == ("ends",)  # a patch-mask stage
@@ -502,14 +572,18 @@ def train(
             }
     if ending and not tubing and not mcfg.ends_channels:
         mcfg = dataclasses.replace(mcfg, ends_channels=DEFAULT_ENDS_CHANNELS)
+    if stripping and not mcfg.strip_channels:
+        mcfg = dataclasses.replace(mcfg, strip_channels=DEFAULT_STRIP_CHANNELS)
 
     torch.manual_seed(tcfg.seed)
     net = DetectorNet(mcfg).to(device)
     if init_state is not None:
         missing, unexpected = net.load_state_dict(init_state, strict=False)
-        if unexpected or any(not k.startswith(("refine.", "ends.", "tube.", "shaft.")) for k in missing):
+        if unexpected or any(
+            not k.startswith(("refine.", "ends.", "tube.", "shaft.", "strip.")) for k in missing
+        ):
             raise InputError(str(init), "weights do not match the model configuration")
-    for name in ("coarse", "fine", "refine", "ends", "tube", "shaft"):
+    for name in STAGES:
         module = getattr(net, name)
         if module is not None:
             module.requires_grad_(name in tcfg.stages)
@@ -540,6 +614,8 @@ def train(
     make_ds = (
         functools.partial(RefineDataset, repeats=tcfg.refine_repeats)
         if refining
+        else functools.partial(StripDataset, repeats=tcfg.refine_repeats)
+        if stripping
         else functools.partial(
             EndsDataset, repeats=tcfg.refine_repeats, tube=tubing, shaft_prob=tcfg.tube_shaft_prob
         )
@@ -601,6 +677,9 @@ def train(
                 break
             if refining:
                 loss = refine_loss(net, batch, device, mcfg)
+            elif stripping:
+                assert net.strip is not None
+                loss = strip_loss(net.strip, batch, device, mcfg)
             elif patch_stage is not None:
                 loss = ends_loss(patch_stage, batch, device, dice)
             else:
@@ -623,6 +702,9 @@ def train(
         if len(val_ds):
             if refining:
                 val = validate_refine(net, val_loader, device, mcfg)
+            elif stripping:
+                assert net.strip is not None
+                val = validate_strip(net.strip, val_loader, device, mcfg)
             elif patch_stage is not None:
                 val = validate_ends(patch_stage, val_loader, device, mcfg, dice, tube=tubing)
             else:
@@ -649,7 +731,15 @@ def train(
                 # the augmentation ranges (None: off), so that a model file says how it was trained
                 "augmentation": None
                 if aug is None
-                else asdict(RefineJitter() if refining else EndJitter() if ending else aug),
+                else asdict(
+                    RefineJitter()
+                    if refining
+                    else StripJitter()
+                    if stripping
+                    else EndJitter()
+                    if ending
+                    else aug
+                ),
             },
             "metrics": metrics,
         }
