@@ -191,21 +191,32 @@ def test_training_the_strip_stage_adds_it_and_leaves_the_others(tmp_path: Path) 
 
 
 @pytest.mark.parametrize(
-    ("confidence", "p_start", "p_apex", "moves"),
+    ("confidence", "p_start", "p_apex_start", "p_apex", "moves"),
     [
-        (0.5, 0.1, 0.8, True),  # unsure A, its path says "not A at my start", the apex path "A here"
-        (0.5, 0.4, 0.8, False),  # its own path still sees A at its start
-        (0.5, 0.1, 0.2, False),  # the apex path sees no A at the apex either
-        (0.9, 0.1, 0.8, False),  # a sure A is not looked at
+        (0.5, 0.1, 0.1, 0.8, True),  # unsure A; both paths say "not A at the start", one "A at the apex"
+        (0.5, 0.4, 0.1, 0.8, False),  # its own path still sees A at its start
+        (0.5, 0.1, 0.25, 0.7, False),  # so does the apex path
+        (0.5, 0.1, 0.1, 0.2, False),  # the apex path sees no A at the apex either
+        (0.9, 0.1, 0.1, 0.8, False),  # a sure A is not looked at
     ],
 )
 def test_an_unsure_a_at_a_stubs_far_end_moves_to_the_vs_apex(
-    monkeypatch: pytest.MonkeyPatch, confidence: float, p_start: float, p_apex: float, moves: bool
+    monkeypatch: pytest.MonkeyPatch,
+    confidence: float,
+    p_start: float,
+    p_apex_start: float,
+    p_apex: float,
+    moves: bool,
 ) -> None:
     stub_end, corner, b = (20.0, 80.0), (60.0, 20.0), (130.0, 80.0)
     mask = _thick_polyline([stub_end, corner, b], 4.0, (100, 160))
     config = dataclasses.replace(
-        TINY, strip_channels=(4, 8, 16), strip_shape=(16, 384), apex_max_confidence=0.65
+        TINY,
+        strip_channels=(4, 8, 16),
+        strip_shape=(16, 384),
+        apex_max_confidence=0.65,
+        apex_start_max_prob=0.3,
+        apex_path_start_max_prob=0.2,
     )
     det = Detector(DetectorNet(config), device="cpu")
     res = detector_module.FineResult(
@@ -222,7 +233,8 @@ def test_an_unsure_a_at_a_stubs_far_end_moves_to_the_vs_apex(
         p = np.zeros((2, 385))
         p[0, 0], p[0, 200] = p_start, 1.0 - p_start  # the own path: A at its start, or 58 mm on
         k = round(float(np.linalg.norm(paths[1][1] - paths[1][0])) / step_px)
-        p[1, k], p[1, -1] = p_apex, 1.0 - p_apex  # the apex path: A at the apex, or none
+        p[1, 0], p[1, k] = p_apex_start, p_apex  # the apex path: A at its start, at the apex, or none
+        p[1, -1] = 1.0 - p_apex - p_apex_start
         return p
 
     finished: list[np.ndarray] = []

@@ -935,9 +935,10 @@ class Detector:
         (:mod:`fluoronav.detection.strip`). The strip stage then reads two paths: the detection's
         own centreline and A → apex (:func:`~fluoronav.detection.strip.v_apex`) → B. A moves to the
         apex where the first gives A within ± ``apex_window_mm`` of its start a probability under
-        ``apex_start_max_prob`` and the second A within as much of the apex over ``apex_min_prob``
-        and over the first's; ``finish`` runs from there, B's fine landmark staying. Unchanged
-        without a strip stage."""
+        ``apex_start_max_prob``, the second gives A at its start (the same A) one under
+        ``apex_path_start_max_prob`` and A within ± ``apex_window_mm`` of the apex one over
+        ``apex_min_prob`` and over that at its start; ``finish`` runs from there, B's fine landmark
+        staying. Unchanged without a strip stage."""
         cfg = self.config
         if self.net.strip is None or float(res.confidence[0]) >= cfg.apex_max_confidence:
             return final
@@ -952,12 +953,17 @@ class Detector:
         probs = self.strip_probabilities(image, paths, pixel_spacing_mm=pixel_spacing_mm)
         half = max(round(cfg.apex_window_mm / cfg.refine_step_mm), 1)
         at_start = window_probability(probs[0], 0.0, half)
+        apex_start = window_probability(probs[1], 0.0, half)
         apex_col = float(np.linalg.norm(apex - a)) / step_px
         # an apex near the strip's far end is read from a truncated neighbourhood: no evidence
         at_apex = window_probability(probs[1], apex_col, half) if apex_col < cfg.strip_shape[1] - 4 else 0.0
-        if not (at_start < cfg.apex_start_max_prob and at_apex > cfg.apex_min_prob and at_apex > at_start):
+        if not (
+            at_start < cfg.apex_start_max_prob
+            and apex_start < cfg.apex_path_start_max_prob
+            and at_apex > max(cfg.apex_min_prob, apex_start)
+        ):
             return final
-        logger.debug("A at the V's apex: P(start) %.2f, P(apex) %.2f", at_start, at_apex)
+        logger.debug("A at the V's apex: P(start) %.2f / %.2f, P(apex) %.2f", at_start, apex_start, at_apex)
         fine_pts = res.landmarks_px.copy()
         fine_pts[0] = apex
         return finish(fine_pts)

@@ -241,8 +241,9 @@ class DetectorConfig:
             detector) around a place on a path.
         apex_start_max_prob: A moves to the apex only where the strip stage gives the detection's
             own centreline less than this probability of A at its start ...
-        apex_min_prob: ... and the path A → apex → B more than this of A at the apex (and more
-            than the first).
+        apex_path_start_max_prob: ... and the path A → apex → B less than this of A at its start
+            ...
+        apex_min_prob: ... and more than this of A at the apex (and more than at its start).
     """
 
     input_size: int = 128
@@ -311,6 +312,7 @@ class DetectorConfig:
     apex_min_offset_mm: float = 8.0
     apex_window_mm: float = 2.0
     apex_start_max_prob: float = 0.3
+    apex_path_start_max_prob: float = 1.0
     apex_min_prob: float = 0.3
 
     def __post_init__(self) -> None:
@@ -390,7 +392,12 @@ class DetectorConfig:
                 raise ValueError(f"strip_shape must be 2 sizes divisible by {div}, got {self.strip_shape}")
         if not self.strip_sigma_px > 0.0:
             raise ValueError(f"strip_sigma_px must be > 0, got {self.strip_sigma_px}")
-        for name in ("apex_max_confidence", "apex_start_max_prob", "apex_min_prob"):
+        for name in (
+            "apex_max_confidence",
+            "apex_start_max_prob",
+            "apex_path_start_max_prob",
+            "apex_min_prob",
+        ):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if not (self.apex_min_offset_mm >= 0.0 and self.apex_window_mm > 0.0):
