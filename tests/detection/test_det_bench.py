@@ -18,6 +18,8 @@ def test_bench_quick_returns_contract_keys() -> None:
         keys |= {"detect_second_look_ms", "detect_second_look_ms_baseline", "detect_second_look_ms_speedup"}
     if config is not None and config.bf16_stages and bench.native_bf16():  # the bfloat16 pipeline
         keys |= {"detect_bfloat16_ms", "detect_bfloat16_ms_baseline", "detect_bfloat16_ms_speedup"}
+    if config is not None and config.strip_channels:  # the V-apex check
+        keys |= {"detect_apex_check_ms", "detect_apex_check_ms_baseline", "detect_apex_check_ms_speedup"}
     assert set(result) == keys
     assert all(math.isfinite(v) and v > 0 for v in result.values())
     assert result["detect_ms_speedup"] == pytest.approx(result["detect_ms_baseline"] / result["detect_ms"])

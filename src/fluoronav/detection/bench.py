@@ -15,6 +15,9 @@ same path with the second look forced (its wider view and, where that moves a la
 second run of the fine stage): what an unsure detection costs. Both run every network in float32
 (the default precision); on a CPU with native bfloat16, ``detect_bfloat16_ms`` times the same
 pipeline with the model's ``bf16_stages`` in bfloat16 (``--precision bfloat16``).
+``detect_apex_check_ms`` times the strip stage's check of an unsure A on a V-shaped mask
+(:meth:`~fluoronav.detection.detector.Detector.off_apex`: two paths, one batch), where the model
+has that stage; it runs on unsure detections only and is not part of ``detect_ms``.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.detector import Detector, load_net, native_bf16, shipped_model_path
 from fluoronav.detection.evidence import end_continuation, mask_edge_ratio
 from fluoronav.detection.model import DetectorConfig, DetectorNet
+from fluoronav.detection.strip import v_apex
 from fluoronav.detection.views import roi_view
 
 logger = logging.getLogger(__name__)
@@ -142,5 +146,21 @@ def run(quick: bool = False) -> dict[str, float]:
             "detect_second_look_ms": ms_look,
             "detect_second_look_ms_baseline": ms_baseline,
             "detect_second_look_ms_speedup": ms_baseline / ms_look,
+        }
+    if det.net.strip is not None:
+        # the V-apex check of an unsure A (``Detector.off_apex``): the strip stage on the final
+        # centreline and on a path through the mask's apex, one batch (a move then runs the timed
+        # pipeline's tail again)
+        line = extract_centerline(mask, ends[0], ends[1])
+        apex = v_apex(mask, ends[0], ends[1])
+        corner = apex[0] if apex is not None else 0.5 * (ends[0] + ends[1])
+        paths = [np.asarray(line), np.stack([ends[0], corner, ends[1]])]
+        ms_apex = _median_ms(
+            lambda: det.strip_probabilities(image, paths, pixel_spacing_mm=spacing_mm), repeats
+        )
+        out |= {
+            "detect_apex_check_ms": ms_apex,
+            "detect_apex_check_ms_baseline": ms_baseline,
+            "detect_apex_check_ms_speedup": ms_baseline / ms_apex,
         }
     return out
