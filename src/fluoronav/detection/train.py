@@ -397,6 +397,14 @@ def strip_outputs(
     return logp, valid, batch["strip_a"].to(device).reshape(-1)[ok]
 
 
+def _strip_cross_entropy(
+    logp: torch.Tensor, valid: torch.Tensor, a_col: torch.Tensor, cfg: DetectorConfig
+) -> torch.Tensor:
+    """Mean cross-entropy of strip log-probabilities (N, cols + 1) against :func:`strip_targets`."""
+    target = strip_targets(valid, a_col, sigma_px=cfg.strip_sigma_px)
+    return -(target * logp).sum(dim=1).mean()
+
+
 def strip_loss(
     stage: nn.Module, batch: dict[str, torch.Tensor], device: torch.device, cfg: DetectorConfig
 ) -> torch.Tensor:
@@ -405,8 +413,7 @@ def strip_loss(
     logp, valid, a_col = strip_outputs(stage, batch, device)
     if logp.shape[0] == 0:
         return logp.sum()
-    target = strip_targets(valid, a_col, sigma_px=cfg.strip_sigma_px)
-    return -(target * logp).sum(dim=1).mean()
+    return _strip_cross_entropy(logp, valid, a_col, cfg)
 
 
 @torch.no_grad()
@@ -423,8 +430,7 @@ def validate_strip(
         logp, valid, a_col = strip_outputs(stage, batch, device)
         if logp.shape[0] == 0:
             continue
-        target = strip_targets(valid, a_col, sigma_px=cfg.strip_sigma_px)
-        losses.append(float(-(target * logp).sum(dim=1).mean()))
+        losses.append(float(_strip_cross_entropy(logp, valid, a_col, cfg)))
         best = logp.argmax(dim=1).cpu().numpy()
         a = a_col.cpu().numpy()
         none = logp.shape[1] - 1
