@@ -13,7 +13,16 @@ from test_det_detector import empty_net
 from fluoronav.cli.main import main
 from fluoronav.detection.dataset import load_sample, read_manifest, shaft_length_of
 from fluoronav.detection.detector import Detection, Detector
-from fluoronav.detection.evaluate import _confidence_classes, dice_score, evaluate, projected_shaft_mm
+from fluoronav.detection.evaluate import (
+    OVER_SHAFT_MAX_DEG,
+    VIEW_KINDS,
+    _confidence_classes,
+    dice_score,
+    evaluate,
+    projected_shaft_mm,
+    shaft_angle_deg,
+    view_kind,
+)
 from fluoronav.detection.train import save_model
 
 
@@ -248,6 +257,45 @@ def test_evaluate_splits_positives_by_projected_shaft(tmp_path: Path) -> None:
     # _KnownErrors puts every A 5 mm off (a gross error) and every B on the truth
     assert [c["landmark_gross"] for c in classes] == [2, 0, 2]
     assert classes[0]["landmark_mm_mean"] == pytest.approx(2.5)
+    # each positive's view class follows from its own A–B distance and shaft angle (the shaft seen
+    # along the view has no direction: no angle), and the summary groups them in VIEW_KINDS order
+    assert [r["shaft_angle_deg"] is None for r in pos] == [False, True, True, False]
+    assert all(r["view"] == view_kind(r["ab_mm"], r["shaft_angle_deg"]) for r in pos)
+    views = summary["by_view"]
+    assert [v["view"] for v in views] == list(VIEW_KINDS)
+    for v in views:
+        inside = [r for r in pos if r["view"] == v["view"]]
+        assert v["positives"] == len(inside) and v["landmark_gross"] == len(inside)
+
+
+# the shaft of _SHAFT_POSES[0] runs from A at (42, 32) to (−8, 32) px (along −u); B placed by hand
+@pytest.mark.parametrize(
+    ("b_px", "expected_deg"),
+    [((62.0, 32.0), 180.0), ((22.0, 32.0), 0.0), ((42.0, 52.0), 90.0), ((42.0 - 20.0 * 3**0.5, 52.0), 30.0)],
+)
+def test_shaft_angle_by_hand(b_px: tuple[float, float], expected_deg: float) -> None:
+    rec = {"id": 0, "camera": _camera_64(), "world_from_cm": _SHAFT_POSES[0][0]}
+    landmarks = np.array([[42.0, 32.0], b_px])
+    assert shaft_angle_deg(rec, landmarks, 50.0) == pytest.approx(expected_deg, abs=1e-6)
+
+
+def test_shaft_angle_is_none_without_a_direction() -> None:
+    landmarks = np.array([[42.0, 32.0], [62.0, 32.0]])
+    along = {"id": 0, "camera": _camera_64(), "world_from_cm": _SHAFT_POSES[1][0]}
+    assert shaft_angle_deg(along, landmarks, 50.0) is None  # the shaft projects to a point
+    across = {"id": 0, "camera": _camera_64(), "world_from_cm": _SHAFT_POSES[0][0]}
+    assert shaft_angle_deg(across, landmarks[[0, 0]], 50.0) is None  # A = B: no chord
+    assert shaft_angle_deg({"id": 0, "camera": None, "world_from_cm": None}, landmarks, 50.0) is None
+
+
+def test_view_kinds() -> None:
+    assert view_kind(10.0, 180.0) == "end-on"  # end-on wins over any angle
+    assert view_kind(10.0, 5.0) == "end-on"
+    assert view_kind(17.0, 180.0) == "clear"  # the end-on bound is exclusive
+    assert view_kind(30.0, OVER_SHAFT_MAX_DEG - 1.0) == "over-shaft"
+    assert view_kind(30.0, OVER_SHAFT_MAX_DEG) == "clear"
+    assert view_kind(30.0, None) == "clear"  # shaft unknown: not taken as over it
+    assert view_kind(None, 5.0) is None  # no pixel spacing: no class
 
 
 def test_shaft_length_of_a_data_set(tmp_path: Path) -> None:

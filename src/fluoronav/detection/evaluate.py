@@ -11,7 +11,9 @@ detector, mm): CMs seen nearly along their axis are the hard cases, and a test s
 the means. It splits them too by how long the CM's mounting shaft projects (where the manifest has the
 camera and the CM's pose): a shaft seen nearly along its axis is a short stub at A that the detector
 can take for part of the CM. ``per_sample`` writes one JSON line per image as it is scored, to find
-the failures.
+the failures. Finally it splits them by what the view shows of the CM (:func:`view_kind`): nearly
+end-on, lying over its own shaft, or clear of both; in the first two the stored image hardly tells
+where the notched CM begins or ends, and they hold most of the gross landmark errors.
 """
 
 from __future__ import annotations
@@ -72,6 +74,18 @@ GROSS_ERROR_MM = 3.0
 SHAFT_CLASS_EDGES_MM = (30.0, 60.0, math.inf)
 
 
+#: a CM whose true A–B distance on the detector is under this (mm) is seen nearly end-on (the first
+#: foreshortening class)
+END_ON_MAX_AB_MM = AB_CLASS_EDGES_MM[0]
+
+#: a CM whose chord A → B on the detector lies within this angle (degrees) of its projected mounting
+#: shaft (A → the shaft's far end) lies over its own shaft in the image
+OVER_SHAFT_MAX_DEG = 35.0
+
+#: the view classes of the summary, in its order (:func:`view_kind`)
+VIEW_KINDS = ("clear", "end-on", "over-shaft")
+
+
 #: upper edges of the landmark-confidence classes of the summary: each found landmark by its own
 #: confidence (the heatmap's peak mass; unsure, middling, sure)
 CONFIDENCE_CLASS_EDGES = (0.2, 0.4, math.inf)
@@ -89,6 +103,37 @@ def projected_shaft_mm(record: dict[str, Any], shaft_length_mm: float) -> float 
     if segment is None or not isinstance(spacing_mm, (int, float)):
         return None
     return float(np.linalg.norm(segment[1] - segment[0]) * spacing_mm)
+
+
+def shaft_angle_deg(record: dict[str, Any], landmarks_px: np.ndarray, shaft_length_mm: float) -> float | None:
+    """Angle (degrees, 0–180) at A between the CM's chord A → B and its projected mounting shaft (A →
+    the shaft's far end, :func:`~fluoronav.detection.dataset.shaft_segment_px`) on the detector, for
+    the true landmarks (2, 2) (u, v) stored px of a manifest record: near 180 where the shaft goes on
+    behind the CM, small where the CM lies over it. None where the shaft is unknown or either segment
+    has no length."""
+    segment = shaft_segment_px(record, shaft_length_mm)
+    if segment is None:
+        return None
+    chord = np.asarray(landmarks_px, dtype=np.float64)[1] - np.asarray(landmarks_px, dtype=np.float64)[0]
+    shaft = segment[1] - segment[0]
+    den = float(np.linalg.norm(chord) * np.linalg.norm(shaft))
+    if not den > 0.0:
+        return None
+    return math.degrees(math.acos(float(np.clip(chord @ shaft / den, -1.0, 1.0))))
+
+
+def view_kind(ab_mm: float | None, shaft_angle: float | None) -> str | None:
+    """What a positive view shows of the CM, from its truth: ``end-on`` (true A–B distance on the
+    detector under :data:`END_ON_MAX_AB_MM`), ``over-shaft`` (its chord within
+    :data:`OVER_SHAFT_MAX_DEG` of its projected shaft), else ``clear``; None without the A–B distance
+    in mm. A view whose shaft is unknown (``shaft_angle`` None) is not taken as over its shaft."""
+    if ab_mm is None:
+        return None
+    if ab_mm < END_ON_MAX_AB_MM:
+        return "end-on"
+    if shaft_angle is not None and shaft_angle < OVER_SHAFT_MAX_DEG:
+        return "over-shaft"
+    return "clear"
 
 
 def _confidence_classes(rows: list[dict[str, Any]], edges: tuple[float, ...]) -> list[dict[str, Any]]:
@@ -125,21 +170,24 @@ def _classes(rows: list[dict[str, Any]], key: str, edges: tuple[float, ...]) -> 
     lo = 0.0
     for hi in edges:
         sel = [r for r in rows if r.get(key) is not None and lo <= r[key] < hi]
-        found = [r for r in sel if r["found"]]
-        errs = [e for r in found if r["landmark_mm"] is not None for e in r["landmark_mm"]]
-        out.append(
-            {
-                key: [lo, None if math.isinf(hi) else hi],
-                "positives": len(sel),
-                "dice_mean": float(np.mean([r["dice"] for r in sel])) if sel else None,
-                "found_rate": len(found) / len(sel) if sel else None,
-                "landmark_mm_mean": float(np.mean(errs)) if errs else None,
-                "landmark_mm_median": float(np.median(errs)) if errs else None,
-                "landmark_gross": sum(e > GROSS_ERROR_MM for e in errs),
-            }
-        )
+        out.append({key: [lo, None if math.isinf(hi) else hi]} | _group(sel))
         lo = hi
     return out
+
+
+def _group(sel: list[dict[str, Any]]) -> dict[str, Any]:
+    """Dice, found rate and landmark figures (mm at the detector) of a group of positives (rows of
+    :func:`evaluate`'s per-sample records)."""
+    found = [r for r in sel if r["found"]]
+    errs = [e for r in found if r["landmark_mm"] is not None for e in r["landmark_mm"]]
+    return {
+        "positives": len(sel),
+        "dice_mean": float(np.mean([r["dice"] for r in sel])) if sel else None,
+        "found_rate": len(found) / len(sel) if sel else None,
+        "landmark_mm_mean": float(np.mean(errs)) if errs else None,
+        "landmark_mm_median": float(np.median(errs)) if errs else None,
+        "landmark_gross": sum(e > GROSS_ERROR_MM for e in errs),
+    }
 
 
 def evaluate(
@@ -166,7 +214,8 @@ def evaluate(
     image: ``id``, ``positive``, ``found``, ``usable`` (:attr:`Detection.usable`), ``confidence``
     (A, B), ``detect_ms`` and, on positives, ``dice``, ``ab_px`` / ``ab_mm`` (the true projected A–B
     distance), ``shaft_mm`` (the true projected length of the mounting shaft, :func:`projected_shaft_mm`;
-    None where unknown) and, where found, ``landmark_px`` / ``landmark_mm`` (A, B errors). mm values
+    None where unknown), ``shaft_angle_deg`` (:func:`shaft_angle_deg`; None where unknown), ``view``
+    (:func:`view_kind`) and, where found, ``landmark_px`` / ``landmark_mm`` (A, B errors). mm values
     are None where the record has no pixel spacing.
     """
     if field_frac is not None and not 0.0 < field_frac <= 1.0:
@@ -209,6 +258,8 @@ def evaluate(
                 ab_px = float(np.linalg.norm(s.landmarks_px[1] - s.landmarks_px[0]))
                 row |= {"dice": dices[-1], "ab_px": ab_px, "ab_mm": None if sp is None else ab_px * sp}
                 row["shaft_mm"] = projected_shaft_mm(rec, shaft_length_mm)
+                row["shaft_angle_deg"] = shaft_angle_deg(rec, s.landmarks_px, shaft_length_mm)
+                row["view"] = view_kind(row["ab_mm"], row["shaft_angle_deg"])
                 row |= {"landmark_px": None, "landmark_mm": None}
                 if det.found and det.landmarks_px is not None:
                     found_pos += 1
@@ -242,6 +293,7 @@ def evaluate(
         "by_projected_ab": _classes(positives, "ab_mm", AB_CLASS_EDGES_MM),
         "by_projected_shaft": _classes(positives, "shaft_mm", SHAFT_CLASS_EDGES_MM),
         "by_landmark_confidence": _confidence_classes(positives, CONFIDENCE_CLASS_EDGES),
+        "by_view": [{"view": k} | _group([r for r in positives if r["view"] == k]) for k in VIEW_KINDS],
         "found_rate": found_pos / n_pos if n_pos else None,
         "false_positive_rate": found_neg / n_neg if n_neg else None,
         "detect_ms": _stats([1e3 * x for x in seconds]),
