@@ -118,6 +118,33 @@ def test_dihedral_tta_maps_every_transform_back(tta: int) -> None:
         )
 
 
+@pytest.mark.parametrize(("sure_confidence", "last_tta"), [(0.0, 2), (1.01, None)])
+def test_sure_first_pass_sets_the_last_pass_tta(sure_confidence: float, last_tta: int | None) -> None:
+    # fine_sure_tta applies to the last pass only, and only after a pass sure of both landmarks: with
+    # the bound at 0 every pass is sure, above 1 none is (the last pass then takes fine_tta)
+    img = drawn_cm()[0]
+    cfg = dataclasses.replace(TINY, fine_tta=8, fine_sure_tta=2, fine_sure_confidence=sure_confidence)
+    net = DetectorNet(cfg)
+    net.coarse, net.fine = IntensityOracle(), IntensityOracle()
+    det = Detector(net, device="cpu")
+    calls: list[tuple[int, int | None]] = []
+    fine_views = det.fine_views
+
+    def spy(image: np.ndarray, views: list, *, tta: int | None = None, **kw: object) -> tuple:
+        calls.append((len(views), tta))
+        return fine_views(image, views, tta=tta, **kw)  # type: ignore[arg-type]
+
+    det.fine_views = spy  # type: ignore[method-assign]
+    res = det.detect(img)
+    assert res.found
+    first, last = calls[0], calls[1]
+    assert first == (1, 8)  # the first pass: one view, fine_tta (fine_first_tta unset)
+    assert last == (len(cfg.fine_scales), last_tta)
+    with pytest.raises(ValueError, match="fine_sure_tta"):
+        DetectorConfig(fine_sure_tta=3)
+    assert DetectorConfig.from_dict({}).fine_sure_tta is None  # files before it: fine_tta always
+
+
 def test_fine_scales_map_every_scaled_view_back() -> None:
     # an equivariant stage run on ROIs 0.8×–1.25× the size (other pixel grids and sizes) must give
     # the single-scale landmarks and mask: a scaled view mapped back with the wrong window would not

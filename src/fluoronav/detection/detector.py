@@ -973,7 +973,8 @@ class Detector:
         (rows, cols) bool at the input size and the last pass's ROI (at scale 1).
 
         Each pass but the last refits the ROI to its result; the last runs on the ROI scaled by each of
-        ``fine_scales`` in one batch (median landmarks and confidences, mean logits). While a pass's mask
+        ``fine_scales`` in one batch (median landmarks and confidences, mean logits), with
+        ``fine_sure_tta`` transforms where the pass before it was sure of both landmarks. While a pass's mask
         reaches the edge of its ROI inside the image (the CM goes on beyond it: the coarse stage found
         only part of it), passes are added, up to ``fine_max_passes`` in all, each on a ROI refitted
         to the larger mask.
@@ -983,8 +984,10 @@ class Detector:
         first_tta = cfg.fine_tta if cfg.fine_first_tta is None else cfg.fine_first_tta
         spare = max(cfg.fine_max_passes - max(cfg.fine_passes, 1), 0)
         remaining = max(cfg.fine_passes, 1) - 1  # single passes before the last
+        sure = False  # whether the pass before the last was sure of both landmarks
         while remaining > 0:
             f_logit, f_pts, f_conf = self.fine(image, view, tta=first_tta)
+            sure = bool(np.all(f_conf >= cfg.fine_sure_confidence))
             refit = self._refit(image, view, f_logit, f_pts, f_conf)
             if refit is None:
                 break
@@ -994,7 +997,8 @@ class Detector:
                 spare, remaining = spare - 1, remaining + 1
         while True:
             views = [_scaled_view(view, f) for f in cfg.fine_scales]
-            logits, pts, confs = self.fine_views(image, views)
+            tta = cfg.fine_sure_tta if sure and cfg.fine_sure_tta is not None else None
+            logits, pts, confs = self.fine_views(image, views, tta=tta)
             f_pts, f_conf = np.median(pts, axis=0), np.median(confs, axis=0)
             if spare > 0:
                 # the view of the scale nearest 1 decides whether the CM goes on beyond the ROI
@@ -1003,6 +1007,7 @@ class Detector:
                 if refit is not None and refit[1]:
                     spare -= 1
                     view = refit[0]
+                    sure = bool(np.all(f_conf >= cfg.fine_sure_confidence))
                     continue
             mask = self._mask_at_input(
                 logits, views, image.shape, thr_logit, f_pts, join_frac=cfg.mask_join_frac

@@ -85,6 +85,12 @@ class DetectorConfig:
             files with the older ``fine_flip_tta`` flag read it as 2 (True) or 1.
         fine_first_tta: the dihedral transforms of the fine passes before the last (they only place
             the last pass's ROI); None: ``fine_tta``.
+        fine_sure_tta: the dihedral transforms of the last fine pass where the pass before it was
+            sure of both landmarks (confidences ≥ ``fine_sure_confidence``); None: ``fine_tta``
+            always. Averaging over more transforms matters for ambiguous views; a sure view pays
+            for them in time only.
+        fine_sure_confidence: the landmark confidence from which a pass counts as sure for
+            ``fine_sure_tta``.
         fine_scales: ROI side multipliers of the last fine pass (inference only; ``(1.0,)``: the
             ROI alone). Each scaled ROI (same centre) is run in the same batch; the landmarks are
             the median over the scales, the mask logits their mean on the input grid. Different
@@ -259,6 +265,8 @@ class DetectorConfig:
     fine_max_passes: int = 0
     fine_tta: int = 8
     fine_first_tta: int | None = None
+    fine_sure_tta: int | None = None
+    fine_sure_confidence: float = 0.6
     fine_scales: tuple[float, ...] = (1.0,)
     fine_min_separation_px: float = 0.0
     fine_support_px: float = 0.0
@@ -318,9 +326,9 @@ class DetectorConfig:
     def __post_init__(self) -> None:
         if not set(self.bf16_stages) <= set(STAGES):
             raise ValueError(f"bf16_stages must be names from {STAGES}, got {self.bf16_stages}")
-        for name in ("fine_tta", "fine_first_tta"):
+        for name in ("fine_tta", "fine_first_tta", "fine_sure_tta"):
             value = getattr(self, name)
-            if value not in (1, 2, 4, 8) and not (name == "fine_first_tta" and value is None):
+            if value not in (1, 2, 4, 8) and not (name != "fine_tta" and value is None):
                 raise ValueError(f"{name} must be 1, 2, 4 or 8, got {value}")
         if self.fine_max_passes < 0:
             raise ValueError(f"fine_max_passes must be 0 or more, got {self.fine_max_passes}")
