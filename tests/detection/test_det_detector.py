@@ -143,6 +143,8 @@ def test_sure_first_pass_sets_the_last_pass_tta(sure_confidence: float, last_tta
     with pytest.raises(ValueError, match="fine_sure_tta"):
         DetectorConfig(fine_sure_tta=3)
     assert DetectorConfig.from_dict({}).fine_sure_tta is None  # files before it: fine_tta always
+    with pytest.raises(ValueError, match="fine_sure_confidence"):
+        DetectorConfig(fine_sure_confidence=float("nan"))
 
 
 def test_fine_scales_map_every_scaled_view_back() -> None:

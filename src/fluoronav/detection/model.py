@@ -330,6 +330,8 @@ class DetectorConfig:
             value = getattr(self, name)
             if value not in (1, 2, 4, 8) and not (name != "fine_tta" and value is None):
                 raise ValueError(f"{name} must be 1, 2, 4 or 8, got {value}")
+        if not self.fine_sure_confidence >= 0.0:
+            raise ValueError(f"fine_sure_confidence must be 0 or more, got {self.fine_sure_confidence}")
         if self.fine_max_passes < 0:
             raise ValueError(f"fine_max_passes must be 0 or more, got {self.fine_max_passes}")
         if not self.fine_scales or not all(0.25 <= float(f) <= 4.0 for f in self.fine_scales):
