@@ -11,7 +11,11 @@ import json
 from pathlib import Path
 
 import numpy as np
+import torch
 from scipy import ndimage
+
+from fluoronav.detection.model import DetectorConfig
+from fluoronav.detection.train import TrainConfig, train
 
 
 def arc_polar(shape: tuple[int, int], centre: np.ndarray, mid_angle: float) -> tuple[np.ndarray, np.ndarray]:
@@ -106,3 +110,16 @@ def write_dataset(root: Path, n: int, *, size: int = 128, seed: int = 0, negativ
                 + "\n"
             )
     return root
+
+
+def first_tiny_model(
+    tmp_path: Path, model_config: DetectorConfig
+) -> tuple[Path, TrainConfig, Path, dict[str, torch.Tensor]]:
+    """The common start of the stage-training tests: a set of 8 synthetic 128² images (2 negatives),
+    two-step training settings, a ``model_config`` model trained with them (coarse and fine stages)
+    and that model's weights: (data, settings, model file, state dict)."""
+    data = write_dataset(tmp_path / "data", 8, size=128, seed=5, negative_every=4)
+    cfg = TrainConfig(epochs=1, batch_size=2, max_steps_per_epoch=2, device="cpu", val_fraction=0.3, seed=1)
+    first = tmp_path / "first.pt"
+    train(data, first, config=cfg, model_config=model_config, progress=False)
+    return data, cfg, first, torch.load(first, weights_only=True)["state_dict"]

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from det_synthetic import write_dataset
+from det_synthetic import first_tiny_model
 
 from fluoronav.detection.dataset import RefineDataset
 from fluoronav.detection.detector import Detector
@@ -192,11 +192,7 @@ TINY = DetectorConfig(input_size=32, roi_size=32, channels=(4, 8, 16), roi_chann
 
 
 def test_training_the_refinement_stage_adds_it_and_leaves_the_others(tmp_path: Path) -> None:
-    data = write_dataset(tmp_path / "data", 8, size=128, seed=5, negative_every=4)
-    cfg = TrainConfig(epochs=1, batch_size=2, max_steps_per_epoch=2, device="cpu", val_fraction=0.3, seed=1)
-    first = tmp_path / "first.pt"
-    train(data, first, config=cfg, model_config=TINY, progress=False)
-    w0 = torch.load(first, weights_only=True)["state_dict"]
+    data, cfg, first, w0 = first_tiny_model(tmp_path, TINY)
     assert Detector.load(first, device="cpu").net.refine is None
 
     out = tmp_path / "refined.pt"

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from det_synthetic import write_dataset
+from det_synthetic import first_tiny_model
 
 import fluoronav.detection.detector as detector_module
 from fluoronav.detection.dataset import StripDataset
@@ -28,7 +28,7 @@ from fluoronav.detection.strip import (
     v_apex,
     window_probability,
 )
-from fluoronav.detection.train import TrainConfig, sidecar_path, train
+from fluoronav.detection.train import sidecar_path, train
 
 TINY = DetectorConfig(input_size=32, roi_size=32, channels=(4, 8, 16), roi_channels=(4, 8, 16))
 
@@ -165,11 +165,7 @@ def test_settings_are_validated_and_the_stage_is_off_by_default() -> None:
 
 
 def test_training_the_strip_stage_adds_it_and_leaves_the_others(tmp_path: Path) -> None:
-    data = write_dataset(tmp_path / "data", 8, size=128, seed=5, negative_every=4)
-    cfg = TrainConfig(epochs=1, batch_size=2, max_steps_per_epoch=2, device="cpu", val_fraction=0.3, seed=1)
-    first = tmp_path / "first.pt"
-    train(data, first, config=cfg, model_config=TINY, progress=False)
-    w0 = torch.load(first, weights_only=True)["state_dict"]
+    data, cfg, first, w0 = first_tiny_model(tmp_path, TINY)
     out = tmp_path / "strip.pt"
     m = train(data, out, config=dataclasses.replace(cfg, stages=("strip",)), init=first, progress=False)
     assert np.isfinite(m["val_loss"]) and 0.0 <= m["val_a_missed"] <= 1.0
