@@ -44,6 +44,10 @@ from fluoronav.cli.main import main
             ],
             "needs a shaft",
         ),
+        (
+            ["simulate", "--n", "1", "--out", "x", "--max-shaft-angle-deg", "60", "--shaft-length-mm", "0"],
+            "max_shaft_angle_deg needs a shaft",
+        ),
     ],
 )
 def test_usage_error_is_short(args: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:

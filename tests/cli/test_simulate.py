@@ -33,6 +33,7 @@ def test_help_documents_every_option() -> None:
         "--phantoms",
         "--max-projected-ab-mm",
         "--max-shaft-mm",
+        "--max-shaft-angle-deg",
         "--shaft-length-mm",
         "--device",
     ):

@@ -15,7 +15,9 @@ from fluoronav.simulation.dataset import DatasetSpec
 from fluoronav.simulation.scene import (
     BONE_HU,
     SceneSampling,
+    angle_between_deg,
     projected_ab_mm,
+    projected_shaft_angle_deg,
     projected_shaft_mm,
     sample_scene,
 )
@@ -151,3 +153,40 @@ def test_shaft_sampling_keeps_only_short_shafts(phantom: Volume) -> None:
         SceneSampling(max_projected_shaft_mm=0.0)
     with pytest.raises(ValueError, match="max_projected_ab_mm must be positive"):
         SceneSampling(max_projected_ab_mm=-1.0)
+
+
+def test_angle_between_deg_by_hand() -> None:
+    assert angle_between_deg(np.array([1.0, 0.0]), np.array([0.0, 2.0])) == pytest.approx(90.0)
+    assert angle_between_deg(np.array([1.0, 0.0]), np.array([-3.0, 0.0])) == pytest.approx(180.0)
+    assert angle_between_deg(np.array([1.0, 1.0]), np.array([1.0, 0.0])) == pytest.approx(45.0)
+    tilted = np.array([0.0, 1.0, np.sqrt(3.0)])
+    assert angle_between_deg(np.array([0.0, 0.0, 1.0]), tilted) == pytest.approx(30.0)
+    assert np.isnan(angle_between_deg(np.zeros(2), np.array([1.0, 0.0])))
+
+
+def test_shaft_angle_sampling_keeps_only_v_views(phantom: Volume) -> None:
+    # a straight CM goes on from A where its shaft ends: the two meet at ~180° in any view that
+    # does not see them end-on (a 27 mm CM and a 50 mm shaft on one line)
+    for k in range(4):
+        s = sample_scene(phantom, np.random.default_rng(k))
+        straight = dataclasses.replace(s, control_points_deg=np.zeros(5))
+        if projected_ab_mm(straight) > 10.0:
+            assert projected_shaft_angle_deg(straight, 50.0) == pytest.approx(180.0, abs=0.5)
+    rngs = [np.random.default_rng(k) for k in range(60)]
+    plain = [projected_shaft_angle_deg(sample_scene(phantom, rng), 50.0) for rng in rngs]
+    assert np.median(plain) > 130  # the paper's distribution: mostly the shaft behind the CM
+    v_views = SceneSampling(max_shaft_angle_deg=70.0)
+    kept = [sample_scene(phantom, np.random.default_rng(k), sampling=v_views) for k in range(8)]
+    angles = [projected_shaft_angle_deg(s, 50.0) for s in kept]
+    assert max(angles) <= 70.0
+    a = sample_scene(phantom, np.random.default_rng(5), sampling=v_views)
+    b = sample_scene(phantom, np.random.default_rng(5), sampling=v_views)
+    np.testing.assert_array_equal(a.world_from_cm, b.world_from_cm)
+    with pytest.raises(ValueError, match="max_shaft_angle_deg needs a shaft"):
+        SceneSampling(max_shaft_angle_deg=70.0, shaft_length_mm=0.0)
+    with pytest.raises(ValueError, match=r"max_shaft_angle_deg must be in \(0, 180\]"):
+        DatasetSpec(max_shaft_angle_deg=200.0)
+    with pytest.raises(ValueError, match=r"max_shaft_angle_deg=0\.01"):
+        sample_scene(
+            phantom, np.random.default_rng(0), sampling=SceneSampling(max_shaft_angle_deg=0.01, max_draws=20)
+        )

@@ -44,6 +44,15 @@ def register(app: typer.Typer) -> None:
             "(mm; the 50 mm shaft across the view projects ~110 mm): the shaft seen nearly along its "
             "axis, a short stub at the CM's base. For training sets rich in hard views.",
         ),
+        max_shaft_angle_deg: float = typer.Option(
+            None,
+            "--max-shaft-angle-deg",
+            min=0.1,
+            max=180.0,
+            help="Keep only views where the CM's chord A-B and its mounting shaft meet at A at most "
+            "this angle on the detector (degrees; ~180 where the shaft goes on behind the CM, 20-70 a "
+            "V, under 35 the CM over its shaft). For training sets rich in hard views.",
+        ),
         shaft_length_mm: float = typer.Option(
             50.0,
             "--shaft-length-mm",
@@ -76,6 +85,7 @@ def register(app: typer.Typer) -> None:
                 max_projected_ab_mm=max_projected_ab_mm,
                 shaft_length_mm=shaft_length_mm,
                 max_projected_shaft_mm=max_projected_shaft_mm,
+                max_shaft_angle_deg=max_shaft_angle_deg,
             )
         except ValueError as exc:  # settings that contradict each other
             raise typer.BadParameter(str(exc)) from exc

@@ -37,6 +37,7 @@ from fluoronav.detection.dataset import (
     split_of,
 )
 from fluoronav.detection.detector import Detector
+from fluoronav.simulation.scene import angle_between_deg
 
 logger = logging.getLogger(__name__)
 
@@ -114,12 +115,9 @@ def shaft_angle_deg(record: dict[str, Any], landmarks_px: np.ndarray, shaft_leng
     segment = shaft_segment_px(record, shaft_length_mm)
     if segment is None:
         return None
-    chord = np.asarray(landmarks_px, dtype=np.float64)[1] - np.asarray(landmarks_px, dtype=np.float64)[0]
-    shaft = segment[1] - segment[0]
-    den = float(np.linalg.norm(chord) * np.linalg.norm(shaft))
-    if not den > 0.0:
-        return None
-    return math.degrees(math.acos(float(np.clip(chord @ shaft / den, -1.0, 1.0))))
+    lm = np.asarray(landmarks_px, dtype=np.float64)
+    angle = angle_between_deg(lm[1] - lm[0], segment[1] - segment[0])
+    return None if math.isnan(angle) else angle
 
 
 def view_kind(ab_mm: float | None, shaft_angle: float | None) -> str | None:

@@ -55,6 +55,9 @@ class DatasetSpec:
             this far apart on the detector (mm); None: the paper's distribution as it is.
         max_projected_shaft_mm: keep only views whose mounting shaft projects at most this long on
             the detector (mm; a shaft seen nearly along its axis); None: every view.
+        max_shaft_angle_deg: keep only views where the CM's chord A → B and its mounting shaft meet
+            at A at most this angle on the detector (degrees; ~180 where the shaft goes on behind
+            the CM, 20–70 a V, under 35 the CM over its shaft); None: every view.
         shaft_length_mm: length of the rigid tube the CM is mounted on
             (:attr:`SimulationConfig.shaft_length_mm`; 0: the bare CM). The default 50 mm tube ends
             in the field; a robot's shaft that runs out of the field is ~200 mm or more.
@@ -70,6 +73,7 @@ class DatasetSpec:
     max_projected_ab_mm: float | None = None
     shaft_length_mm: float = 50.0
     max_projected_shaft_mm: float | None = None
+    max_shaft_angle_deg: float | None = None
 
     def __post_init__(self) -> None:
         if not self.shaft_length_mm >= 0.0:
@@ -82,6 +86,7 @@ class DatasetSpec:
         return SceneSampling(
             max_projected_ab_mm=self.max_projected_ab_mm,
             max_projected_shaft_mm=self.max_projected_shaft_mm,
+            max_shaft_angle_deg=self.max_shaft_angle_deg,
             shaft_length_mm=self.shaft_length_mm,
         )
 

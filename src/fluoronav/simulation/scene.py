@@ -26,9 +26,11 @@ from fluoronav.manipulator.kinematics import CMKinematics
 __all__ = [
     "Scene",
     "SceneSampling",
+    "angle_between_deg",
     "cm_pose_along",
     "place_cm_in_bone",
     "projected_ab_mm",
+    "projected_shaft_angle_deg",
     "projected_shaft_mm",
     "sample_scene",
 ]
@@ -61,7 +63,13 @@ class SceneSampling:
     #: its axis is a short bright stub at A that a detector can take for part of the CM (2–3 % of
     #: the paper's views project it shorter than 30 mm); a training set can hold more of them.
     max_projected_shaft_mm: float | None = None
-    #: length of the mounting shaft that ``max_projected_shaft_mm`` measures, mm
+    #: keep only scenes where the CM's chord A → B and its mounting shaft (A → the far end) meet at
+    #: A at most this angle on the detector, degrees (None: every scene). The shaft goes on behind
+    #: the CM (~180°) in most views; at 20–70° the two tubes form a V at A, under 35° the CM lies
+    #: over its shaft, and a detector can run the CM's mask down the shaft and put A on its far end.
+    max_shaft_angle_deg: float | None = None
+    #: length of the mounting shaft that ``max_projected_shaft_mm`` and ``max_shaft_angle_deg``
+    #: measure, mm
     shaft_length_mm: float = 50.0
     #: draws allowed to find a scene within the limits above before giving up
     max_draws: int = 10_000
@@ -71,8 +79,12 @@ class SceneSampling:
             limit = getattr(self, name)
             if limit is not None and not limit > 0:
                 raise ValueError(f"{name} must be positive, got {limit}")
-        if self.max_projected_shaft_mm is not None and not self.shaft_length_mm > 0:
-            raise ValueError("max_projected_shaft_mm needs a shaft (shaft_length_mm > 0)")
+        for name in ("max_projected_shaft_mm", "max_shaft_angle_deg"):
+            if getattr(self, name) is not None and not self.shaft_length_mm > 0:
+                raise ValueError(f"{name} needs a shaft (shaft_length_mm > 0)")
+        angle = self.max_shaft_angle_deg
+        if angle is not None and not 0.0 < angle <= 180.0:
+            raise ValueError(f"max_shaft_angle_deg must be in (0, 180], got {angle}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,25 +185,31 @@ def sample_scene(
 ) -> Scene:
     """Sample one scene with the paper's data set distribution (see module docstring).
 
-    With ``sampling.max_projected_ab_mm`` (``max_projected_shaft_mm``) set, scenes are drawn until
-    the projected A–B distance (the projected shaft) is within it (rejection sampling: the paper's
-    distribution restricted to foreshortened views of the CM, or of its shaft).
+    With ``sampling.max_projected_ab_mm`` (``max_projected_shaft_mm``, ``max_shaft_angle_deg``) set,
+    scenes are drawn until the projected A–B distance (the projected shaft, the angle between the
+    two, :func:`projected_shaft_angle_deg`) is within it (rejection sampling: the paper's
+    distribution restricted to foreshortened views of the CM or of its shaft, or to views where the
+    CM and its shaft form a V).
     """
     sampling = sampling or SceneSampling()
     cm_config = cm_config or CMConfig()
     ab_limit, shaft_limit = sampling.max_projected_ab_mm, sampling.max_projected_shaft_mm
-    if ab_limit is None and shaft_limit is None:
+    angle_limit = sampling.max_shaft_angle_deg
+    if ab_limit is None and shaft_limit is None and angle_limit is None:
         return _draw_scene(volume, rng, sampling, with_cm, cm_config)
     kin = CMKinematics(cm_config)
     for _ in range(sampling.max_draws):
         scene = _draw_scene(volume, rng, sampling, with_cm, cm_config)
         if shaft_limit is not None and projected_shaft_mm(scene, sampling.shaft_length_mm) > shaft_limit:
             continue
+        length_mm = sampling.shaft_length_mm
+        if angle_limit is not None and projected_shaft_angle_deg(scene, length_mm, kin) > angle_limit:
+            continue
         if ab_limit is None or projected_ab_mm(scene, kin) <= ab_limit:
             return scene
     raise ValueError(
-        f"no scene within max_projected_ab_mm={ab_limit}, max_projected_shaft_mm={shaft_limit} "
-        f"in {sampling.max_draws} draws"
+        f"no scene within max_projected_ab_mm={ab_limit}, max_projected_shaft_mm={shaft_limit}, "
+        f"max_shaft_angle_deg={angle_limit} in {sampling.max_draws} draws"
     )
 
 
@@ -206,6 +224,31 @@ def projected_shaft_mm(scene: Scene, shaft_length_mm: float) -> float:
     """Length on the detector (mm, at the detector plane) of the mounting shaft: the segment from
     the base origin A to ``shaft_length_mm`` behind it along the base axis (−z of the CM frame)."""
     return _projected_length_mm(scene, shaft_ends_cm(shaft_length_mm))
+
+
+def projected_shaft_angle_deg(
+    scene: Scene, shaft_length_mm: float, kinematics: CMKinematics | None = None
+) -> float:
+    """Angle (degrees, 0–180) at A on the detector between the CM's chord A → B and its mounting
+    shaft (A → ``shaft_length_mm`` behind it along the base axis): near 180 where the shaft goes on
+    behind the CM, small where the CM lies over it (NaN where either projects
+    to a point)."""
+    kin = kinematics or CMKinematics(scene.cm_config)
+    ab_cm = kin.landmarks_cm(torch.as_tensor(np.asarray(scene.control_points_deg, dtype=np.float64)))
+    points_cm = np.vstack([ab_cm.numpy(), shaft_ends_cm(shaft_length_mm)[1:]])
+    w = scene.world_from_cm
+    uv = np.asarray(scene.camera.project(points_cm @ w[:3, :3].T + w[:3, 3]), dtype=np.float64)
+    return angle_between_deg(uv[1] - uv[0], uv[2] - uv[0])
+
+
+def angle_between_deg(u: np.ndarray, v: np.ndarray) -> float:
+    """Angle (degrees, 0–180) between two vectors (2-D or 3-D); NaN where either has no length."""
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    den = float(np.linalg.norm(u) * np.linalg.norm(v))
+    if not den > 0.0:
+        return math.nan
+    return math.degrees(math.acos(float(np.clip(u @ v / den, -1.0, 1.0))))
 
 
 def shaft_ends_cm(shaft_length_mm: float) -> np.ndarray:
