@@ -266,6 +266,13 @@ def test_evaluate_splits_positives_by_projected_shaft(tmp_path: Path) -> None:
     for v in views:
         inside = [r for r in pos if r["view"] == v["view"]]
         assert v["positives"] == len(inside) and v["landmark_gross"] == len(inside)
+    # by angle: the two views with a shaft direction, in the class of their own angle
+    angles = summary["by_shaft_angle"]
+    assert [c["shaft_angle_deg"] for c in angles] == [[0.0, 35.0], [35.0, 55.0], [55.0, 90.0], [90.0, None]]
+    with_angle = [r["shaft_angle_deg"] for r in pos if r["shaft_angle_deg"] is not None]
+    assert with_angle == pytest.approx([78.4, 132.8], abs=0.1)  # the synthetic set's two B's
+    assert [c["positives"] for c in angles] == [0, 0, 1, 1]
+    assert [c["landmark_gross"] for c in angles] == [0, 0, 1, 1]
 
 
 # the shaft of _SHAFT_POSES[0] runs from A at (42, 32) to (−8, 32) px (along −u); B placed by hand

@@ -86,6 +86,10 @@ OVER_SHAFT_MAX_DEG = 35.0
 #: the view classes of the summary, in its order (:func:`view_kind`)
 VIEW_KINDS = ("clear", "end-on", "over-shaft")
 
+#: upper edges (degrees, :func:`shaft_angle_deg`) of the shaft-angle classes of the summary: the CM
+#: over its shaft, a V of the two at A, a wide V, and the shaft going on behind the CM
+SHAFT_ANGLE_CLASS_EDGES_DEG = (OVER_SHAFT_MAX_DEG, 55.0, 90.0, math.inf)
+
 
 #: upper edges of the landmark-confidence classes of the summary: each found landmark by its own
 #: confidence (the heatmap's peak mass; unsure, middling, sure)
@@ -292,6 +296,7 @@ def evaluate(
         "by_projected_shaft": _classes(positives, "shaft_mm", SHAFT_CLASS_EDGES_MM),
         "by_landmark_confidence": _confidence_classes(positives, CONFIDENCE_CLASS_EDGES),
         "by_view": [{"view": k} | _group([r for r in positives if r["view"] == k]) for k in VIEW_KINDS],
+        "by_shaft_angle": _classes(positives, "shaft_angle_deg", SHAFT_ANGLE_CLASS_EDGES_DEG),
         "found_rate": found_pos / n_pos if n_pos else None,
         "false_positive_rate": found_neg / n_neg if n_neg else None,
         "detect_ms": _stats([1e3 * x for x in seconds]),
