@@ -37,7 +37,7 @@ from fluoronav.detection.strip import StripJitter, training_strip
 from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
 from fluoronav.errors import InputError
 from fluoronav.geometry.camera import Camera
-from fluoronav.simulation.scene import shaft_ends_cm
+from fluoronav.simulation.scene import project_cm_points, shaft_ends_cm
 
 logger = logging.getLogger(__name__)
 
@@ -121,8 +121,7 @@ def shaft_segment_px(record: dict, shaft_length_mm: float) -> np.ndarray | None:
         return None
     if world_from_cm.shape != (4, 4):
         return None
-    ends_world = shaft_ends_cm(shaft_length_mm) @ world_from_cm[:3, :3].T + world_from_cm[:3, 3]
-    return np.asarray(camera.project(ends_world), dtype=np.float64)
+    return project_cm_points(camera, world_from_cm, shaft_ends_cm(shaft_length_mm))
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ __all__ = [
     "angle_between_deg",
     "cm_pose_along",
     "place_cm_in_bone",
+    "project_cm_points",
     "projected_ab_mm",
     "projected_shaft_angle_deg",
     "projected_shaft_mm",
@@ -198,11 +199,11 @@ def sample_scene(
     if ab_limit is None and shaft_limit is None and angle_limit is None:
         return _draw_scene(volume, rng, sampling, with_cm, cm_config)
     kin = CMKinematics(cm_config)
+    length_mm = sampling.shaft_length_mm
     for _ in range(sampling.max_draws):
         scene = _draw_scene(volume, rng, sampling, with_cm, cm_config)
-        if shaft_limit is not None and projected_shaft_mm(scene, sampling.shaft_length_mm) > shaft_limit:
+        if shaft_limit is not None and projected_shaft_mm(scene, length_mm) > shaft_limit:
             continue
-        length_mm = sampling.shaft_length_mm
         if angle_limit is not None and projected_shaft_angle_deg(scene, length_mm, kin) > angle_limit:
             continue
         if ab_limit is None or projected_ab_mm(scene, kin) <= ab_limit:
@@ -231,13 +232,11 @@ def projected_shaft_angle_deg(
 ) -> float:
     """Angle (degrees, 0–180) at A on the detector between the CM's chord A → B and its mounting
     shaft (A → ``shaft_length_mm`` behind it along the base axis): near 180 where the shaft goes on
-    behind the CM, small where the CM lies over it (NaN where either projects
-    to a point)."""
+    behind the CM, small where the CM lies over it (NaN where either projects to a point)."""
     kin = kinematics or CMKinematics(scene.cm_config)
     ab_cm = kin.landmarks_cm(torch.as_tensor(np.asarray(scene.control_points_deg, dtype=np.float64)))
     points_cm = np.vstack([ab_cm.numpy(), shaft_ends_cm(shaft_length_mm)[1:]])
-    w = scene.world_from_cm
-    uv = np.asarray(scene.camera.project(points_cm @ w[:3, :3].T + w[:3, 3]), dtype=np.float64)
+    uv = project_cm_points(scene.camera, scene.world_from_cm, points_cm)
     return angle_between_deg(uv[1] - uv[0], uv[2] - uv[0])
 
 
@@ -259,11 +258,17 @@ def shaft_ends_cm(shaft_length_mm: float) -> np.ndarray:
 def projected_length_mm(camera: Camera, world_from_cm: np.ndarray, ends_cm: np.ndarray) -> float:
     """Distance on the detector (mm, at the detector plane) between the projections of two points
     (2, 3) given in the CM's base frame, posed by ``world_from_cm`` (4, 4) and seen by ``camera``."""
-    ends_world = ends_cm @ world_from_cm[:3, :3].T + world_from_cm[:3, 3]
-    uv = camera.project(ends_world)
+    uv = project_cm_points(camera, world_from_cm, ends_cm)
     if camera.pixel_spacing_mm is None:
         raise ValueError("the camera has no pixel spacing")
     return float(np.linalg.norm(uv[1] - uv[0]) * camera.pixel_spacing_mm)
+
+
+def project_cm_points(camera: Camera, world_from_cm: np.ndarray, points_cm: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) (u, v) of points (N, 3) given in the CM's base frame, posed by
+    ``world_from_cm`` (4, 4) and seen by ``camera``."""
+    w = np.asarray(world_from_cm, dtype=np.float64)
+    return camera.project(np.asarray(points_cm, dtype=np.float64) @ w[:3, :3].T + w[:3, 3])
 
 
 def _projected_length_mm(scene: Scene, ends_cm: np.ndarray) -> float:
