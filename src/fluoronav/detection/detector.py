@@ -997,7 +997,7 @@ class Detector:
                 spare, remaining = spare - 1, remaining + 1
         while True:
             views = [_scaled_view(view, f) for f in cfg.fine_scales]
-            tta = cfg.fine_sure_tta if sure and cfg.fine_sure_tta is not None else None
+            tta = cfg.fine_sure_tta if sure else None  # None: fine_tta
             logits, pts, confs = self.fine_views(image, views, tta=tta)
             f_pts, f_conf = np.median(pts, axis=0), np.median(confs, axis=0)
             if spare > 0:
