@@ -21,3 +21,10 @@ def resolve_device(name: str | torch.device = "auto") -> torch.device:
             raise InputError("--device", "CUDA was requested but no CUDA device is available")
         return torch.device(key)
     raise InputError("--device", f"unknown device {name!r}; use cpu, cuda or auto")
+
+
+def synchronize(device: str | torch.device) -> None:
+    """Wait for the work queued on ``device`` (a no-op on the CPU): timings of CUDA work need it."""
+    dev = resolve_device(device)
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)

@@ -63,3 +63,25 @@ def test_shipped_sidecar_describes_the_shipped_weights() -> None:
     sidecar = json.loads(shipped_model_path().with_suffix(".json").read_text(encoding="utf-8"))
     assert sidecar["config"] == json.loads(json.dumps(blob["config"]))
     assert sidecar["train"] == json.loads(json.dumps(blob["train"]))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_shipped_detector_on_cuda_matches_cpu() -> None:
+    # the same weights and decoding on the GPU: convolutions there may run in TF32, so a landmark
+    # may move by a small fraction of a pixel; a decision (found or not) must not change
+    sim = XraySimulator(hip_phantom(seed=9), config=SimulationConfig(image_size=512), device="cpu")
+    cpu, gpu = Detector.load(device="cpu"), Detector.load(device="cuda")
+    assert gpu.device.type == "cuda"
+    moved_px, mask_dices = [], []
+    for k in range(3):
+        rng = np.random.default_rng(5100 + k)
+        image = sim.simulate(sample_scene(sim.volume, rng, sampling=SceneSampling()), seed=k)
+        a = cpu.detect(image.image, pixel_spacing_mm=image.camera.pixel_spacing_mm)
+        b = gpu.detect(image.image, pixel_spacing_mm=image.camera.pixel_spacing_mm)
+        assert a.found == b.found
+        if a.found:
+            moved_px.extend(np.linalg.norm(b.landmarks_px - a.landmarks_px, axis=1))
+            mask_dices.append(dice_score(b.mask, a.mask))
+    assert moved_px and np.median(moved_px) <= 0.1, moved_px
+    assert np.min(mask_dices) >= 0.98, mask_dices

@@ -85,6 +85,26 @@ def test_similarity_is_minimal_at_the_true_pose(single_case) -> None:
         assert cost[0] > cost[6] + 0.05 and cost[-1] > cost[6] + 0.05
 
 
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_objective_on_cuda_matches_cpu(single_case) -> None:
+    # the whole population in one call on each device: the same costs (float32 similarity)
+    case = single_case
+    level = LevelConfig(sigma=CM_SIGMA, downsample=4, stride=5)
+    costs = []
+    for device in ("cpu", "cuda"):
+        prob = CMProblem(
+            case.views,
+            initial_world_from_cm=case.initial_world_from_cm,
+            initial_control_points_deg=case.initial_control_points_deg,
+            config=CMRegistrationConfig(levels=(level,), device=device),
+        )
+        x_true = prob.params_for(case.world_from_cm_true, case.control_points_true_deg)
+        X = x_true[None] + np.random.default_rng(0).normal(0.0, 0.5, (16, x_true.size))
+        costs.append(np.asarray(prob.registration.objective(level)(X)))
+    np.testing.assert_allclose(costs[1], costs[0], rtol=0, atol=1e-3)
+
+
 def _tip_px_error_full(result, case, k: int = 0) -> float:
     """Distance between the projected registered and true tips in view k, full-detector pixels."""
     v = case.views[k]

@@ -56,7 +56,9 @@ def test_monoenergetic_noise_free_equals_renderer_line_integral(phantom: Volume)
     # reference: one μ volume (1/mm) from the same decomposition, through the CT renderer
     parts = decompose_hu(phantom.data)
     mu = sum(parts[m] * float(mass_attenuation(m, np.array([energy]))[0]) for m in CT_MATERIALS if m != "air")
-    renderer = CTRenderer(phantom.replace(data=(mu / 10.0).astype(np.float32), labels=None), mipmap=False)
+    renderer = CTRenderer(
+        phantom.replace(data=(mu / 10.0).astype(np.float32), labels=None), device="cpu", mipmap=False
+    )
     ref = renderer.render([simulator.stored_camera(scene)])[0].numpy()
     body = ref > 0.1
     assert body.mean() > 0.3  # the view sees the body

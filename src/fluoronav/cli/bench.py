@@ -12,15 +12,18 @@ import torch
 import typer
 
 from fluoronav import __version__
+from fluoronav.device import resolve_device
 
 log = logging.getLogger(__name__)
 
-#: stages that provide ``fluoronav.<stage>.bench.run(quick: bool) -> dict[str, float]``
+#: stages that provide ``fluoronav.<stage>.bench.run(quick: bool, device: str) -> dict[str, float]``
 BENCH_STAGES = ("rendering", "simulation", "detection", "registration")
 
 
-def collect(*, quick: bool = False, only: list[str] | None = None) -> dict[str, Any]:
-    """Run every stage's benchmarks and merge their figures into one dict."""
+def collect(*, quick: bool = False, only: list[str] | None = None, device: str = "cpu") -> dict[str, Any]:
+    """Run every stage's benchmarks on ``device`` (``cpu``, ``cuda`` or ``auto``) and merge their
+    figures into one dict; each figure's baseline runs on the same device."""
+    dev = str(resolve_device(device))
     figures: dict[str, Any] = {}
     for stage in BENCH_STAGES:
         if only and stage not in only:
@@ -31,13 +34,14 @@ def collect(*, quick: bool = False, only: list[str] | None = None) -> dict[str, 
             if exc.name == f"fluoronav.{stage}.bench":
                 continue
             raise
-        log.info("benchmarking %s", stage)
-        figures.update(module.run(quick=quick))
+        log.info("benchmarking %s on %s", stage, dev)
+        figures.update(module.run(quick=quick, device=dev))
     figures["machine"] = {
         "cpu_threads": torch.get_num_threads(),
         "platform": platform.platform(),
         "torch": torch.__version__,
         "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        "device": dev,
     }
     figures["version"] = __version__
     return figures
@@ -49,9 +53,12 @@ def register(app: typer.Typer) -> None:
         json_out: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
         quick: bool = typer.Option(False, "--quick", help="Fewer repeats (for smoke tests)."),
         only: list[str] = typer.Option(None, "--only", help="Benchmark only these stages."),
+        device: str = typer.Option(
+            "cpu", "--device", help="cpu, cuda or auto: where every figure and its baseline run."
+        ),
     ) -> None:
         """Measure speed figures (ms per DRR, samples/s, s per registration) against same-run baselines."""
-        figures = collect(quick=quick, only=only or None)
+        figures = collect(quick=quick, only=only or None, device=device)
         if json_out:
             typer.echo(json.dumps(figures))
             return

@@ -25,7 +25,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import logging
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -38,6 +37,7 @@ from fluoronav.detection.evidence import end_continuation, mask_edge_ratio
 from fluoronav.detection.model import DetectorConfig, DetectorNet
 from fluoronav.detection.strip import v_apex
 from fluoronav.detection.views import roi_view
+from fluoronav.rendering.bench import time_ms
 
 logger = logging.getLogger(__name__)
 
@@ -64,25 +64,16 @@ def _bench_image(size: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.n
             )
 
 
-def _median_ms(fn: Callable[[], object], repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
-
-
-def run(quick: bool = False) -> dict[str, float]:
-    """Median detection time (ms) of the detection pipeline and of the full-resolution baseline (and
-    of the pipeline in bfloat16 where this CPU runs it natively and the model names stages for it)."""
+def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
+    """Median detection time (ms) on ``device`` of the detection pipeline and of the full-resolution
+    baseline (and of the pipeline in bfloat16 where the device is a CPU that runs it natively and the
+    model names stages for it). The test image is simulated on the CPU either way."""
     if shipped_model_path().is_file():
         net, source = load_net(), str(shipped_model_path())
     else:
         torch.manual_seed(0)
         net, source = DetectorNet(DetectorConfig()), "random weights"
-    det = Detector(net, device="cpu", source=source)
+    det = Detector(net, device=device, source=source)
     cfg = det.config
     image, mask, ends, spacing_mm = _bench_image(1536)
     vv, uu = np.nonzero(mask)
@@ -117,19 +108,22 @@ def run(quick: bool = False) -> dict[str, float]:
     def baseline() -> None:
         from fluoronav.detection.views import normalize_intensity
 
-        x = torch.from_numpy(normalize_intensity(image))[None, None]
+        x = torch.from_numpy(normalize_intensity(image))[None, None].to(det.device)
         k = 2 ** (len(cfg.channels) - 1)
         pad = (-x.shape[-1]) % k
         with torch.no_grad():
             det.net.coarse(tnf.pad(x, (0, pad, 0, pad), mode="replicate"))
 
+    def _median_ms(fn: Callable[[], object], repeats: int) -> float:
+        return time_ms(fn, repeats=repeats, device=device)
+
     repeats = 3 if quick else 10
     ms = _median_ms(pipeline, repeats)
     ms_baseline = _median_ms(baseline, 1 if quick else 3)
     out = {"detect_ms": ms, "detect_ms_baseline": ms_baseline, "detect_ms_speedup": ms_baseline / ms}
-    if cfg.bf16_stages and native_bf16():
+    if cfg.bf16_stages and det.device.type == "cpu" and native_bf16():
         # from the trained networks: a bfloat16 stage keeps its batch norms
-        fast = Detector(net, device="cpu", precision="bfloat16", source=source)
+        fast = Detector(net, device=device, precision="bfloat16", source=source)
         ms_fast = _median_ms(lambda: pipeline(fast), repeats)
         out |= {
             "detect_bfloat16_ms": ms_fast,

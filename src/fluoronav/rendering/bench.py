@@ -1,7 +1,8 @@
 """Rendering benchmarks (``fluoronav bench``): each ``run_*`` returns CONTRACTS keys with baselines.
 
-Add a renderer's benchmark by writing ``run_<name>(quick: bool) -> dict[str, float]`` here and
-appending it to :data:`BENCHMARKS`; :func:`run` merges them all.
+Add a renderer's benchmark by writing ``run_<name>(quick: bool, device: str) -> dict[str, float]``
+here and appending it to :data:`BENCHMARKS`; :func:`run` merges them all. Each figure and its
+baseline run on the same device (``fluoronav bench --device``).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from fluoronav.anatomy.volume import Volume
+from fluoronav.device import synchronize
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.carm import carm_camera_from_world
 
@@ -22,14 +24,17 @@ __all__ = ["BENCHMARKS", "bench_camera", "bench_volume", "run", "run_ct", "time_
 logger = logging.getLogger(__name__)
 
 
-def time_ms(fn: Callable[[], object], *, repeats: int, warmup: int = 1) -> float:
-    """Median wall time of ``fn()`` in ms over ``repeats`` calls after ``warmup`` untimed calls."""
+def time_ms(fn: Callable[[], object], *, repeats: int, warmup: int = 1, device: str = "cpu") -> float:
+    """Median wall time of ``fn()`` in ms over ``repeats`` calls after ``warmup`` untimed calls
+    (each call waits for the work it queued on ``device``)."""
     for _ in range(warmup):
         fn()
+    synchronize(device)
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
         fn()
+        synchronize(device)
         times.append((time.perf_counter() - t) * 1e3)
     return float(statistics.median(times))
 
@@ -90,23 +95,24 @@ def bench_camera(
     return Camera(size, size, K, T, pixel_mm)
 
 
-def run_ct(quick: bool) -> dict[str, float]:
-    """``ct_drr_128_ms``: 128×128 DRR of a 512×512×133 float32 volume (0.7×0.7×2 mm) on the CPU
-    (numba, default step and mipmap, volume and mipmap prepared beforehand), median after
-    warm-up/compilation; ``ct_drr_128_ms_baseline``: the plain torch grid_sample ray march at
-    1-voxel (0.7 mm) steps on the full-resolution volume, same camera, same run.
-    ``ct_drr_128_ms_nomipmap`` is the numba kernel at 1-voxel steps without the mipmap."""
+def run_ct(quick: bool, device: str = "cpu") -> dict[str, float]:
+    """``ct_drr_128_ms``: 128×128 DRR of a 512×512×133 float32 volume (0.7×0.7×2 mm) on ``device``
+    (the renderer's default backend there: numba on the CPU, torch on CUDA; default step and
+    mipmap, volume and mipmap prepared beforehand), median after warm-up/compilation;
+    ``ct_drr_128_ms_baseline``: the plain torch grid_sample ray march at 1-voxel (0.7 mm) steps on
+    the full-resolution volume, same camera, same device, same run. ``ct_drr_128_ms_nomipmap`` is
+    the default backend at its default step without the mipmap."""
     from fluoronav.rendering.ct import CTRenderer
 
     volume = bench_volume()
     camera = bench_camera(volume)
     repeats = 5 if quick else 15
-    fast = CTRenderer(volume, device="cpu", backend="numba")
-    full = CTRenderer(volume, device="cpu", backend="numba", mipmap=False)
-    base = CTRenderer(volume, device="cpu", backend="torch", mipmap=False, step_mm=min(volume.spacing_mm))
-    ms = time_ms(lambda: fast.render([camera]), repeats=repeats, warmup=2)
-    ms_full = time_ms(lambda: full.render([camera]), repeats=repeats, warmup=1)
-    ms_base = time_ms(lambda: base.render([camera]), repeats=1 if quick else 3, warmup=1)
+    fast = CTRenderer(volume, device=device)
+    full = CTRenderer(volume, device=device, mipmap=False)
+    base = CTRenderer(volume, device=device, backend="torch", mipmap=False, step_mm=min(volume.spacing_mm))
+    ms = time_ms(lambda: fast.render([camera]), repeats=repeats, warmup=2, device=device)
+    ms_full = time_ms(lambda: full.render([camera]), repeats=repeats, warmup=1, device=device)
+    ms_base = time_ms(lambda: base.render([camera]), repeats=1 if quick else 3, warmup=1, device=device)
     # the two renders agree (sanity, not timed): mipmapping preserves the line integrals
     a, b = fast.render([camera]), base.render([camera])
     rel = float((a - b).abs().max() / b.abs().max())
@@ -127,10 +133,10 @@ def run_ct(quick: bool) -> dict[str, float]:
 
 
 #: every rendering benchmark; :func:`run` calls each in turn (plus those of :func:`_optional_benchmarks`)
-BENCHMARKS: list[Callable[[bool], dict[str, float]]] = [run_ct]
+BENCHMARKS: list[Callable[[bool, str], dict[str, float]]] = [run_ct]
 
 
-def _optional_benchmarks() -> list[Callable[[bool], dict[str, float]]]:
+def _optional_benchmarks() -> list[Callable[[bool, str], dict[str, float]]]:
     """Benchmarks living in sibling modules, when those modules are installed."""
     try:
         from fluoronav.rendering.bench_cm import run_cm
@@ -141,13 +147,13 @@ def _optional_benchmarks() -> list[Callable[[bool], dict[str, float]]]:
     return [run_cm]
 
 
-def run(quick: bool) -> dict[str, float]:
-    """All rendering benchmarks merged into one dict (each benchmark function runs once)."""
+def run(quick: bool, device: str = "cpu") -> dict[str, float]:
+    """All rendering benchmarks on ``device`` merged into one dict (each benchmark function runs once)."""
     results: dict[str, float] = {}
-    done: set[Callable[[bool], dict[str, float]]] = set()
+    done: set[Callable[[bool, str], dict[str, float]]] = set()
     for bench in [*BENCHMARKS, *_optional_benchmarks()]:
         if bench in done:
             continue
         done.add(bench)
-        results.update(bench(quick))
+        results.update(bench(quick, device))
     return results

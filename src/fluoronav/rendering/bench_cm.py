@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -15,6 +14,7 @@ from fluoronav.geometry.rotations import rotvec_to_matrix
 from fluoronav.geometry.transforms import transform_from_params
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.rendering.bench import time_ms
 from fluoronav.rendering.cm import CMRenderer
 
 __all__ = ["cm_benchmark_scene", "run_cm"]
@@ -61,42 +61,40 @@ def cm_benchmark_scene(
     return camera, camera_from_cm, cp
 
 
-def _time_ms(fn: Callable[[], object], repeats: int) -> float:
-    fn()  # warm-up (numba compile / cache load, allocator)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1000.0 * float(np.median(times))
+def run_cm(quick: bool, device: str = "cpu") -> dict[str, float]:
+    """Time the analytic CM DRR of a 50-candidate population at 128×128 on ``device``.
 
-
-def run_cm(quick: bool) -> dict[str, float]:
-    """Time the analytic CM DRR of a 50-candidate population at 128×128.
-
-    Returns ``cm_drr_128_ms_per_candidate`` (numba ROI renderer, CPU) and, measured in the same run,
+    Returns ``cm_drr_128_ms_per_candidate`` (the ROI renderer: numba on the CPU, the torch backend
+    in float64 on CUDA) and, measured in the same run on the same device,
     ``cm_drr_128_ms_per_candidate_baseline`` (the same kernel evaluating every pixel for every link,
-    i.e. without the projected-box ROI) and ``cm_drr_128_ms_per_candidate_speedup``.
+    i.e. without the projected-box ROI) and ``cm_drr_128_ms_per_candidate_speedup``. On the CPU the
+    torch backend's time is logged beside them.
     """
     camera, camera_from_cm, cp = cm_benchmark_scene()
     K = torch.tensor(camera.K)[None]
     B = cp.shape[0]
-    fast = CMRenderer(mu_per_mm=_MU_NITINOL_PER_MM, backend="numba")
-    tiled = CMRenderer(mu_per_mm=_MU_NITINOL_PER_MM, backend="torch")
+    fast = CMRenderer(mu_per_mm=_MU_NITINOL_PER_MM, device=device)
     rows, cols = camera.rows, camera.cols
-    fast_ms = _time_ms(lambda: fast.render(camera_from_cm, cp, K, rows, cols), 5 if quick else 30)
-    base_ms = _time_ms(lambda: fast.render(camera_from_cm, cp, K, rows, cols, roi=False), 2 if quick else 5)
-    torch_ms = _time_ms(lambda: tiled.render(camera_from_cm, cp, K, rows, cols), 1 if quick else 3)
+
+    def timed(fn: Callable[[], object], repeats: int) -> float:
+        return time_ms(fn, repeats=repeats, device=device)
+
+    fast_ms = timed(lambda: fast.render(camera_from_cm, cp, K, rows, cols), 5 if quick else 30)
+    base_ms = timed(lambda: fast.render(camera_from_cm, cp, K, rows, cols, roi=False), 2 if quick else 5)
     logger.info(
-        "CM DRR %dx%d, %d candidates: %.2f ms (ROI numba), %.2f ms (every pixel, numba), "
-        "%.2f ms (ROI torch float64 on CPU)",
+        "CM DRR %dx%d, %d candidates on %s (%s backend): %.2f ms ROI, %.2f ms every pixel",
         rows,
         cols,
         B,
+        device,
+        fast.backend,
         fast_ms,
         base_ms,
-        torch_ms,
     )
+    if fast.backend == "numba":
+        tiled = CMRenderer(mu_per_mm=_MU_NITINOL_PER_MM, backend="torch")
+        torch_ms = timed(lambda: tiled.render(camera_from_cm, cp, K, rows, cols), 1 if quick else 3)
+        logger.info("CM DRR, the ROI torch backend in float64 on the CPU: %.2f ms", torch_ms)
     return {
         "cm_drr_128_ms_per_candidate": fast_ms / B,
         "cm_drr_128_ms_per_candidate_baseline": base_ms / B,

@@ -50,11 +50,11 @@ def _rate(sim: XraySimulator, scenes: list, *, seed: int) -> tuple[float, float]
     return n / (time.perf_counter() - t0), (time.process_time() - c0) / n
 
 
-def _workers_rate(n: int, workers: int) -> float:
+def _workers_rate(n: int, workers: int, device: str) -> float:
     from fluoronav.simulation.dataset import DatasetSpec, simulate_dataset
 
     stamps: list[float] = []
-    spec = DatasetSpec(n_phantoms=1, seed=12345)
+    spec = DatasetSpec(n_phantoms=1, seed=12345, device=device)
     with tempfile.TemporaryDirectory(prefix="fluoronav-bench-") as tmp:
         simulate_dataset(
             Path(tmp),
@@ -69,15 +69,16 @@ def _workers_rate(n: int, workers: int) -> float:
     return (len(stamps) - workers) / (stamps[-1] - stamps[workers - 1])
 
 
-def run(quick: bool = False) -> dict[str, float]:
-    """Measure the simulation throughput and its baseline (see the module docstring)."""
+def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
+    """Measure the simulation throughput and its baseline on ``device`` (see the module docstring;
+    on CUDA the workers share the one GPU)."""
     n = 3 if quick else 6
     volume = hip_phantom(seed=0)
     rng = np.random.default_rng(2024)
     scenes = [sample_scene(volume, rng) for _ in range(n)]
-    fast, fast_cpu = _rate(XraySimulator(volume, config=SimulationConfig()), scenes, seed=1)
-    base, base_cpu = _rate(XraySimulator(volume, config=BASELINE_CONFIG), scenes, seed=1)
-    workers = _workers_rate(6 if quick else 12, 2)
+    fast, fast_cpu = _rate(XraySimulator(volume, config=SimulationConfig(), device=device), scenes, seed=1)
+    base, base_cpu = _rate(XraySimulator(volume, config=BASELINE_CONFIG, device=device), scenes, seed=1)
+    workers = _workers_rate(6 if quick else 12, 2, device)
     headline = max(fast, workers) if np.isfinite(workers) else fast
     log.info("simulate: %.3f samples/s in process, %.3f with 2 workers, baseline %.3f", fast, workers, base)
     return {
