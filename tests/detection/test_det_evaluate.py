@@ -19,6 +19,7 @@ from fluoronav.detection.evaluate import (
     _confidence_classes,
     dice_score,
     evaluate,
+    evaluate_sets,
     projected_shaft_mm,
     shaft_angle_deg,
     view_kind,
@@ -95,9 +96,10 @@ class _KnownErrors(Detector):
     """Returns each positive's true mask and landmarks with A moved by (6, 8) px (10 px = 5 mm at the
     synthetic set's 0.5 mm pixels); finds nothing in the images listed in ``miss`` (by order)."""
 
-    def __init__(self, data: Path, miss: set[int]) -> None:
+    def __init__(self, data: Path | list[Path], miss: set[int]) -> None:
         super().__init__(empty_net(), device="cpu")
-        self.samples = [load_sample(data, r) for r in read_manifest(data)]
+        sets = data if isinstance(data, list) else [data]
+        self.samples = [load_sample(d, r) for d in sets for r in read_manifest(d)]
         self.miss = miss
         self.calls = 0
 
@@ -157,6 +159,48 @@ def test_evaluate_per_sample_records_and_foreshortening_classes(tmp_path: Path) 
         ]
     )
     assert len(cli_rows.read_text().splitlines()) == 9
+
+
+def test_evaluate_sets_gives_each_set_and_the_pooled_figures(tmp_path: Path) -> None:
+    a = write_dataset(tmp_path / "a", 9, size=64, seed=3, negative_every=3)
+    b = write_dataset(tmp_path / "b", 4, size=64, seed=5, negative_every=2)
+    per_sample = tmp_path / "rows.jsonl"
+    # image 1 of set a is missed; set b's images come after a's 9
+    both = evaluate_sets(
+        _KnownErrors([a, b], miss={1}), [a, b], split="all", progress=False, per_sample=per_sample
+    )
+    alone = [evaluate(_KnownErrors(a, miss={1}), a, split="all", progress=False)]
+    alone.append(evaluate(_KnownErrors(b, miss=set()), b, split="all", progress=False))
+    for got, want in zip(both["sets"], alone, strict=True):
+        assert {k: v for k, v in got.items() if k != "detect_ms"} == {
+            k: v for k, v in want.items() if k != "detect_ms"
+        }
+    pooled = both["pooled"]
+    assert pooled["data"] == [str(a), str(b)] and pooled["samples"] == 13
+    assert pooled["positives"] == 6 + 2 and pooled["negatives"] == 3 + 2
+    assert pooled["found_rate"] == pytest.approx(7 / 8)
+    # every found A is 5 mm off, every B exact: 7 gross of 14 landmarks, mean 2.5 mm
+    assert pooled["landmark_gross"] == {"threshold_mm": 3.0, "count": 7, "of": 14}
+    assert pooled["landmark_mm"]["mean"] == pytest.approx(2.5)
+    dices = [d for s in alone for d in [s["dice"]["mean"]] * s["positives"]]
+    assert pooled["dice"]["mean"] == pytest.approx(np.mean(dices))
+    rows = [json.loads(line) for line in per_sample.read_text().splitlines()]
+    assert [r["data"] for r in rows] == [str(a)] * 9 + [str(b)] * 4
+    assert [r["id"] for r in rows[9:]] == [str(r["id"]) for r in read_manifest(b)]
+
+
+def test_evaluate_command_pools_repeated_data(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    a = write_dataset(tmp_path / "a", 3, size=64, seed=3, negative_every=3)
+    b = write_dataset(tmp_path / "b", 2, size=64, seed=5, negative_every=2)
+    model = tmp_path / "m.pt"
+    save_model(model, empty_net(), extra={})
+    args = ["evaluate", "--model", str(model), "--split", "all", "--device", "cpu", "--no-progress"]
+    main([*args, "--data", str(a), "--data", str(b)])
+    summary = json.loads(capsys.readouterr().out)
+    assert [s["data"] for s in summary["sets"]] == [str(a), str(b)]
+    assert summary["pooled"]["samples"] == 5
+    main([*args, "--data", str(a)])  # one set: evaluate's summary, as before
+    assert json.loads(capsys.readouterr().out)["data"] == str(a)
 
 
 def test_evaluate_refuses_an_unwritable_output_before_scoring(

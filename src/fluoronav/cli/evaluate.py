@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -11,7 +12,14 @@ from fluoronav.cli.common import DEVICE_OPTION, PRECISION_OPTION
 
 
 def evaluate_command(
-    data: Path = typer.Option(..., "--data", help="Data set directory written by `fluoronav simulate`."),
+    data: list[Path] = typer.Option(
+        ...,
+        "--data",
+        help=(
+            "Data set directory written by `fluoronav simulate`. Repeat it to score several sets: the "
+            "summary then holds each set's figures and those of all their images pooled."
+        ),
+    ),
     model: Path | None = typer.Option(None, "--model", help="Model file (default: the shipped weights)."),
     out: Path | None = typer.Option(None, "--out", help="Write the summary JSON here."),
     split: str = typer.Option("val", "--split", help="train, val (held out by id hash) or all."),
@@ -30,9 +38,10 @@ def evaluate_command(
         help="Also write one JSON line per image here as it is scored (errors, Dice, confidences).",
     ),
 ) -> None:
-    """Dice, landmark error (px, mm), found rate and false-positive rate of a detector."""
+    """Dice, landmark error (px, mm), found rate and false-positive rate of a detector on one or more
+    data sets (several: each set's figures and the pooled ones)."""
     from fluoronav.detection.detector import Detector
-    from fluoronav.detection.evaluate import evaluate
+    from fluoronav.detection.evaluate import evaluate, evaluate_sets
     from fluoronav.errors import InputError
 
     if split not in ("train", "val", "all"):
@@ -55,14 +64,16 @@ def evaluate_command(
                 if exc.filename is not None and Path(exc.filename) != path:
                     why = f"{exc.filename}: {why}"
                 raise InputError(path, f"cannot write here ({why})") from exc
-    summary = evaluate(
-        Detector.load(model, device=device, precision=precision),
-        data,
-        split=split,
-        progress=progress,
-        field_frac=field_frac,
-        seed=seed,
-        per_sample=per_sample,
+    detector = Detector.load(model, device=device, precision=precision)
+    options: dict[str, Any] = {
+        "split": split,
+        "progress": progress,
+        "field_frac": field_frac,
+        "seed": seed,
+        "per_sample": per_sample,
+    }
+    summary = (
+        evaluate(detector, data[0], **options) if len(data) == 1 else evaluate_sets(detector, data, **options)
     )
     text = json.dumps(summary, indent=1)
     if out is not None:

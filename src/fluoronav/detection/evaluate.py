@@ -22,8 +22,9 @@ import json
 import logging
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 from tqdm import tqdm
@@ -192,6 +193,92 @@ def _group(sel: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def _score(
+    detector: Detector,
+    data_dir: str | Path,
+    *,
+    split: str,
+    val_fraction: float,
+    progress: bool,
+    field_frac: float | None,
+    seed: int,
+    sink: TextIO | None,
+    tag: dict[str, Any] | None = None,
+) -> list[dict[str, Any]]:
+    """One record per image of ``split`` (see :func:`evaluate`), each also written to ``sink`` with
+    ``tag``'s items first as it is scored."""
+    records = read_manifest(data_dir)
+    shaft_length_mm = shaft_length_of(data_dir)
+    if split != "all":
+        records = [r for r in records if split_of(str(r["id"]), val_fraction) == split]
+    rows: list[dict[str, Any]] = []
+    for i, rec in enumerate(tqdm(records, desc="evaluate", disable=not progress)):
+        s = load_sample(data_dir, rec)
+        if field_frac is not None:
+            rng = np.random.default_rng([seed, i])
+            s = collimate(s, rng, min_field_frac=field_frac, max_field_frac=field_frac)
+        t0 = time.perf_counter()
+        det = detector.detect(s.image, pixel_spacing_mm=s.pixel_spacing_mm)
+        seconds = time.perf_counter() - t0
+        sp = s.pixel_spacing_mm
+        row: dict[str, Any] = dict(tag or {}) | {
+            "id": s.id,
+            "positive": s.landmarks_px is not None,
+            "found": bool(det.found),
+            "usable": det.usable,
+            "confidence": [float(c) for c in det.landmark_confidence],
+            "detect_ms": 1e3 * seconds,
+        }
+        if s.landmarks_px is not None:
+            dice = dice_score(det.mask, s.mask) if det.found else 0.0
+            ab_px = float(np.linalg.norm(s.landmarks_px[1] - s.landmarks_px[0]))
+            row |= {"dice": dice, "ab_px": ab_px, "ab_mm": None if sp is None else ab_px * sp}
+            row["shaft_mm"] = projected_shaft_mm(rec, shaft_length_mm)
+            row["shaft_angle_deg"] = shaft_angle_deg(rec, s.landmarks_px, shaft_length_mm)
+            row["view"] = view_kind(row["ab_mm"], row["shaft_angle_deg"])
+            row |= {"landmark_px": None, "landmark_mm": None}
+            if det.found and det.landmarks_px is not None:
+                e = np.linalg.norm(det.landmarks_px - s.landmarks_px, axis=1)
+                row["landmark_px"] = e.tolist()
+                if sp is not None:
+                    row["landmark_mm"] = (e * sp).tolist()
+        rows.append(row)
+        if sink is not None:
+            sink.write(json.dumps(row) + "\n")
+            sink.flush()
+    return rows
+
+
+def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The accuracy figures of :func:`evaluate` from its per-image records (``positives`` …
+    ``detect_ms``): records of several data sets pool into one summary."""
+    positives = [r for r in rows if r["positive"]]
+    negatives = [r for r in rows if not r["positive"]]
+    found = [r for r in positives if r["landmark_px"] is not None]
+    err_px = [e for r in found for e in r["landmark_px"]]
+    err_mm = [e for r in found if r["landmark_mm"] is not None for e in r["landmark_mm"]]
+    return {
+        "positives": len(positives),
+        "negatives": len(negatives),
+        "dice": _stats([r["dice"] for r in positives]),
+        "landmark_px": _stats(err_px),
+        "landmark_mm": _stats(err_mm),
+        "landmark_gross": {
+            "threshold_mm": GROSS_ERROR_MM,
+            "count": int(np.sum(np.asarray(err_mm) > GROSS_ERROR_MM)),
+            "of": len(err_mm),
+        },
+        "by_projected_ab": _classes(positives, "ab_mm", AB_CLASS_EDGES_MM),
+        "by_projected_shaft": _classes(positives, "shaft_mm", SHAFT_CLASS_EDGES_MM),
+        "by_landmark_confidence": _confidence_classes(positives, CONFIDENCE_CLASS_EDGES),
+        "by_view": [{"view": k} | _group([r for r in positives if r["view"] == k]) for k in VIEW_KINDS],
+        "by_shaft_angle": _classes(positives, "shaft_angle_deg", SHAFT_ANGLE_CLASS_EDGES_DEG),
+        "found_rate": len(found) / len(positives) if positives else None,
+        "false_positive_rate": sum(r["found"] for r in negatives) / len(negatives) if negatives else None,
+        "detect_ms": _stats([r["detect_ms"] for r in rows]),
+    }
+
+
 def evaluate(
     detector: Detector,
     data_dir: str | Path,
@@ -220,88 +307,71 @@ def evaluate(
     (:func:`view_kind`) and, where found, ``landmark_px`` / ``landmark_mm`` (A, B errors). mm values
     are None where the record has no pixel spacing.
     """
+    summaries = evaluate_sets(
+        detector,
+        [data_dir],
+        split=split,
+        val_fraction=val_fraction,
+        progress=progress,
+        field_frac=field_frac,
+        seed=seed,
+        per_sample=per_sample,
+    )
+    return summaries["sets"][0]
+
+
+def evaluate_sets(
+    detector: Detector,
+    data_dirs: Sequence[str | Path],
+    *,
+    split: str = "val",
+    val_fraction: float = 1 / 11,
+    progress: bool = True,
+    field_frac: float | None = None,
+    seed: int = 0,
+    per_sample: str | Path | None = None,
+) -> dict[str, Any]:
+    """:func:`evaluate` on each of several data sets in turn, and on all their images pooled.
+
+    Returns ``{"sets": [summary of each set, as evaluate], "pooled": summary}``; the pooled summary
+    has ``data`` (the list of sets) and the figures of :func:`summarize` over every image. With
+    several sets each ``per_sample`` record starts with ``data`` (its set's directory); with one set
+    the records are :func:`evaluate`'s. ``field_frac`` fields are placed per set, as evaluate places
+    them.
+    """
     if field_frac is not None and not 0.0 < field_frac <= 1.0:
         raise ValueError(f"field_frac must be in (0, 1], got {field_frac}")
-    records = read_manifest(data_dir)
-    shaft_length_mm = shaft_length_of(data_dir)
-    if split != "all":
-        records = [r for r in records if split_of(str(r["id"]), val_fraction) == split]
-    dices, err_px, err_mm, seconds = [], [], [], []
-    positives: list[dict[str, Any]] = []
-    n_pos = n_neg = found_pos = found_neg = 0
-    sink = None
-    if per_sample is not None:
-        Path(per_sample).parent.mkdir(parents=True, exist_ok=True)
-        sink = open(per_sample, "w", encoding="utf-8")  # noqa: SIM115 (closed in the finally below)
-    try:
-        for i, rec in enumerate(tqdm(records, desc="evaluate", disable=not progress)):
-            s = load_sample(data_dir, rec)
-            if field_frac is not None:
-                rng = np.random.default_rng([seed, i])
-                s = collimate(s, rng, min_field_frac=field_frac, max_field_frac=field_frac)
-            t0 = time.perf_counter()
-            det = detector.detect(s.image, pixel_spacing_mm=s.pixel_spacing_mm)
-            seconds.append(time.perf_counter() - t0)
-            sp = s.pixel_spacing_mm
-            row: dict[str, Any] = {
-                "id": s.id,
-                "positive": s.landmarks_px is not None,
-                "found": bool(det.found),
-                "usable": det.usable,
-                "confidence": [float(c) for c in det.landmark_confidence],
-                "detect_ms": 1e3 * seconds[-1],
-            }
-            if s.landmarks_px is None:
-                n_neg += 1
-                found_neg += int(det.found)
-            else:
-                n_pos += 1
-                dices.append(dice_score(det.mask, s.mask) if det.found else 0.0)
-                ab_px = float(np.linalg.norm(s.landmarks_px[1] - s.landmarks_px[0]))
-                row |= {"dice": dices[-1], "ab_px": ab_px, "ab_mm": None if sp is None else ab_px * sp}
-                row["shaft_mm"] = projected_shaft_mm(rec, shaft_length_mm)
-                row["shaft_angle_deg"] = shaft_angle_deg(rec, s.landmarks_px, shaft_length_mm)
-                row["view"] = view_kind(row["ab_mm"], row["shaft_angle_deg"])
-                row |= {"landmark_px": None, "landmark_mm": None}
-                if det.found and det.landmarks_px is not None:
-                    found_pos += 1
-                    e = np.linalg.norm(det.landmarks_px - s.landmarks_px, axis=1)
-                    err_px.extend(e.tolist())
-                    row["landmark_px"] = e.tolist()
-                    if sp is not None:
-                        err_mm.extend((e * sp).tolist())
-                        row["landmark_mm"] = (e * sp).tolist()
-                positives.append(row)
-            if sink is not None:
-                sink.write(json.dumps(row) + "\n")
-                sink.flush()
-    finally:
-        if sink is not None:
-            sink.close()
-    return {
-        "data": str(data_dir),
-        "split": split,
-        "samples": len(records),
-        "positives": n_pos,
-        "negatives": n_neg,
-        "dice": _stats(dices),
-        "landmark_px": _stats(err_px),
-        "landmark_mm": _stats(err_mm),
-        "landmark_gross": {
-            "threshold_mm": GROSS_ERROR_MM,
-            "count": int(np.sum(np.asarray(err_mm) > GROSS_ERROR_MM)),
-            "of": len(err_mm),
-        },
-        "by_projected_ab": _classes(positives, "ab_mm", AB_CLASS_EDGES_MM),
-        "by_projected_shaft": _classes(positives, "shaft_mm", SHAFT_CLASS_EDGES_MM),
-        "by_landmark_confidence": _confidence_classes(positives, CONFIDENCE_CLASS_EDGES),
-        "by_view": [{"view": k} | _group([r for r in positives if r["view"] == k]) for k in VIEW_KINDS],
-        "by_shaft_angle": _classes(positives, "shaft_angle_deg", SHAFT_ANGLE_CLASS_EDGES_DEG),
-        "found_rate": found_pos / n_pos if n_pos else None,
-        "false_positive_rate": found_neg / n_neg if n_neg else None,
-        "detect_ms": _stats([1e3 * x for x in seconds]),
+    if not data_dirs:
+        raise ValueError("no data set to evaluate")
+    meta = {
         "field_frac": field_frac,
         "seed": seed if field_frac is not None else None,
         "model": detector.source,
         "precision": detector.precision,
     }
+    sink = None
+    if per_sample is not None:
+        Path(per_sample).parent.mkdir(parents=True, exist_ok=True)
+        sink = open(per_sample, "w", encoding="utf-8")  # noqa: SIM115 (closed in the finally below)
+    sets, everything = [], []
+    try:
+        for data_dir in data_dirs:
+            rows = _score(
+                detector,
+                data_dir,
+                split=split,
+                val_fraction=val_fraction,
+                progress=progress,
+                field_frac=field_frac,
+                seed=seed,
+                sink=sink,
+                tag={"data": str(data_dir)} if len(data_dirs) > 1 else None,
+            )
+            everything.extend(rows)
+            head = {"data": str(data_dir), "split": split, "samples": len(rows)}
+            sets.append(head | summarize(rows) | meta)
+    finally:
+        if sink is not None:
+            sink.close()
+    pooled = {"data": [str(d) for d in data_dirs], "split": split, "samples": len(everything)}
+    return {"sets": sets, "pooled": pooled | summarize(everything) | meta}
