@@ -16,12 +16,19 @@ def test_bench_records_its_device() -> None:
     assert figures["machine"]["device"] == "cpu"
 
 
-def test_bench_refuses_an_unknown_device(capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--only", "rendering", "--device", "tpu"], "unknown device 'tpu'"),
+        (["--only", "detect"], "--only: unknown stage 'detect'; use rendering, simulation, detection"),
+    ],
+)
+def test_bench_refuses_bad_options(args: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exc:
-        main(["bench", "--only", "rendering", "--device", "tpu"])
+        main(["bench", *args])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "unknown device 'tpu'" in err
+    assert err.count("\n") == 0 and message in err
 
 
 @pytest.mark.cuda

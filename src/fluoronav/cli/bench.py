@@ -13,6 +13,7 @@ import typer
 
 from fluoronav import __version__
 from fluoronav.device import resolve_device
+from fluoronav.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -52,12 +53,17 @@ def register(app: typer.Typer) -> None:
     def bench(
         json_out: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
         quick: bool = typer.Option(False, "--quick", help="Fewer repeats (for smoke tests)."),
-        only: list[str] = typer.Option(None, "--only", help="Benchmark only these stages."),
+        only: list[str] = typer.Option(
+            None, "--only", help=f"Benchmark only these stages (of {', '.join(BENCH_STAGES)})."
+        ),
         device: str = typer.Option(
             "cpu", "--device", help="cpu, cuda or auto: where every figure and its baseline run."
         ),
     ) -> None:
         """Measure speed figures (ms per DRR, samples/s, s per registration) against same-run baselines."""
+        unknown = sorted(set(only or ()) - set(BENCH_STAGES))
+        if unknown:
+            raise InputError("--only", f"unknown stage {unknown[0]!r}; use {', '.join(BENCH_STAGES)}")
         figures = collect(quick=quick, only=only or None, device=device)
         if json_out:
             typer.echo(json.dumps(figures))
@@ -65,7 +71,7 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
         from rich.table import Table
 
-        table = Table(title=f"fluoronav {__version__} benchmarks")
+        table = Table(title=f"fluoronav {__version__} benchmarks on {figures['machine']['device']}")
         for col in ("figure", "value", "baseline", "speed-up"):
             table.add_column(col, justify="right" if col != "figure" else "left")
         for key, value in figures.items():
