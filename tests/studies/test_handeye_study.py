@@ -140,6 +140,55 @@ def test_recentre_slides_the_c_arm_without_rotating_it() -> None:
     np.testing.assert_allclose(moved.source_world - cam.source_world, target - from_world, atol=1e-9)
 
 
+def test_centre_on_puts_the_point_on_the_central_ray_at_its_depth() -> None:
+    from fluoronav.geometry.carm import carm_camera
+    from fluoronav.studies.handeye_study import centre_on
+
+    cam = carm_camera(source_to_isocenter_mm=450.0, isocenter_world=(10.0, -20.0, 30.0))
+    uv0 = np.array([(cam.cols - 1) / 2.0, (cam.rows - 1) / 2.0])
+    target = np.array([40.0, -5.0, 60.0])  # off the central ray: it projects away from the centre
+    assert np.linalg.norm(cam.project(target[None])[0] - uv0) > 50.0
+    moved = centre_on(cam, target)
+    np.testing.assert_allclose(moved.camera_from_world[:3, :3], cam.camera_from_world[:3, :3])
+    np.testing.assert_allclose(moved.project(target[None])[0], uv0, atol=1e-9)
+    assert moved.to_camera(target)[2] == pytest.approx(cam.to_camera(target)[2], abs=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_navigation_views_see_the_cm_and_the_femoral_head(seed: int) -> None:
+    """The demo's C-arm views (AP, orbits of +20° and −15° about the centred point): centred on
+    :func:`working_view_centre` they see A, B and the tip of the working CM with the femoral head
+    near the centre; slid to centre the femoral head and the planned CM they see the CM at the
+    plan. Until stop 50 one C-arm position served both, and the planned CM fell outside the field in
+    most scenarios."""
+    from fluoronav.geometry import orbit_camera
+    from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
+    from fluoronav.studies.handeye_study import _in_view, centre_on, working_view_centre
+
+    sc = sample_handeye_scenario(_volume(), np.random.default_rng(seed), n_poses=0)
+    tr = sc.trial
+    kin = CMKinematics(sc.cm_config)
+    cp = torch.as_tensor(sc.control_points_deg, dtype=torch.float64)
+    pts = np.concatenate([kin.landmarks_cm(cp).numpy(), kin.tip_cm(cp).numpy()[None]])
+    femur_from_cm = planned_femur_from_cm(
+        neck_entry_plan(tr.entry_ct, tr.femoral_head_ct, sc.control_points_deg), kinematics=kin
+    )
+    planned = tr.world_from_femur @ femur_from_cm
+    head = np.asarray(tr.femoral_head_world)
+    plan_centre = (planned @ np.array([0.0, 0.0, 15.0, 1.0]))[:3]
+
+    def views(centre: np.ndarray) -> list:
+        ap = centre_on(sc.camera, centre)
+        return [ap] + [orbit_camera(ap, angle_deg=a, isocenter_world=centre) for a in (20.0, -15.0)]
+
+    for cam in views(working_view_centre(tr)):
+        assert _in_view(cam, sc.true_world_from_cm(sc.q_work_deg), pts, 20.0)
+        centre_px = np.array([(cam.cols - 1) / 2.0, (cam.rows - 1) / 2.0])
+        assert np.linalg.norm(cam.project(head[None])[0] - centre_px) < 0.25 * cam.cols
+    for cam in views(0.5 * (head + plan_centre)):
+        assert _in_view(cam, planned, pts, 20.0)
+
+
 def test_navigation_needs_a_verification_view(tmp_path) -> None:
     from fluoronav.errors import InputError
     from fluoronav.studies.handeye_study import run_study
@@ -150,15 +199,16 @@ def test_navigation_needs_a_verification_view(tmp_path) -> None:
 
 @pytest.mark.slow
 def test_navigation_trial_corrects_from_a_recentred_multi_view_registration() -> None:
-    """A whole navigation trial (768², ~3 min): the corrective move (a slide of the tip) from the
-    re-centred 3-view registration lands within 1.5 mm of the plan (measured 0.69 mm on this seed
-    with 2 views; 2.06 mm at 384²), and the verification's own femur-relative CM error is below
-    1.5 mm."""
+    """A whole navigation trial (768², ~2.5 min): the verification (C-arm slid to the plan, 3 views,
+    bones and CM registered anew) sees how far the first move missed, and the corrective move (a
+    slide of the tip) from it lands within 1.5 mm of the plan, closer than the first move. Measured
+    on this seed (stop 50): first move 1.67 mm off, the verification saw 1.72 mm, corrected 0.14 mm;
+    the verification's femur-relative CM error 0.06 mm."""
     from fluoronav.studies.handeye_study import run_navigation_trial
 
     cfg = HandEyeStudyConfig(workflow="navigation", trials=1, seed=5305)
     row = run_navigation_trial(0, 5563968429960866729, cfg=cfg)
     assert row["status"] == "ok", row.get("reason")
-    assert row["reposition_registered_mm"] < 1.5
-    assert row["reposition_tip_mm"] < 1.5
+    assert abs(row["reposition_registered_mm"] - row["reposition_open_loop_mm"]) < 1.0
+    assert row["reposition_tip_mm"] < min(1.5, row["reposition_open_loop_mm"])
     assert row["verify_relative_mm"] < 1.5

@@ -19,9 +19,10 @@ Stages (each timed; every estimate is compared with the simulated truth at the e
    of documented error (``handeye_error_deg`` / ``_mm``).
 10. ``move``: the true robot (with its errors) moves; the true tip's distance to the plan is the
     repositioning error.
-11. ``verify``: new images at the reached pose from the same C-arm positions (the patient has not
-    moved), detection, multi-view CM registration started at the plan; the distance of the
-    registered tip from the plan is what the surgeon would be shown.
+11. ``verify``: the C-arm slid to centre the femoral head and the planned CM, new images at the
+    reached pose, detection, the pelvis (per view), the femur and the CM registered anew (the CM
+    from the plan); the distance of the registered tip from the plan is what the surgeon would be
+    shown.
 12. ``correct``: one corrective command from that registration (eqs. 7–8 again, from the reached
     joints) and its move: the closed loop that a single open-loop move lacks. A rotation error of the
     first registration is multiplied by the length of the first move; the correction is short.
@@ -235,9 +236,9 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     from fluoronav.registration.cm import CMRegistrationConfig, CMView, register_cm, register_cm_multistart
     from fluoronav.studies.handeye_study import (
         _perturb,
-        _work_and_plan_centres,
-        centre_between,
+        centre_on,
         sample_handeye_scenario,
+        working_view_centre,
     )
     from fluoronav.studies.metrics import axis_error_deg, cm_errors
     from fluoronav.studies.pipeline import _anatomy, multiview_start_poses
@@ -261,11 +262,10 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
         q_regi = sc.q_work_deg
         q_regi_actual = sc.error_model.actual_joints_deg(q_regi, rng=rng)
         W_regi = sc.true_world_from_cm(q_regi_actual)
-        # C-arm centred between the CM's working and planned poses: the CM is in view where it is
-        # registered and where it is sent (the field of view is ~130 mm at the isocentre)
-        work_c, plan_c, origin = _work_and_plan_centres(tr)
-        ap = centre_between(sc.camera, work_c, plan_c, origin)
-        iso = 0.5 * (work_c + plan_c)
+        # the CM, the neck and the acetabulum in view (the field of view is ~130 mm at the
+        # isocentre); the CM at the plan is imaged from a C-arm slid towards it (stage verify)
+        iso = working_view_centre(tr)
+        ap = centre_on(sc.camera, iso)
         cams_full = [ap] + [orbit_camera(ap, angle_deg=a, isocenter_world=iso) for a in cfg.orbit_deg]
         names = ["AP"] + [f"orbit {a:+g}°" for a in cfg.orbit_deg]
     D["views"] = names
@@ -280,8 +280,8 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     }
     A.update(scene=sc, cams_full=cams_full, names=names, W_regi=W_regi, kin=kin, q_regi_actual=q_regi_actual)
 
-    def simulate_views(world_from_cm: np.ndarray, seed: int) -> list[Any]:
-        """Physics X-rays of every demo view with the CM at ``world_from_cm`` (noise seed + view)."""
+    def simulate_views(world_from_cm: np.ndarray, seed: int, cams: list[Any]) -> list[Any]:
+        """Physics X-rays of ``cams``' views with the CM at ``world_from_cm`` (noise seed + view)."""
         return [
             simulator.simulate(
                 cam,
@@ -292,11 +292,11 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
                 image_size=cfg.image_size,
                 cm_config=sc.cm_config,
             )
-            for k, cam in enumerate(cams_full)
+            for k, cam in enumerate(cams)
         ]
 
     with stage("simulate"):
-        images = simulate_views(W_regi, int(seeds[1]))
+        images = simulate_views(W_regi, int(seeds[1]), cams_full)
     A["images"] = images
 
     with stage("detect"):
@@ -317,14 +317,17 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
 
     # ----- bones: pelvis per view → view geometry in the CT frame; femur in all views -------------
     # the CM and its shaft are left out of the bone similarity
-    views = views_from_images(
-        images,
-        instrument_masks(
-            [None if f is None else f["mask"] for f in found],
-            [None if f is None else f["centerline_px"] for f in found],
-            [im.image for im in images],
-        ),
-    )
+    def bone_views(images: list[Any], found: list[dict[str, Any] | None]) -> list[Any]:
+        return views_from_images(
+            images,
+            instrument_masks(
+                [None if f is None else f["mask"] for f in found],
+                [None if f is None else f["centerline_px"] for f in found],
+                [im.image for im in images],
+            ),
+        )
+
+    views = bone_views(images, found)
     with stage("pelvis"):
         pelvis = register_pelvis_per_view(
             views, volume, initial_world_from_patient=tr.initial_world_from_patient, seed=int(seeds[2])
@@ -433,31 +436,56 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     D["true"]["world_from_cm_after"] = W_after.tolist()
 
     with stage("verify"):
-        # the same C-arm positions (the patient has not moved, so the pelvis-estimated view geometry
-        # holds): one view cannot tell the CM's depth, and a correction that acts on a single-view
-        # depth error can make the tip worse (the demo's seed 0: 0.64 → 1.78 mm with the AP alone)
-        images2 = simulate_views(W_after, int(seeds[6]))
-        # the registration starts at the plan: a view without a detection has its ROI centred there
+        # the C-arm slid (no rotation) to centre the femoral head and the planned CM as the
+        # registrations placed them, so that the CM where the robot took it, the neck and the
+        # acetabulum are in view. The slide is not known to the software: pelvis (per view), femur
+        # and CM are registered anew, the CM from the plan on the new femur. Several views: one
+        # cannot tell the CM's depth, and a correction that acts on a single-view depth error can
+        # make the tip worse.
+        carm_est_from_femur = carm_est_from_ct @ ct_from_femur
+        plan_centre = (femur_from_cm_target @ np.array([0.0, 0.0, 15.0, 1.0]))[:3]
+        centre_c = 0.5 * (_h(carm_est_from_femur, plan_centre) + _h(carm_est_from_femur, tr.femoral_head_ct))
+        centre2 = _h(np.linalg.inv(carm), centre_c)  # where the person aims the C-arm, in the world
+        ap2 = centre_on(cams_full[0], centre2)
+        cams2 = [ap2] + [orbit_camera(ap2, angle_deg=a, isocenter_world=centre2) for a in cfg.orbit_deg]
+        images2 = simulate_views(W_after, int(seeds[6]), cams2)
         found2 = _landmarks(images2, cfg, rng, [f"verification ({n} after the move)" for n in names])
         D["verify_views_detected"] = sum(f is not None for f in found2)
+        views2 = bone_views(images2, found2)
+        pelvis2 = register_pelvis_per_view(
+            views2, volume, initial_world_from_patient=tr.initial_world_from_patient, seed=int(seeds[8])
+        )
+        views2_ct = views_in_ct_frame(views2, pelvis2)
+        cams2_ct = [v.camera for v in views2_ct]
+        femur2 = register_femur(
+            views2_ct, volume, side=tr.side, world_from_patient=np.eye(4), seed=int(seeds[9])
+        )
+        ct_from_femur2 = femur2.world_from_bone
         reg2 = register_cm(
             [
                 CMView(
                     s.image, c, landmarks_px=None if f is None else f["landmarks_px"], name=f"{n} after move"
                 )
-                for s, c, f, n in zip(images2, cams_ct, found2, names, strict=True)
+                for s, c, f, n in zip(images2, cams2_ct, found2, names, strict=True)
             ],
             initial_control_points_deg=reg.control_points_deg,
-            initial_world_from_cm=ct_from_femur @ femur_from_cm_target,
+            initial_world_from_cm=ct_from_femur2 @ femur_from_cm_target,
             config=CMRegistrationConfig(device=cfg.device),
             seed=int(seeds[7]),
         )
         img2, found2_ap = images2[0], found2[0]
     A.update(verify_image=img2, verify_detection=found2_ap, verify=reg2)
-    planned_tip_ct = _h(ct_from_femur, plan.tip_target_world_mm)
+    carm2 = images2[0].camera.camera_from_world  # the true C-arm frame of the verification AP
+    carm2_est_from_ct = cams2_ct[0].camera_from_world
+    planned_tip_ct = _h(ct_from_femur2, plan.tip_target_world_mm)
     E["verify_tip_to_plan_mm"] = float(np.linalg.norm(reg2.tip_world[0] - planned_tip_ct))
     E["verify_tip_error_mm"] = float(
-        np.linalg.norm(_h(carm_est_from_ct, reg2.tip_world[0]) - _h(carm, tip_after))
+        np.linalg.norm(_h(carm2_est_from_ct, reg2.tip_world[0]) - _h(carm2, tip_after))
+    )
+    E["verify_femur_entry_mm"] = float(
+        np.linalg.norm(
+            _h(carm2_est_from_ct @ ct_from_femur2, tr.entry_ct) - _h(carm2 @ tr.world_from_femur, tr.entry_ct)
+        )
     )
     D["verify"] = reg2.to_dict()
 
@@ -465,15 +493,15 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
     with stage("correct"):
         # slide the verified CM so that its registered tip meets the plan (tip_correction_target)
         target2 = tip_correction_target(
-            femur_from_cm_registered(ct_from_femur, reg2.world_from_cm[0]),
+            femur_from_cm_registered(ct_from_femur2, reg2.world_from_cm[0]),
             kin.tip_cm(torch.as_tensor(reg2.control_points_deg, dtype=torch.float64)).numpy(),
             plan.tip_target_world_mm,
         )
         q_corr, W_final = sc.move_to_plan(
             q_target,
             ee_from_cm=ee_from_cm_used,
-            carm_from_femur=carm_est_from_ct @ ct_from_femur,
-            carm_from_cm=carm_est_from_ct @ reg2.world_from_cm[0],
+            carm_from_femur=carm2_est_from_ct @ ct_from_femur2,
+            carm_from_cm=carm2_est_from_ct @ reg2.world_from_cm[0],
             femur_from_cm_target=target2,
             rng=rng,
         )

@@ -284,23 +284,21 @@ def recentre(camera: Camera, from_world: np.ndarray, to_world: np.ndarray) -> Ca
     return camera.with_pose(camera.camera_from_world @ shift)
 
 
-def centre_between(
-    camera: Camera, a_world: np.ndarray, b_world: np.ndarray, current_world: np.ndarray
-) -> Camera:
-    """The camera translated (no rotation) so that the point it centred, ``current_world``, moves to
-    the midpoint of ``a_world`` and ``b_world``: the C-arm placed to see both where the CM is
-    registered and where it is sent (~130 mm field of view at the isocentre)."""
-    return recentre(camera, current_world, 0.5 * (np.asarray(a_world) + np.asarray(b_world)))
+def centre_on(camera: Camera, target_world: np.ndarray) -> Camera:
+    """The camera translated (no rotation) so that ``target_world`` projects to the image centre at
+    its present depth: the C-arm slid on the floor until the point is on its central ray."""
+    uv0 = np.array([(camera.cols - 1) / 2.0, (camera.rows - 1) / 2.0])
+    target = np.asarray(target_world, np.float64)
+    return recentre(camera, camera.backproject(uv0, float(camera.to_camera(target)[2])), target)
 
 
-def _work_and_plan_centres(trial: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(working CM centre, planned CM centre, the working CM origin) in the world: the planned CM
-    lies along the neck axis outward from the entry point (tip on the entry point), its centre
-    ~15 mm out."""
+def working_view_centre(trial: Any) -> np.ndarray:
+    """(3,) world point the C-arm centres for the first registration: midway between the femoral
+    head and the working CM's centre (15 mm along its axis from A), so that the CM, the neck and the
+    acetabulum are in view (the pelvis registration fails when only the trochanter region is
+    imaged). The CM at the plan is imaged afterwards from a C-arm slid towards it."""
     work = trial.world_from_cm[0][:3, 3] + 15.0 * trial.world_from_cm[0][:3, 2]
-    axis = trial.femoral_head_world - trial.entry_world
-    plan = trial.entry_world - 15.0 * axis / np.linalg.norm(axis)
-    return work, plan, trial.world_from_cm[0][:3, 3]
+    return 0.5 * (np.asarray(trial.femoral_head_world, np.float64) + work)
 
 
 def sample_handeye_scenario(
@@ -700,9 +698,7 @@ def _verify(
     plan_centre = (world_from_femur_est @ femur_from_cm_target @ np.array([0.0, 0.0, 15.0, 1.0]))[:3]
     head = (world_from_femur_est @ np.append(tr.femoral_head_ct, 1.0))[:3]
     centre = 0.5 * (plan_centre + head) + rng.uniform(-5.0, 5.0, 3)
-    cam = sc.camera
-    uv0 = np.array([(cam.cols - 1) / 2.0, (cam.rows - 1) / 2.0])
-    ap = recentre(cam, cam.backproject(uv0, float(cam.to_camera(centre)[2])), centre)
+    ap = centre_on(sc.camera, centre)
     cpt = torch.as_tensor(sc.control_points_deg, dtype=torch.float64)
     pts = np.concatenate([kin.landmarks_cm(cpt).numpy(), kin.tip_cm(cpt).numpy()[None]])
     if not _in_view(ap, world_from_cm_now, pts, 20.0):
@@ -790,8 +786,8 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
         kin = CMKinematics()
         sc = sample_handeye_scenario(volume, rng, n_poses=0)
         tr = sc.trial
-        # the C-arm sees both the working pose and the planned one, so the reached pose can be imaged
-        sc = dataclasses.replace(sc, camera=centre_between(sc.camera, *_work_and_plan_centres(tr)))
+        # the CM, the neck and the acetabulum in view; the verification slides the C-arm (_verify)
+        sc = dataclasses.replace(sc, camera=centre_on(sc.camera, working_view_centre(tr)))
         cam = sc.camera.camera_from_world
         q_regi = sc.q_work_deg
         W_regi = sc.true_world_from_cm(sc.error_model.actual_joints_deg(q_regi, rng=rng))
