@@ -163,7 +163,12 @@ def test_navigation_views_see_the_cm_and_the_femoral_head(seed: int) -> None:
     most scenarios."""
     from fluoronav.geometry import orbit_camera
     from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
-    from fluoronav.studies.handeye_study import _in_view, centre_on, working_view_centre
+    from fluoronav.studies.handeye_study import (
+        _in_view,
+        centre_on,
+        verification_view_centre,
+        working_view_centre,
+    )
 
     sc = sample_handeye_scenario(_volume(), np.random.default_rng(seed), n_poses=0)
     tr = sc.trial
@@ -175,7 +180,9 @@ def test_navigation_views_see_the_cm_and_the_femoral_head(seed: int) -> None:
     )
     planned = tr.world_from_femur @ femur_from_cm
     head = np.asarray(tr.femoral_head_world)
-    plan_centre = (planned @ np.array([0.0, 0.0, 15.0, 1.0]))[:3]
+    verify_centre = (
+        tr.world_from_femur @ np.append(verification_view_centre(femur_from_cm, tr.femoral_head_ct), 1.0)
+    )[:3]
 
     def views(centre: np.ndarray) -> list:
         ap = centre_on(sc.camera, centre)
@@ -185,7 +192,7 @@ def test_navigation_views_see_the_cm_and_the_femoral_head(seed: int) -> None:
         assert _in_view(cam, sc.true_world_from_cm(sc.q_work_deg), pts, 20.0)
         centre_px = np.array([(cam.cols - 1) / 2.0, (cam.rows - 1) / 2.0])
         assert np.linalg.norm(cam.project(head[None])[0] - centre_px) < 0.25 * cam.cols
-    for cam in views(0.5 * (head + plan_centre)):
+    for cam in views(verify_centre):
         assert _in_view(cam, planned, pts, 20.0)
 
 

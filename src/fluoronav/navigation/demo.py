@@ -238,6 +238,7 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
         _perturb,
         centre_on,
         sample_handeye_scenario,
+        verification_view_centre,
         working_view_centre,
     )
     from fluoronav.studies.metrics import axis_error_deg, cm_errors
@@ -442,10 +443,9 @@ def _run(cfg: DemoConfig, res: DemoResult, stage: _Stages) -> None:
         # and CM are registered anew, the CM from the plan on the new femur. Several views: one
         # cannot tell the CM's depth, and a correction that acts on a single-view depth error can
         # make the tip worse.
-        carm_est_from_femur = carm_est_from_ct @ ct_from_femur
-        plan_centre = (femur_from_cm_target @ np.array([0.0, 0.0, 15.0, 1.0]))[:3]
-        centre_c = 0.5 * (_h(carm_est_from_femur, plan_centre) + _h(carm_est_from_femur, tr.femoral_head_ct))
-        centre2 = _h(np.linalg.inv(carm), centre_c)  # where the person aims the C-arm, in the world
+        centre_femur = verification_view_centre(femur_from_cm_target, tr.femoral_head_ct)
+        # where the person aims the C-arm (seen in the estimated C-arm frame), in the world
+        centre2 = _h(np.linalg.inv(carm) @ carm_est_from_ct @ ct_from_femur, centre_femur)
         ap2 = centre_on(cams_full[0], centre2)
         cams2 = [ap2] + [orbit_camera(ap2, angle_deg=a, isocenter_world=centre2) for a in cfg.orbit_deg]
         images2 = simulate_views(W_after, int(seeds[6]), cams2)

@@ -292,13 +292,24 @@ def centre_on(camera: Camera, target_world: np.ndarray) -> Camera:
     return recentre(camera, camera.backproject(uv0, float(camera.to_camera(target)[2])), target)
 
 
+def cm_centre(frame_from_cm: np.ndarray) -> np.ndarray:
+    """(3,) the point 15 mm along the CM's axis from A (about the middle of its notched part) in the
+    frame of the pose ``frame_from_cm`` (4, 4): what a person centres the C-arm on."""
+    return (np.asarray(frame_from_cm, np.float64) @ np.array([0.0, 0.0, 15.0, 1.0]))[:3]
+
+
+def verification_view_centre(femur_from_cm_target: np.ndarray, femoral_head_femur: np.ndarray) -> np.ndarray:
+    """(3,) femur-frame point a verification C-arm centres: midway between the femoral head and the
+    planned CM, so that the CM where the robot took it, the neck and the acetabulum are in view."""
+    return 0.5 * (cm_centre(femur_from_cm_target) + np.asarray(femoral_head_femur, np.float64))
+
+
 def working_view_centre(trial: Any) -> np.ndarray:
     """(3,) world point the C-arm centres for the first registration: midway between the femoral
     head and the working CM's centre (15 mm along its axis from A), so that the CM, the neck and the
     acetabulum are in view (the pelvis registration fails when only the trochanter region is
     imaged). The CM at the plan is imaged afterwards from a C-arm slid towards it."""
-    work = trial.world_from_cm[0][:3, 3] + 15.0 * trial.world_from_cm[0][:3, 2]
-    return 0.5 * (np.asarray(trial.femoral_head_world, np.float64) + work)
+    return 0.5 * (np.asarray(trial.femoral_head_world, np.float64) + cm_centre(trial.world_from_cm[0]))
 
 
 def sample_handeye_scenario(
@@ -695,9 +706,8 @@ def _verify(
     tr = sc.trial
     # between the femoral head and the planned CM: the CM, the neck and the acetabulum in view (the
     # pelvis registration fails when only the trochanter region is imaged)
-    plan_centre = (world_from_femur_est @ femur_from_cm_target @ np.array([0.0, 0.0, 15.0, 1.0]))[:3]
-    head = (world_from_femur_est @ np.append(tr.femoral_head_ct, 1.0))[:3]
-    centre = 0.5 * (plan_centre + head) + rng.uniform(-5.0, 5.0, 3)
+    centre_femur = verification_view_centre(femur_from_cm_target, tr.femoral_head_ct)
+    centre = (world_from_femur_est @ np.append(centre_femur, 1.0))[:3] + rng.uniform(-5.0, 5.0, 3)
     ap = centre_on(sc.camera, centre)
     cpt = torch.as_tensor(sc.control_points_deg, dtype=torch.float64)
     pts = np.concatenate([kin.landmarks_cm(cpt).numpy(), kin.tip_cm(cpt).numpy()[None]])
