@@ -105,8 +105,12 @@ def test_recovers_a_known_hand_eye_from_physics_images() -> None:
     translation < 1 mm, rotation and axis tilt < 3° (better than the initial 5°), residual < 2 px."""
     from fluoronav.calibration.handeye import transform_error
     from fluoronav.calibration.robot import RobotErrorModel
-    from fluoronav.studies.handeye_study import _perturb, sample_handeye_scenario, simulate_scenario_images
-    from fluoronav.studies.pipeline import _anatomy
+    from fluoronav.simulation.articulated import anatomy_and_simulator as _anatomy
+    from fluoronav.simulation.robot_scene import (
+        perturb_transform,
+        sample_handeye_scenario,
+        simulate_scenario_images,
+    )
 
     volume, sim = _anatomy("phantom", 0, 384, "cpu")
     rng = np.random.default_rng(3)
@@ -125,7 +129,7 @@ def test_recovers_a_known_hand_eye_from_physics_images() -> None:
         CMView(s.image, s.camera, landmarks_px=s.camera.project(ab @ T[:3, :3].T + T[:3, 3]), name=f"p{m}")
         for m, (s, T) in enumerate(zip(images, W, strict=True))
     ]
-    X0 = _perturb(sc.ee_from_cm, rng, 5.0, 5.0)
+    X0 = perturb_transform(sc.ee_from_cm, rng, 5.0, 5.0)
     res = calibrate_hand_eye_from_images(
         views,
         UR10.rbase_from_ee(sc.q_deg),

@@ -1,52 +1,96 @@
-"""The demo pipeline: its report survives a failed run; the whole run (slow) meets its error bars."""
+"""The demo: a simulated case written to files, the navigate pipeline on them, the truth beside it.
+
+The slow end-to-end test runs ``fluoronav demo`` in one process and ``fluoronav navigate`` on the
+written case in another (nothing shared but the files), and checks the second against the truth and
+its Slicer transforms against its own ``navigation.json``.
+"""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+import SimpleITK as sitk  # noqa: N813
 
-from fluoronav.navigation.demo import DemoConfig, DemoResult, run_demo, write_case, write_results
-from fluoronav.navigation.demo_report import write_report
-
-
-def test_a_failed_run_still_writes_results_and_a_report(tmp_path: Path) -> None:
-    res = DemoResult(config=DemoConfig(seed=3), status="failed", reason="RegistrationFailure: no CM")
-    res.timings_s.update(anatomy=1.0, scene=0.1)
-    res.errors["landmark_px"] = 0.7
-    write_results(res, tmp_path)
-    assert write_case(res, tmp_path) is None
-    page = write_report(res, tmp_path).read_text(encoding="utf-8")
-    assert "FAILED: RegistrationFailure: no CM" in page and "<img" in page  # the timing chart
-    data = json.loads((tmp_path / "results.json").read_text(encoding="utf-8"))
-    assert data["status"] == "failed" and data["config"]["seed"] == 3 and data["errors"]["landmark_px"] == 0.7
+from fluoronav.navigation.demo import results_json, write_demo_outputs
+from fluoronav.navigation.pipeline import NavigationConfig, NavigationRefused, NavigationResult, StageRecord
+from fluoronav.navigation.simulated import SimulatedNavigation, SimulationConfig
 
 
-def test_stage_callbacks_and_failure_capture(monkeypatch: pytest.MonkeyPatch) -> None:
-    import fluoronav.navigation.demo as demo
+def test_results_of_a_refused_run_say_so_and_carry_no_move() -> None:
+    res = NavigationResult(config=NavigationConfig())
+    res.stages["detect"] = StageRecord(seconds=0.5)
+    res.joints_target_deg = np.zeros(6)  # a command computed before the refusal is withdrawn
+    res.refuse(NavigationRefused("detect", "views_with_cm", "the CM was found in 1 of 3 views", view="AP"))
+    run = SimulatedNavigation(config=SimulationConfig(seed=3), result=res)
+    run.errors["landmark_px"] = 0.7
+    d = results_json(run)
+    assert d["status"] == "refused"
+    assert d["reason"] == "stage detect, view AP, check views_with_cm: the CM was found in 1 of 3 views"
+    assert d["errors"]["reposition_tip_mm"] is None and d["errors"]["corrected_tip_mm"] is None
+    assert d["errors"]["landmark_px"] == 0.7 and d["config"]["seed"] == 3
+    assert res.joints_target_deg is None and res.stages["detect"].passed is False
+    assert "joints_target_deg" not in res.to_json()
 
-    def boom(cfg: DemoConfig, res: DemoResult, stage: object) -> None:
-        with stage("anatomy"):  # type: ignore[operator]
-            pass
-        raise ValueError("bad scene")
 
-    monkeypatch.setattr(demo, "_run", boom)
-    events: list[tuple[str, str]] = []
-    res = run_demo(DemoConfig(), on_stage=lambda n, e: events.append((n, e)))
-    assert res.status == "failed" and res.reason == "ValueError: bad scene"
-    assert events == [("anatomy", "start"), ("anatomy", "done")] and "anatomy" in res.timings_s
+def test_a_run_without_a_pipeline_result_still_writes_results(tmp_path: Path) -> None:
+    run = SimulatedNavigation(config=SimulationConfig(seed=1))
+    run.timings_s["anatomy"] = 1.0
+    written = write_demo_outputs(run, tmp_path)
+    assert written == [tmp_path / "results.json"]
+    assert json.loads(written[0].read_text(encoding="utf-8"))["status"] == "failed"
+
+
+def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return np.asarray(p) @ np.asarray(T)[:3, :3].T + np.asarray(T)[:3, 3]
 
 
 @pytest.mark.slow
-def test_demo_end_to_end(tmp_path: Path) -> None:
-    res = run_demo(DemoConfig(seed=0, oracle_landmarks=True))
-    assert res.status == "ok", res.reason
-    write_results(res, tmp_path)
-    case = write_case(res, tmp_path)
-    assert case is not None and case.is_file()
-    page = write_report(res, tmp_path).read_text(encoding="utf-8")
-    assert page.count("<img") >= 6
-    E = res.errors
-    assert E["cm_tip_mm"] < 2.0 and E["femur_entry_mm"] < 2.0
-    assert E["corrected_tip_mm"] < 3.0
+def test_demo_case_navigates_in_a_separate_process(tmp_path: Path) -> None:
+    """``fluoronav demo`` (oracle landmarks, seed 11) writes case/navigation.json and truth.json;
+    ``fluoronav navigate`` on that case in another process puts the CM tip within 1 mm of the truth,
+    gives a command, and its slicer/*.h5 map points as its navigation.json's matrices."""
+    demo_out, nav_out = tmp_path / "demo", tmp_path / "nav"
+    cmd = [
+        sys.executable,
+        "-m",
+        "fluoronav",
+        "demo",
+        "--out",
+        str(demo_out),
+        "--seed",
+        "11",
+        "--device",
+        "cpu",
+    ]
+    subprocess.run([*cmd, "--oracle-landmarks"], check=True, capture_output=True)
+    case = demo_out / "case" / "navigation.json"
+    truth = json.loads((demo_out / "truth.json").read_text(encoding="utf-8"))
+    results = json.loads((demo_out / "results.json").read_text(encoding="utf-8"))
+    assert results["status"] == "ok", results["reason"]
+    assert (demo_out / "report.html").read_text(encoding="utf-8").count("<img") >= 6
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "fluoronav", "navigate", str(case), "--out", str(nav_out), "--device", "cpu"],
+        capture_output=True,
+        encoding="utf-8",
+    )
+    assert proc.returncode == 0, proc.stderr
+    nav = json.loads((nav_out / "navigation.json").read_text(encoding="utf-8"))
+    assert nav["status"] == "ok" and len(nav["joints_target_deg"]) == 6
+    assert np.linalg.norm(np.subtract(nav["tip_ct_mm"], truth["tip_ct_mm"])) < 1.0
+    v = nav["verification"]
+    assert np.linalg.norm(np.subtract(v["tip_ct_mm"], truth["verification"]["tip_ct_mm"])) < 1.0
+    assert len(v["joints_target_deg"]) == 6
+    # the Slicer files: the file of ct_from_x maps CT points to x (ITK's resampling direction)
+    rng = np.random.default_rng(0)
+    p_ct = rng.uniform(-100.0, 100.0, (5, 3))
+    for name, key in (("ct_from_cm.h5", "ct_from_cm"), ("ct_from_femur.h5", "ct_from_femur")):
+        tx = sitk.ReadTransform(str(nav_out / "slicer" / name))
+        expected = _h(np.linalg.inv(v[key]), p_ct)
+        got = np.array([tx.TransformPoint(tuple(float(c) for c in p)) for p in p_ct])
+        np.testing.assert_allclose(got, expected, atol=1e-6)

@@ -34,8 +34,8 @@ from fluoronav.registration.trace import RegistrationTrace
 from fluoronav.rendering.ct import render_line_integrals
 from fluoronav.simulation.articulated import ArticulatedSimulator
 from fluoronav.simulation.physics import XrayPhysics
+from fluoronav.simulation.protocol import sample_trial, simulate_trial_images
 from fluoronav.simulation.xray import SimulationConfig
-from fluoronav.studies.protocol import sample_trial, simulate_trial_images
 
 #: a lighter pelvis schedule for the unit tests (the defaults are exercised by the slow tests)
 QUICK = BoneRegistrationConfig(

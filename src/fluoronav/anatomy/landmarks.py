@@ -1,4 +1,5 @@
-"""Landmark files: 3D Slicer markups (FCSV) and a small JSON format.
+"""Landmark files: 3D Slicer markups (FCSV, and ``.mrk.json`` through
+:mod:`fluoronav.anatomy.markups`) and a small JSON format.
 
 Landmarks are kept as ``name → (3,) float64 world point in mm`` in the CT's LPS frame (the frame
 SimpleITK reads). Files in RAS (Slicer's default) are converted on reading by negating x and y.
@@ -30,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fluoronav.anatomy.markups import markup_file_stem, read_markups, write_markups
 from fluoronav.errors import InputError
 
 __all__ = [
@@ -213,22 +215,27 @@ def write_landmarks_json(
 
 
 def read_landmarks(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a landmark file by suffix: ``.fcsv`` (Slicer) or ``.json``."""
+    """Read a landmark file by suffix: ``.mrk.json`` (Slicer markups, see
+    :func:`~fluoronav.anatomy.markups.read_markups`), ``.fcsv`` (Slicer) or ``.json``."""
     path = Path(path)
+    if path.name.lower().endswith(".mrk.json"):
+        return read_markups(path)
     suffix = path.suffix.lower()
     if suffix == ".fcsv":
         return read_fcsv(path)
     if suffix == ".json":
         return read_landmarks_json(path)
-    raise InputError(path, "unknown landmark file type (expected .fcsv or .json)")
+    raise InputError(path, "unknown landmark file type (expected .mrk.json, .fcsv or .json)")
 
 
 def write_landmarks(path: str | Path, landmarks: Mapping[str, np.ndarray]) -> Path:
-    """Write landmarks (LPS) by suffix: ``.fcsv`` or ``.json``."""
+    """Write landmarks (LPS) by suffix: ``.mrk.json`` (a Slicer point list), ``.fcsv`` or ``.json``."""
     path = Path(path)
+    if path.name.lower().endswith(".mrk.json"):
+        return write_markups(path, landmarks, name=markup_file_stem(path))
     suffix = path.suffix.lower()
     if suffix == ".fcsv":
         return write_fcsv(path, landmarks)
     if suffix == ".json":
         return write_landmarks_json(path, landmarks)
-    raise ValueError(f"unknown landmark file type {path.suffix!r} (expected .fcsv or .json)")
+    raise ValueError(f"unknown landmark file type {path.suffix!r} (expected .mrk.json, .fcsv or .json)")

@@ -18,10 +18,13 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from fluoronav.calibration import _se3
+from fluoronav.errors import InputError, read_json_object
 
 __all__ = [
     "UR10",
@@ -30,7 +33,9 @@ __all__ = [
     "IKSolution",
     "RobotErrorModel",
     "SerialRobot",
+    "load_robot",
     "random_configurations_deg",
+    "robot_to_dict",
     "wrap_deg",
 ]
 
@@ -397,6 +402,104 @@ def _ur10() -> SerialRobot:
 
 
 UR10: SerialRobot = _ur10()
+
+_DH_KEYS = {"name", "dh", "joint_limits_deg"}
+_DH_ROW_KEYS = {"a_mm", "alpha_deg", "d_mm", "theta_offset_deg"}
+
+
+def load_robot(path_or_name: str | Path, *, source: str | Path | None = None) -> SerialRobot:
+    """A robot model by name (``"UR10"``, any case) or from a DH file (JSON).
+
+    DH file (standard DH, lengths mm, angles deg; ``theta_offset_deg`` and ``joint_limits_deg``
+    optional, limits default to ±360° per joint, ``name`` defaults to the file stem)::
+
+        {"name": "UR10",
+         "dh": [{"a_mm": 0.0, "alpha_deg": 90.0, "d_mm": 127.3, "theta_offset_deg": 0.0}, ...],
+         "joint_limits_deg": [[-360.0, 360.0], ...]}
+
+    Args:
+        path_or_name: ``"UR10"`` or the DH file.
+        source: the file or option that names the model, for the message when it is neither.
+
+    Raises:
+        InputError: an unknown name, or a DH file that is missing, not JSON, has unknown keys, rows
+            that are not objects of finite numbers, or limits that are not one ``[lo, hi]`` (lo < hi)
+            pair per row. The message names the file.
+    """
+    name = str(path_or_name).strip()
+    if name.upper() == "UR10":
+        return UR10
+    p = Path(path_or_name)
+    if not p.is_file():
+        raise InputError(
+            source if source is not None else p,
+            f'robot model {name!r} is neither "UR10" nor an existing DH file',
+        )
+    d = read_json_object(p, what="DH file")
+    unknown = sorted(set(d) - _DH_KEYS)
+    if unknown:
+        raise InputError(p, f"unknown key(s) {unknown}; allowed: {sorted(_DH_KEYS)}")
+
+    def number(value: Any, where: str) -> float:
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            raise InputError(p, f"{where} must be a finite number, got {value!r}")
+        return float(value)
+
+    rows = d.get("dh")
+    if not isinstance(rows, list) or not rows:
+        raise InputError(p, "'dh' must be a non-empty list of {a_mm, alpha_deg, d_mm, theta_offset_deg?}")
+    dh = []
+    for i, row in enumerate(rows):
+        if not isinstance(row, dict):
+            raise InputError(p, f"dh[{i}] must be an object")
+        bad = sorted(set(row) - _DH_ROW_KEYS)
+        if bad:
+            raise InputError(p, f"dh[{i}]: unknown key(s) {bad}; allowed: {sorted(_DH_ROW_KEYS)}")
+        for key in ("a_mm", "alpha_deg", "d_mm"):
+            if key not in row:
+                raise InputError(p, f"dh[{i}]: missing '{key}'")
+        dh.append(
+            DHRow(
+                a_mm=number(row["a_mm"], f"dh[{i}].a_mm"),
+                alpha_deg=number(row["alpha_deg"], f"dh[{i}].alpha_deg"),
+                d_mm=number(row["d_mm"], f"dh[{i}].d_mm"),
+                theta_offset_deg=number(row.get("theta_offset_deg", 0.0), f"dh[{i}].theta_offset_deg"),
+            )
+        )
+    limits: list[tuple[float, float]] = []
+    if d.get("joint_limits_deg") is not None:
+        lim = d["joint_limits_deg"]
+        if not isinstance(lim, list) or len(lim) != len(dh):
+            raise InputError(p, f"'joint_limits_deg' must hold one [lo, hi] pair per DH row ({len(dh)})")
+        for i, pair in enumerate(lim):
+            if not isinstance(pair, list) or len(pair) != 2:
+                raise InputError(p, f"joint_limits_deg[{i}] must be [lo, hi]")
+            lo = number(pair[0], f"joint_limits_deg[{i}][0]")
+            hi = number(pair[1], f"joint_limits_deg[{i}][1]")
+            if not lo < hi:
+                raise InputError(p, f"joint_limits_deg[{i}]: lower {lo} must be below upper {hi}")
+            limits.append((lo, hi))
+    robot_name = d.get("name", p.stem)
+    if not isinstance(robot_name, str) or not robot_name.strip():
+        raise InputError(p, "'name' must be a non-empty string")
+    return SerialRobot(dh=tuple(dh), name=robot_name, joint_limits_deg=tuple(limits))
+
+
+def robot_to_dict(robot: SerialRobot) -> dict[str, Any]:
+    """The DH file object of ``robot`` (the format :func:`load_robot` reads)."""
+    return {
+        "name": robot.name,
+        "dh": [
+            {
+                "a_mm": float(r.a_mm),
+                "alpha_deg": float(r.alpha_deg),
+                "d_mm": float(r.d_mm),
+                "theta_offset_deg": float(r.theta_offset_deg),
+            }
+            for r in robot.dh
+        ],
+        "joint_limits_deg": [[float(lo), float(hi)] for lo, hi in robot.joint_limits_deg],
+    }
 
 
 @dataclass(frozen=True)

@@ -355,13 +355,17 @@ def write_example_calibration_case(
     from fluoronav.calibration import _se3
     from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker
     from fluoronav.manipulator.kinematics import CMKinematics
-    from fluoronav.studies.handeye_study import _perturb, sample_handeye_scenario, simulate_scenario_images
-    from fluoronav.studies.pipeline import _anatomy
+    from fluoronav.simulation.articulated import anatomy_and_simulator
+    from fluoronav.simulation.robot_scene import (
+        perturb_transform,
+        sample_handeye_scenario,
+        simulate_scenario_images,
+    )
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
-    volume, simulator = _anatomy("phantom", 0, image_size, "cpu")
+    volume, simulator = anatomy_and_simulator("phantom", 0, image_size, "cpu")
     sc = sample_handeye_scenario(volume, rng, n_poses=n_poses)
     images = simulate_scenario_images(sc, simulator, seed=int(rng.integers(2**31)), image_size=image_size)
     cam = images[0].camera
@@ -383,7 +387,7 @@ def write_example_calibration_case(
         "camera": "camera.json",
         "robot": "UR10",
         "views": views,
-        "initial_ee_from_cm": _perturb(sc.ee_from_cm, rng, 5.0, 5.0).tolist(),
+        "initial_ee_from_cm": perturb_transform(sc.ee_from_cm, rng, 5.0, 5.0).tolist(),
         "initial_control_points_deg": (sc.control_points_deg + rng.uniform(-0.5, 0.5, 5)).tolist(),
         "ground_truth": {
             "ee_from_cm": sc.ee_from_cm.tolist(),

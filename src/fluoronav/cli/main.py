@@ -19,6 +19,7 @@ from fluoronav.errors import FluoronavError, InputError
 #: command modules, in the order their commands appear in ``--help``
 COMMAND_MODULES = (
     "demo",
+    "navigate",
     "render",
     "simulate",
     "train",
@@ -75,7 +76,8 @@ _register_all()
 def main(argv: list[str] | None = None) -> None:
     """Entry point: run the app, reporting user errors in one line."""
     try:
-        app(args=argv, standalone_mode=False)
+        # without standalone mode click returns a command's exit status instead of exiting with it
+        code = app(args=argv, standalone_mode=False)
     except InputError as exc:
         typer.echo(f"error: {exc}", err=True)
         sys.exit(2)
@@ -100,6 +102,8 @@ def main(argv: list[str] | None = None) -> None:
             exc.show()  # type: ignore[attr-defined]
             sys.exit(exc.exit_code)  # type: ignore[attr-defined]
         raise
+    if isinstance(code, int) and code != 0:
+        sys.exit(code)
 
 
 def _usage_errors() -> tuple[type[Exception], ...]:

@@ -51,13 +51,8 @@ def register(app: typer.Typer) -> None:
             1,
             "--corrections",
             min=0,
-            help="navigation: corrective moves from a new image after the first move (0 = open loop).",
-        ),
-        verify_views: int = typer.Option(
-            3,
-            "--verify-views",
-            min=1,
-            help="navigation: C-arm views at a reached pose (re-centred; bones and CM registered anew).",
+            max=1,
+            help="navigation: 1: verification images after the move and one corrective move; 0: open loop.",
         ),
         device: str = DEVICE_OPTION,
     ) -> None:
@@ -80,7 +75,8 @@ def register(app: typer.Typer) -> None:
                 poses=tuple(poses),
                 image_size=image_size,
                 corrections=corrections,
-                verify_views=verify_views,
+                # the hand-eye study has always used oracle landmarks; navigation the detector by default
+                oracle_landmarks=oracle_landmarks or workflow == "hand-eye",
                 calibration_bend_deg=calibration_bend_deg,
             )
         else:

@@ -21,7 +21,7 @@ import numpy as np
 
 from fluoronav.geometry.camera import CIOS_FUSION, Camera, DetectorSpec
 
-__all__ = ["carm_camera", "carm_camera_from_world", "orbit_camera"]
+__all__ = ["carm_camera", "carm_camera_from_world", "centre_on", "orbit_camera", "recentre"]
 
 
 def carm_camera_from_world(
@@ -90,3 +90,19 @@ def orbit_camera(
     world_from_world2[:3, 3] = iso - R @ iso
     cam_from_world = camera.camera_from_world @ np.linalg.inv(world_from_world2)
     return camera.with_pose(cam_from_world)
+
+
+def recentre(camera: Camera, from_world: np.ndarray, to_world: np.ndarray) -> Camera:
+    """The camera translated (no rotation) so that the point it showed at ``from_world`` is now at
+    ``to_world``: the C-arm slid on the floor to centre another point."""
+    shift = np.eye(4)
+    shift[:3, 3] = -(np.asarray(to_world, np.float64) - np.asarray(from_world, np.float64))
+    return camera.with_pose(camera.camera_from_world @ shift)
+
+
+def centre_on(camera: Camera, target_world: np.ndarray) -> Camera:
+    """The camera translated (no rotation) so that ``target_world`` projects to the image centre at
+    its present depth: the C-arm slid on the floor until the point is on its central ray."""
+    uv0 = np.array([(camera.cols - 1) / 2.0, (camera.rows - 1) / 2.0])
+    target = np.asarray(target_world, np.float64)
+    return recentre(camera, camera.backproject(uv0, float(camera.to_camera(target)[2])), target)

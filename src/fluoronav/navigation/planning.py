@@ -18,6 +18,12 @@ Plan file (JSON), coordinates in the CT's world frame (LPS, mm, as SimpleITK rea
 is used for that. The CM **tip** (the distal end point of the model, the point the paper's tip and
 relative errors use) is placed at ``entry_point + insertion_depth · direction``.
 
+A 3D Slicer markups file (``.mrk.json``, see :mod:`fluoronav.anatomy.markups`) is also a plan, read
+by :func:`plan_from_markups`: either one **Line** markup (first control point = entry point, second
+= a point further along the insertion direction) or one **point list** with points labelled
+``entry`` and ``target`` (direction entry → target). ``target_name`` is the markup's name and the
+insertion depth is 0 (the CM tip on the entry point).
+
 Femur frame: the CT world frame in which the plan is drawn; the femur registration estimates
 ``carm_from_femur`` for this same frame. A different femur frame can be passed as ``femur_from_world``.
 """
@@ -34,11 +40,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from fluoronav.anatomy.markups import read_markup_nodes
 from fluoronav.calibration import _se3
 from fluoronav.errors import InputError
 from fluoronav.manipulator.kinematics import CMKinematics
 
-__all__ = ["Plan", "load_plan", "plan_from_dict", "planned_femur_from_cm", "save_plan"]
+__all__ = ["Plan", "load_plan", "plan_from_dict", "plan_from_markups", "planned_femur_from_cm", "save_plan"]
 
 _KNOWN_KEYS = {
     "target_name",
@@ -149,9 +156,66 @@ def plan_from_dict(d: Mapping[str, Any], *, source: str | Path = "<plan>") -> Pl
     )
 
 
-def load_plan(path: str | Path) -> Plan:
-    """Read and validate a plan file; every problem raises :class:`InputError` naming the file."""
+_POINT_LIST_TYPES = ("Fiducial", "PointList")
+
+
+def plan_from_markups(path: str | Path) -> Plan:
+    """A plan from a Slicer ``.mrk.json`` file (positions in LPS, mm).
+
+    The file must hold exactly one of: a ``Line`` markup with two placed control points (entry
+    point, then a point further along the insertion direction), or a point list (``Fiducial``)
+    with points labelled ``entry`` and ``target`` (case-insensitive; direction entry → target).
+    Other markups in the file are ignored. ``target_name`` is the markup's name; the insertion
+    depth is 0.
+
+    Raises:
+        InputError: an unreadable or malformed markups file, no or several such markups, a line
+            without exactly two placed points, or coincident points (message names the file).
+    """
     p = Path(path)
+    nodes = read_markup_nodes(p)
+    lines = [n for n in nodes if n.type == "Line"]
+    lists = []
+    for n in nodes:
+        if n.type not in _POINT_LIST_TYPES:
+            continue
+        keys = [label.strip().lower() for label in n.labels]
+        if "entry" in keys or "target" in keys:
+            if keys.count("entry") != 1 or keys.count("target") != 1:
+                raise InputError(
+                    p, f"point list {n.name!r} needs one point labelled 'entry' and one 'target'"
+                )
+            lists.append((n, n.points_lps[keys.index("entry")], n.points_lps[keys.index("target")]))
+    if len(lines) + len(lists) != 1:
+        raise InputError(
+            p,
+            f"a plan needs exactly one Line markup or one point list with 'entry' and 'target' points; "
+            f"found {len(lines)} line(s) and {len(lists)} such point list(s)",
+        )
+    if lines:
+        node = lines[0]
+        if node.points_lps.shape[0] != 2:
+            raise InputError(p, f"line {node.name!r} has {node.points_lps.shape[0]} placed points, needs 2")
+        entry, further = node.points_lps[0], node.points_lps[1]
+    else:
+        node, entry, further = lists[0]
+    direction = further - entry
+    norm = float(np.linalg.norm(direction))
+    if norm < 1e-9:
+        raise InputError(p, f"markup {node.name!r}: the two points coincide, no insertion direction")
+    return Plan(
+        target_name=node.name,
+        entry_point_world_mm=np.array(entry, dtype=np.float64),
+        direction_world=direction / norm,
+    )
+
+
+def load_plan(path: str | Path) -> Plan:
+    """Read and validate a plan file (JSON, or a Slicer ``.mrk.json`` as :func:`plan_from_markups`);
+    every problem raises :class:`InputError` naming the file."""
+    p = Path(path)
+    if p.name.lower().endswith(".mrk.json"):
+        return plan_from_markups(p)
     try:
         text = p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:

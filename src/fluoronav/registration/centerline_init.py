@@ -74,6 +74,7 @@ __all__ = [
     "depth_range_about",
     "evaluate_centerline_init",
     "measure_shaft_depth",
+    "multiview_start_poses",
     "polyline_distance_cost",
     "poses_from_depth_theta",
     "roll_about_axis_deg",
@@ -1174,3 +1175,19 @@ def evaluate_centerline_init(
         "cost_px_mean": float(np.mean(costs)),
         "seconds_per_init": float(np.mean(times)),
     }
+
+
+def multiview_start_poses(
+    init: Any, *, max_starts: int = 2, cost_ratio: float = 1.5, slack_px: float = 0.25
+) -> list[np.ndarray]:
+    """Starts from a multi-view centreline initialisation: its roll minima whose cost is within
+    ``cost_ratio`` × the best + ``slack_px``, at most ``max_starts``, best first. Several views
+    usually leave one clear minimum (e.g. 0.45 px against 1.55 px for the next), and a start in a
+    clearly worse one only costs time and risks the short screening picking it."""
+    best = float(init.alternative_costs_px[0])
+    keep = [
+        W
+        for W, c in zip(init.alternatives, init.alternative_costs_px, strict=True)
+        if float(c) <= cost_ratio * best + slack_px
+    ]
+    return keep[:max_starts]

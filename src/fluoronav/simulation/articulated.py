@@ -21,6 +21,7 @@ its own frame, and the three removals are summed like the bodies themselves).
 
 from __future__ import annotations
 
+import functools
 import logging
 
 import numpy as np
@@ -271,3 +272,19 @@ class ArticulatedSimulator:
         scene = self._scene(camera, cm, cm_config)
         mask, lm = self._drill_rest.labels(scene, stored)
         return SimulatedImage(image=image, mask=mask, landmarks_px=lm, camera=stored, scene=scene)
+
+
+@functools.lru_cache(maxsize=2)
+def anatomy_and_simulator(
+    ct: str, phantom_seed: int, image_size: int, device: str
+) -> tuple[Volume, ArticulatedSimulator]:
+    """The CT (``"phantom"`` or a path, :func:`~fluoronav.anatomy.io.resolve_ct`) and a physics
+    simulator that moves its left femur, at ``image_size``² (cached per process)."""
+    from fluoronav.anatomy.io import resolve_ct
+    from fluoronav.simulation.xray import SimulationConfig
+
+    volume = resolve_ct(ct, seed=phantom_seed)
+    sim = ArticulatedSimulator(
+        volume, femur_side="left", config=SimulationConfig(image_size=image_size), device=device
+    )
+    return volume, sim

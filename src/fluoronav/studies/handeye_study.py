@@ -1,47 +1,26 @@
 """The ``hand-eye`` and ``navigation`` simulation studies (``fluoronav study hand-eye|navigation``).
 
-Setting (both studies; world = CT frame of the phantom, LPS mm):
+Both work in the simulated robot scene of :mod:`fluoronav.simulation.robot_scene` (a UR-10 with
+joint and calibration errors holding the CM over the hip phantom; physics-simulated images).
 
-- Robot: a UR-10 whose physical kinematics differ from the controller's nominal model by
-  :class:`~fluoronav.calibration.robot.RobotErrorModel` defaults (seeded per trial), with encoder
-  noise per reading. The data the methods see are the *nominal* forward kinematics of the commanded
-  joints; the truth is the true robot at the actual joints.
-- Mount: true ``ee_from_cm``: the CM base origin 150–250 mm along the flange's tool axis, ±5 mm
-  laterally, rotated by U(0, 10)° about a random axis (a plausible hand-made mount).
-- C-arm and CM: one static AP C-arm (CIOS Fusion, isocentre near the CM) and a working CM pose as
-  the paper's protocol (:func:`~fluoronav.studies.protocol.sample_trial`, "navigation": the CM
-  above the femoral head, side-on to the view). The robot base is placed so that a working joint
-  configuration (UR-10 "home" ± 10° per joint) holds the CM at that pose.
-- Hand-eye poses: M CM poses, each the working pose moved by a rotation of U(−25, 25)° about a random
-  axis and U(−10, 10) mm per axis (CM frame), reached through the nominal IK; poses whose landmarks or
-  tip leave the image (100 px margin) are redrawn. One shape for all (the paper keeps the curvature
-  constant during calibration): bent in one plane, control points ±(``calibration_bend_deg`` +
-  U(−0.5, 0.5))° (default 2.5°: a ~70° C-bend, tip ~18 mm off the base axis), because the roll of
-  the hand-eye about the CM axis is seen only through the bend (seed 6701, random U(−5, 5)° shapes:
-  roll 0.35° mean, 1.01° on the least bent CM). The navigation study keeps the working shape.
-- Images: :class:`~fluoronav.simulation.articulated.ArticulatedSimulator` (physics, the CM over the
-  hip phantom; never the registration's renderer). Landmarks: the truth + U(−3, 3) full-detector px
-  (oracle, as the authors' code) — the shipped detector is used when one is available.
-
-Hand-eye trial: the image-based calibration
-(:func:`~fluoronav.calibration.image_handeye.calibrate_hand_eye_from_images`) for each M of
+Hand-eye trial: M CM poses about the working pose, one shape for all (the paper keeps the curvature
+constant during calibration): bent in one plane, control points ±(``calibration_bend_deg`` +
+U(−0.5, 0.5))° (default 2.5°: a ~70° C-bend, tip ~18 mm off the base axis), because the roll of the
+hand-eye about the CM axis is seen only through the bend. The image-based calibration
+(:func:`~fluoronav.calibration.image_handeye.calibrate_hand_eye_from_images`) runs for each M of
 ``poses`` (nested: the first M images; errors vs M), initial hand-eye = truth perturbed by the
 authors' 10° / 10 mm, FBG = truth + U(−0.5, 0.5)°. The tracker baseline (AX = XB, Tsai, on the
-simulated shaft marker O_s) and its eq. 9 tip error run on the same poses.
+simulated shaft marker O_s) and its eq. 9 tip error run on the same poses. Landmarks: the truth +
+U(−3, 3) full-detector px (oracle, as the authors' code) unless the detector is asked for.
 
-Navigation trial: register the CM (single view; initial pose the truth moved by the authors'
-10° / 10 mm, or the centreline initialisation) and, with
-``register_bones``, pelvis and femur in the one AP image; plan = the femur entry point with the CM
-tip on it and the CM axis along the femoral neck (entry → head centre); eq. 8 / IK with the nominal
-model and a hand-eye of documented error (the truth perturbed by ``handeye_error_deg`` /
-``handeye_error_mm``, our image-based calibration's measured accuracy); move the *true* robot; the
-repositioning error is the distance of the true tip from the planned tip: ``reposition_open_loop_mm``
-after the first move, ``reposition_tip_mm`` after ``corrections`` corrective moves (default 1), each
-computed from new simulated images at the reached pose (:func:`_verify`: the C-arm slid to centre
-the femoral head and the planned CM, ``verify_views`` views; pelvis, femur and CM registered anew,
-the CM initialised at the plan) whose femur and CM poses replace the first ones in eqs. 7–8
-(``reposition_registered_mm``: the first verification's registered tip against the plan, what the
-surgeon would see).
+Navigation trial: the simulated navigation loop of :mod:`fluoronav.navigation.simulated`, the same
+pipeline as ``fluoronav navigate`` and the demo: three views, detection (or oracle landmarks),
+pelvis per view, femur, multi-view CM registration, plan (the CM tip on the femur entry point, its
+axis along the neck), eqs. 7–8 and IK with the nominal model and a hand-eye of documented error
+(``handeye_error_deg`` / ``handeye_error_mm``), the *true* robot's move; with ``corrections`` (1),
+verification images at the reached pose, their registration and one corrective move.
+``reposition_open_loop_mm`` is the first move's tip error against the plan, ``reposition_tip_mm``
+the final one, ``reposition_registered_mm`` what the verification images say.
 """
 
 from __future__ import annotations
@@ -63,28 +42,28 @@ from scipy.spatial.transform import Rotation
 
 from fluoronav.calibration import _se3
 from fluoronav.calibration.results import HandEyeFailure
-from fluoronav.calibration.robot import UR10, IKFailure, RobotErrorModel, SerialRobot, wrap_deg
 from fluoronav.errors import FluoronavError, InputError
-from fluoronav.geometry.camera import Camera
-from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.simulation.robot_scene import (
+    HandEyeScenario,
+    perturb_transform,
+    random_rotation,
+    sample_handeye_scenario,
+    simulate_scenario_images,
+)
 from fluoronav.studies.runner import finish_row, mark_failed, new_row
 
 __all__ = [
     "HANDEYE_METRICS",
     "NAVIGATION_METRICS",
-    "HandEyeScenario",
     "HandEyeStudyConfig",
     "run_handeye_or_navigation_study",
     "run_handeye_trial",
     "run_navigation_trial",
-    "sample_handeye_scenario",
-    "simulate_scenario_images",
 ]
 
 log = logging.getLogger(__name__)
 
-HOME_DEG = np.array([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
 CM_METRICS = ("tip_mm", "base_translation_mm", "base_rotation_deg", "notch_rotation_deg")
 HANDEYE_METRICS = (
     "handeye_translation_mm",
@@ -119,6 +98,19 @@ NAVIGATION_DIAGNOSTICS = (
     "verify_tip_mm",
     "verify_relative_mm",
 )
+#: navigation rows' registration checks (no truth needed: what the navigation itself can see)
+NAVIGATION_CHECKS = (
+    "cm_landmark_residual_mm",
+    "cm_edge_ncc",
+    "pelvis_cost",
+    "femur_cost",
+    "verify_cm_landmark_residual_mm",
+    "verify_cm_edge_ncc",
+    "verify_motion_tip_mm",
+    "verify_motion_rotation_deg",
+    "verify_pelvis_cost",
+    "verify_femur_cost",
+)
 
 
 class _TrialFailure(FluoronavError):
@@ -136,23 +128,12 @@ class HandEyeStudyConfig:
         rotation_spread_deg, translation_spread_mm: hand-eye pose sampling about the working pose.
         init_rotation_deg, init_translation_mm: initial hand-eye = truth perturbed by exactly these.
         handeye_error_deg, handeye_error_mm: navigation: hand-eye used = truth perturbed by these.
-        register_bones: navigation: register pelvis and femur (else the true femur pose is used).
-        navigation_init: initial CM pose of the navigation registration: "perturbed" (the truth moved
-            by the authors' 10° / 10 mm, as their simulation code) or "centerline" (from the image).
-        corrections: navigation: corrective moves after the first, each from a registration of a new
-            image at the reached pose (eqs. 7–8 again from the reached joints); the first move's
-            rotation error of the registration is multiplied by its length, a correction is short.
-        verify_views, verify_orbit_deg: navigation: the images at a reached pose: the C-arm slid to
-            centre the femoral head and the planned CM (estimated), an AP view and views orbited by
-            ± ``verify_orbit_deg``; pelvis (per view), femur and CM are registered anew in them
-            (multi-view for 2 or more), so that the correction does not reuse the first femur error.
-            Three by default: with two (AP and 25°) the verification of seed-5605 trial 8 put the
-            CM tip 5.1 mm off relative to the femur entry and the correction took the tip from
-            1.5 to 5.5 mm from the plan; with three, 0.2 mm and 0.9 mm.
+        corrections: navigation: 1: verification images at the reached pose (bones and CM registered
+            anew) and one corrective move; 0: the open-loop move only.
         tracker_sigma_mm: baseline tracker marker noise per axis.
         calibration_bend_deg: hand-eye: the CM's bend during calibration, degrees per control point
             (each + U(−0.5, 0.5), one sign); None: the protocol's random working shape (U(−5, 5)°).
-        oracle_landmarks: use truth + U(−3, 3) px even when a detector is available.
+        oracle_landmarks: use truth + U(−3, 3) px (and the true CM mask) instead of the detector.
     """
 
     workflow: str
@@ -168,261 +149,10 @@ class HandEyeStudyConfig:
     init_translation_mm: float = 10.0
     handeye_error_deg: float = 0.4
     handeye_error_mm: float = 0.5
-    register_bones: bool = True
-    navigation_init: str = "perturbed"
     corrections: int = 1
-    verify_views: int = 3
-    verify_orbit_deg: float = 25.0
     tracker_sigma_mm: float = 0.1
     calibration_bend_deg: float | None = 2.5
     oracle_landmarks: bool = True
-
-
-# ----- scenario -----------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class HandEyeScenario:
-    """Truth of one hand-eye / navigation trial (world = CT frame).
-
-    Attributes:
-        camera: full-detector C-arm camera (static).
-        nominal, true_robot: controller model and physical robot; error_model: their difference.
-        world_from_rbase: (4, 4) robot base; ee_from_cm: (4, 4) true hand-eye matrix.
-        q_work_deg: (6,) working configuration; q_deg: (M, 6) commanded hand-eye configurations.
-        q_actual_deg: (M, 6) where the joints physically were.
-        rbase_from_ee_reported: (M, 4, 4) nominal FK of ``q_deg`` (the calibration's data).
-        world_from_cm: (M, 4, 4) true CM poses; control_points_deg: (5,) true shape.
-        landmarks_px: (M, 2, 2) true landmarks, full-detector px; trial: the protocol sample.
-    """
-
-    camera: Camera
-    nominal: SerialRobot
-    true_robot: SerialRobot
-    error_model: RobotErrorModel
-    world_from_rbase: np.ndarray
-    ee_from_cm: np.ndarray
-    q_work_deg: np.ndarray
-    q_deg: np.ndarray
-    q_actual_deg: np.ndarray
-    rbase_from_ee_reported: np.ndarray
-    world_from_cm: np.ndarray
-    control_points_deg: np.ndarray
-    landmarks_px: np.ndarray
-    trial: Any
-    cm_config: CMConfig = dataclasses.field(default_factory=CMConfig)
-
-    @property
-    def n_poses(self) -> int:
-        return int(self.q_deg.shape[0])
-
-    def true_world_from_cm(self, q_actual_deg: np.ndarray) -> np.ndarray:
-        """(..., 4, 4) true CM pose with the joints physically at ``q_actual_deg``."""
-        return self.world_from_rbase @ self.true_robot.rbase_from_ee(q_actual_deg) @ self.ee_from_cm
-
-    def move_to_plan(
-        self,
-        q_from_deg: np.ndarray,
-        *,
-        ee_from_cm: np.ndarray,
-        carm_from_femur: np.ndarray,
-        carm_from_cm: np.ndarray,
-        femur_from_cm_target: np.ndarray,
-        rng: np.random.Generator,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Command the nominal robot from ``q_from_deg`` by eqs. 7–8 + IK and move the true one.
-
-        Returns:
-            (commanded joints (6,), true ``world_from_cm`` (4, 4) where the CM physically ends up).
-        """
-        from fluoronav.navigation.navigate import robot_target
-
-        _, q = robot_target(
-            self.nominal,
-            q_from_deg,
-            ee_from_cm=ee_from_cm,
-            carm_from_femur=carm_from_femur,
-            carm_from_cm=carm_from_cm,
-            femur_from_cm_target=femur_from_cm_target,
-        )
-        return q, self.true_world_from_cm(self.error_model.actual_joints_deg(q, rng=rng))
-
-
-def _random_rotation(rng: np.random.Generator, max_deg: float, *, fixed: bool = False) -> np.ndarray:
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    ang = max_deg if fixed else rng.uniform(-max_deg, max_deg)
-    return Rotation.from_rotvec(np.radians(ang) * axis).as_matrix()
-
-
-def _perturb(
-    T: np.ndarray, rng: np.random.Generator, rotation_deg: float, translation_mm: float
-) -> np.ndarray:
-    """``T`` · δ with δ a rotation of exactly ``rotation_deg`` about a random axis (about T's origin)
-    and a translation of exactly ``translation_mm`` in a random direction (T's frame)."""
-    d = rng.normal(size=3)
-    return T @ _se3.make(
-        _random_rotation(rng, rotation_deg, fixed=True), translation_mm * d / np.linalg.norm(d)
-    )
-
-
-def _in_view(camera: Camera, world_from_cm: np.ndarray, pts_cm: np.ndarray, margin: float) -> bool:
-    pts = pts_cm @ world_from_cm[:3, :3].T + world_from_cm[:3, 3]
-    if np.any(camera.to_camera(pts)[:, 2] <= 0):
-        return False
-    uv = camera.project(pts)
-    return bool(
-        np.all(uv >= margin)
-        and np.all(uv[:, 0] <= camera.cols - 1 - margin)
-        and np.all(uv[:, 1] <= camera.rows - 1 - margin)
-    )
-
-
-def recentre(camera: Camera, from_world: np.ndarray, to_world: np.ndarray) -> Camera:
-    """The camera translated (no rotation) so that the point it showed at ``from_world`` is now at
-    ``to_world``: the C-arm slid on the floor to centre another point."""
-    shift = np.eye(4)
-    shift[:3, 3] = -(np.asarray(to_world, np.float64) - np.asarray(from_world, np.float64))
-    return camera.with_pose(camera.camera_from_world @ shift)
-
-
-def centre_on(camera: Camera, target_world: np.ndarray) -> Camera:
-    """The camera translated (no rotation) so that ``target_world`` projects to the image centre at
-    its present depth: the C-arm slid on the floor until the point is on its central ray."""
-    uv0 = np.array([(camera.cols - 1) / 2.0, (camera.rows - 1) / 2.0])
-    target = np.asarray(target_world, np.float64)
-    return recentre(camera, camera.backproject(uv0, float(camera.to_camera(target)[2])), target)
-
-
-def cm_centre(frame_from_cm: np.ndarray) -> np.ndarray:
-    """(3,) the point 15 mm along the CM's axis from A (about the middle of its notched part) in the
-    frame of the pose ``frame_from_cm`` (4, 4): what a person centres the C-arm on."""
-    return (np.asarray(frame_from_cm, np.float64) @ np.array([0.0, 0.0, 15.0, 1.0]))[:3]
-
-
-def verification_view_centre(femur_from_cm_target: np.ndarray, femoral_head_femur: np.ndarray) -> np.ndarray:
-    """(3,) femur-frame point a verification C-arm centres: midway between the femoral head and the
-    planned CM, so that the CM where the robot took it, the neck and the acetabulum are in view."""
-    return 0.5 * (cm_centre(femur_from_cm_target) + np.asarray(femoral_head_femur, np.float64))
-
-
-def working_view_centre(trial: Any) -> np.ndarray:
-    """(3,) world point the C-arm centres for the first registration: midway between the femoral
-    head and the working CM's centre (15 mm along its axis from A), so that the CM, the neck and the
-    acetabulum are in view (the pelvis registration fails when only the trochanter region is
-    imaged). The CM at the plan is imaged afterwards from a C-arm slid towards it."""
-    return 0.5 * (np.asarray(trial.femoral_head_world, np.float64) + cm_centre(trial.world_from_cm[0]))
-
-
-def sample_handeye_scenario(
-    volume: Any,
-    rng: np.random.Generator,
-    *,
-    n_poses: int,
-    rotation_spread_deg: float = 25.0,
-    translation_spread_mm: float = 10.0,
-    margin_px: float = 100.0,
-    cm_config: CMConfig | None = None,
-    max_redraws: int = 400,
-    bend_deg: float | None = None,
-) -> HandEyeScenario:
-    """Sample robot, mount, C-arm, working pose and ``n_poses`` hand-eye poses (module docstring).
-
-    ``bend_deg``: the CM shape of the hand-eye poses: every control point ±(``bend_deg`` +
-    U(−0.5, 0.5))° with one random sign (a planar C-bend); None keeps the trial's working shape.
-
-    Raises:
-        ValueError: when not enough reachable in-view poses are found in ``max_redraws`` draws.
-    """
-    from fluoronav.studies.protocol import sample_trial
-
-    cm_config = cm_config or CMConfig()
-    kin = CMKinematics(cm_config)
-    trial = sample_trial("navigation", volume, rng, cm_config=cm_config)
-    cp = trial.control_points_deg
-    if bend_deg is not None:
-        sign = 1.0 if rng.random() < 0.5 else -1.0
-        cp = sign * (bend_deg + rng.uniform(-0.5, 0.5, cm_config.n_control_points))
-    cpt = torch.as_tensor(cp, dtype=torch.float64)
-    pts_cm = np.concatenate([kin.landmarks_cm(cpt).numpy(), kin.tip_cm(cpt).numpy()[None]])
-    camera = trial.cameras[0]
-    model = RobotErrorModel(seed=int(rng.integers(2**31)))
-    true_robot = model.true_robot(UR10)
-    # mount: CM base ~150-250 mm along the tool axis, small lateral offset and rotation
-    ee_from_cm = _se3.make(
-        _random_rotation(rng, 10.0), [rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(150.0, 250.0)]
-    )
-    q_work = HOME_DEG + rng.uniform(-10.0, 10.0, 6)
-    world_cm_work = trial.world_from_cm[0]
-    world_from_rbase = world_cm_work @ np.linalg.inv(true_robot.rbase_from_ee(q_work) @ ee_from_cm)
-    rbase_from_world = np.linalg.inv(world_from_rbase)
-    q: list[np.ndarray] = []
-    q_act: list[np.ndarray] = []
-    for _ in range(max_redraws):
-        if len(q) == n_poses:
-            break
-        d = _se3.make(
-            _random_rotation(rng, rotation_spread_deg),
-            rng.uniform(-translation_spread_mm, translation_spread_mm, 3),
-        )
-        target = rbase_from_world @ world_cm_work @ d @ np.linalg.inv(ee_from_cm)
-        sol = UR10.inverse_kinematics(target, q_reference_deg=q_work)
-        if isinstance(sol, IKFailure) or np.max(np.abs(wrap_deg(sol.q_deg - q_work))) > 90.0:
-            continue
-        qa = model.actual_joints_deg(sol.q_deg, rng=rng)
-        W = world_from_rbase @ true_robot.rbase_from_ee(qa) @ ee_from_cm
-        if not _in_view(camera, W, pts_cm, margin_px):
-            continue
-        q.append(sol.q_deg)
-        q_act.append(qa)
-    if len(q) < n_poses:
-        raise ValueError(f"only {len(q)} of {n_poses} reachable in-view robot poses in {max_redraws} draws")
-    qd, qa = np.asarray(q).reshape(-1, 6), np.asarray(q_act).reshape(-1, 6)
-    W = world_from_rbase @ true_robot.rbase_from_ee(qa) @ ee_from_cm if len(q) else np.zeros((0, 4, 4))
-    lm = np.asarray([camera.project(pts_cm[:2] @ T[:3, :3].T + T[:3, 3]) for T in W]).reshape(-1, 2, 2)
-    return HandEyeScenario(
-        camera=camera,
-        nominal=UR10,
-        true_robot=true_robot,
-        error_model=model,
-        world_from_rbase=world_from_rbase,
-        ee_from_cm=ee_from_cm,
-        q_work_deg=q_work,
-        q_deg=qd,
-        q_actual_deg=qa,
-        rbase_from_ee_reported=UR10.rbase_from_ee(qd) if len(q) else np.zeros((0, 4, 4)),
-        world_from_cm=W,
-        control_points_deg=cp,
-        landmarks_px=lm,
-        trial=trial,
-        cm_config=cm_config,
-    )
-
-
-def simulate_scenario_images(
-    scenario: HandEyeScenario,
-    simulator: Any,
-    *,
-    seed: int,
-    image_size: int,
-    world_from_cm: np.ndarray | None = None,
-    camera: Camera | None = None,
-) -> list[Any]:
-    """Physics images of the CM at ``world_from_cm`` (default: the scenario's M poses) over the
-    phantom at the trial's anatomy pose, seen by ``camera`` (default the scenario's); image m uses
-    noise seed ``seed + m``."""
-    tr = scenario.trial
-    poses = scenario.world_from_cm if world_from_cm is None else np.asarray(world_from_cm).reshape(-1, 4, 4)
-    return [
-        simulator.simulate(
-            scenario.camera if camera is None else camera,
-            world_from_patient=tr.world_from_patient,
-            world_from_femur=tr.world_from_femur,
-            cm=(T, scenario.control_points_deg),
-            seed=seed + m,
-            image_size=image_size,
-            cm_config=scenario.cm_config,
-        )
-        for m, T in enumerate(poses)
-    ]
 
 
 # ----- per-process caches -------------------------------------------------------------------------
@@ -497,9 +227,9 @@ def _tracker_baseline(
 
     tracker = OpticalTracker(marker_sigma_mm=sigma_mm)
     # O_s on the shaft 60 mm behind the CM base; the tracker ~1.5 m from the robot base
-    cm_from_os = _se3.make(_random_rotation(rng, 30.0), [30.0, 0.0, -60.0])
+    cm_from_os = _se3.make(random_rotation(rng, 30.0), [30.0, 0.0, -60.0])
     ee_from_os = sc.ee_from_cm @ cm_from_os
-    rbase_from_tracker = _se3.make(_random_rotation(rng, 180.0), [1500.0, 0.0, 500.0])
+    rbase_from_tracker = _se3.make(random_rotation(rng, 180.0), [1500.0, 0.0, 500.0])
     tracker_from_rbase = np.linalg.inv(rbase_from_tracker)
     rbase_ee_true = sc.true_robot.rbase_from_ee(sc.q_actual_deg)
     t_os = tracker.track(
@@ -533,7 +263,7 @@ def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> d
     from fluoronav.calibration.handeye import transform_error
     from fluoronav.calibration.image_handeye import ImageHandEyeConfig, calibrate_hand_eye_from_images
     from fluoronav.registration.cm import CMView
-    from fluoronav.studies.metrics import cm_errors
+    from fluoronav.registration.metrics import cm_errors
     from fluoronav.studies.pipeline import _anatomy
 
     t0 = time.perf_counter()
@@ -557,7 +287,7 @@ def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> d
         )
         lms, source = _landmarks(images, sc.landmarks_px, rng, cfg)
         row["landmarks"] = source
-        X0 = _perturb(sc.ee_from_cm, rng, cfg.init_rotation_deg, cfg.init_translation_mm)
+        X0 = perturb_transform(sc.ee_from_cm, rng, cfg.init_rotation_deg, cfg.init_translation_mm)
         cp0 = sc.control_points_deg + rng.uniform(-0.5, 0.5, 5)
         views = [
             CMView(s.image, s.camera, landmarks_px=lm, name=f"pose{m}")
@@ -626,318 +356,66 @@ def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> d
     return finish_row(row, t0)
 
 
-def _register_single(
-    image: Any,
-    lm: np.ndarray,
-    cp0: np.ndarray,
-    world_from_cm0: np.ndarray | None,
-    cfg: HandEyeStudyConfig,
-    seed: int,
-) -> Any:
-    """CM registration in one view; initial pose from the centreline (None) or the given pose."""
-    from fluoronav.detection.centerline import extract_centerline
-    from fluoronav.registration.centerline_init import centerline_initialize
-    from fluoronav.registration.cm import CMRegistrationConfig, CMView, register_cm
+def navigation_row(run: Any, cfg: HandEyeStudyConfig) -> dict[str, Any]:
+    """A ``trials.csv`` row's figures from a simulated navigation (:mod:`fluoronav.navigation.simulated`).
 
-    if world_from_cm0 is None:
-        cl = extract_centerline(image.mask.astype(bool), lm[0], lm[1])
-        init = centerline_initialize(image.camera, lm, cl, cp0, seed=seed, image=image.image)
-        world_from_cm0 = init.world_from_cm(image.camera)
-    return register_cm(
-        [CMView(image.image, image.camera, landmarks_px=lm, name="view0")],
-        initial_control_points_deg=cp0,
-        initial_world_from_cm=world_from_cm0,
-        config=CMRegistrationConfig(device=cfg.device),
-        seed=seed + 1,
-    )
-
-
-@dataclass(frozen=True)
-class _Verification:
-    """Registrations at a reached pose, in the verification's C-arm frame (its view 0)."""
-
-    carm_from_femur: np.ndarray
-    carm_from_cm: np.ndarray
-    #: the CM shape this registration found (its base pose and shape together place the tip)
-    control_points_deg: np.ndarray
-    #: registered tip vs the planned tip through the registered femur: what the surgeon sees
-    registered_error_mm: float
-    #: the verification's own errors against the truth (C-arm frame of its view 0): femur entry
-    #: point, CM tip, and the CM tip relative to the entry point (what a correction acts on)
-    entry_error_mm: float
-    tip_error_mm: float
-    relative_error_mm: float
-    seconds: float
-
-
-def _verify(
-    sc: HandEyeScenario,
-    simulator: Any,
-    volume: Any,
-    *,
-    world_from_cm_now: np.ndarray,
-    plan: Any,
-    femur_from_cm_target: np.ndarray,
-    world_from_femur_est: np.ndarray,
-    control_points_deg: np.ndarray,
-    binning: int,
-    cfg: HandEyeStudyConfig,
-    rng: np.random.Generator,
-    kin: CMKinematics,
-) -> _Verification | None:
-    """Image the CM where the robot took it and register femur and CM anew (``verify_views``).
-
-    The C-arm is slid (no rotation) to centre the midpoint of the femoral head and the planned CM as
-    the first registration placed them (± 5 mm: a person positions it), and orbited for the other
-    views; the new C-arm pose is unknown to the software, so the pelvis is registered again per view
-    (the view geometry for several views), then the femur and the CM (initial CM pose: the plan on
-    the new femur). None when the CM is not in the AP view (20 px margin)."""
-    from fluoronav.detection.instrument import instrument_mask_from_landmarks
-    from fluoronav.geometry.carm import orbit_camera
-    from fluoronav.registration.bone import (
-        register_femur,
-        register_pelvis_per_view,
-        views_from_images,
-        views_in_ct_frame,
-    )
-    from fluoronav.registration.cm import CMRegistrationConfig, CMView, register_cm
-
-    t0 = time.perf_counter()
-    tr = sc.trial
-    # between the femoral head and the planned CM: the CM, the neck and the acetabulum in view (the
-    # pelvis registration fails when only the trochanter region is imaged)
-    centre_femur = verification_view_centre(femur_from_cm_target, tr.femoral_head_ct)
-    centre = (world_from_femur_est @ np.append(centre_femur, 1.0))[:3] + rng.uniform(-5.0, 5.0, 3)
-    ap = centre_on(sc.camera, centre)
-    cpt = torch.as_tensor(sc.control_points_deg, dtype=torch.float64)
-    pts = np.concatenate([kin.landmarks_cm(cpt).numpy(), kin.tip_cm(cpt).numpy()[None]])
-    if not _in_view(ap, world_from_cm_now, pts, 20.0):
-        return None
-    cams = [ap]
-    for k in range(1, cfg.verify_views):
-        sign = 1.0 if k % 2 else -1.0
-        cams.append(
-            orbit_camera(ap, angle_deg=sign * cfg.verify_orbit_deg * ((k + 1) // 2), isocenter_world=centre)
-        )
-    noise_seed = int(rng.integers(2**31))
-    images = [
-        simulate_scenario_images(
-            sc,
-            simulator,
-            seed=noise_seed + k,
-            image_size=cfg.image_size,
-            world_from_cm=world_from_cm_now,
-            camera=c,
-        )[0]
-        for k, c in enumerate(cams)
-    ]
-    ab_world = pts[:2] @ world_from_cm_now[:3, :3].T + world_from_cm_now[:3, 3]
-    lms = [im.camera.project(ab_world) + rng.uniform(-3.0, 3.0, (2, 2)) / binning for im in images]
-    # the CM and its shaft are left out of the bone similarity (segmentation + oracle landmarks)
-    views = views_from_images(
-        images,
-        [
-            instrument_mask_from_landmarks(im.mask, lm, image=im.image)
-            for im, lm in zip(images, lms, strict=True)
-        ],
-    )
-    pelvis = register_pelvis_per_view(
-        views, volume, initial_world_from_patient=tr.initial_world_from_patient, seed=int(rng.integers(2**31))
-    )
-    # the CT frame of the pelvis-estimated views (the multi-view study's frame; with one view the
-    # same relative poses as the true camera with the pelvis estimate)
-    views_ct = views_in_ct_frame(views, pelvis)
-    reg_cams = [v.camera for v in views_ct]
-    femur = register_femur(
-        views_ct, volume, side=tr.side, world_from_patient=np.eye(4), seed=int(rng.integers(2**31))
-    )
-    reg = register_cm(
-        [
-            CMView(im.image, c, landmarks_px=lm, name=f"verify{k}")
-            for k, (im, c, lm) in enumerate(zip(images, reg_cams, lms, strict=True))
-        ],
-        initial_control_points_deg=control_points_deg,
-        initial_world_from_cm=femur.world_from_bone @ femur_from_cm_target,
-        config=CMRegistrationConfig(device=cfg.device),
-        seed=int(rng.integers(2**31)),
-    )
-    planned_tip = (femur.world_from_bone @ np.append(plan.tip_target_world_mm, 1.0))[:3]
-    carm = reg_cams[0].camera_from_world
-    carm_true = images[0].camera.camera_from_world
-    entry_est = (carm @ femur.world_from_bone @ np.append(tr.entry_ct, 1.0))[:3]
-    entry_true = (carm_true @ np.append(tr.entry_world, 1.0))[:3]
-    tip_est = (carm @ np.append(reg.tip_world[0], 1.0))[:3]
-    tip_true = (carm_true @ world_from_cm_now @ np.append(pts[-1], 1.0))[:3]
-    return _Verification(
-        carm_from_femur=carm @ femur.world_from_bone,
-        carm_from_cm=carm @ reg.world_from_cm[0],
-        control_points_deg=reg.control_points_deg,
-        registered_error_mm=float(np.linalg.norm(reg.tip_world[0] - planned_tip)),
-        entry_error_mm=float(np.linalg.norm(entry_est - entry_true)),
-        tip_error_mm=float(np.linalg.norm(tip_est - tip_true)),
-        relative_error_mm=float(np.linalg.norm((tip_est - entry_est) - (tip_true - entry_true))),
-        seconds=time.perf_counter() - t0,
-    )
+    ``reposition_open_loop_mm`` is the first move's error, ``reposition_tip_mm`` the final one (after
+    the correction when ``corrections`` is 1), ``reposition_registered_mm`` what the verification
+    images say (registered tip to plan)."""
+    E = run.errors
+    row: dict[str, Any] = {"status": run.status, "reason": run.reason}
+    pairs = {
+        "tip_mm": "cm_tip_mm",
+        "entry_mm": "femur_entry_mm",
+        "relative_mm": "cm_relative_mm",
+        "base_translation_mm": "cm_base_translation_mm",
+        "base_rotation_deg": "cm_base_rotation_deg",
+        "notch_rotation_deg": "cm_notch_rotation_deg",
+        "reposition_open_loop_mm": "reposition_tip_mm",
+        "reposition_open_loop_axis_deg": "reposition_axis_deg",
+        "reposition_robot_mm": "reposition_robot_mm",
+        "reposition_registered_mm": "verify_tip_to_plan_mm",
+        "verify_entry_mm": "verify_femur_entry_mm",
+        "verify_tip_mm": "verify_tip_error_mm",
+        "verify_relative_mm": "verify_relative_mm",
+        "joint_motion_deg": "joint_motion_deg",
+    }
+    row.update({k: E[v] for k, v in pairs.items() if v in E})
+    final = "corrected" if cfg.corrections else "reposition"
+    if f"{final}_tip_mm" in E:
+        row["reposition_tip_mm"] = E[f"{final}_tip_mm"]
+        row["reposition_axis_deg"] = E[f"{final}_axis_deg"]
+    if run.result is not None:
+        row.update(run.result.flat_diagnostics())
+        st = run.result.stages
+        row["seconds_registration"] = st["cm"].seconds if "cm" in st else None
+        row["seconds_bones"] = sum(st[k].seconds for k in ("pelvis", "femur") if k in st)
+        row["seconds_verification"] = sum(v.seconds for k, v in st.items() if k.startswith("verify_"))
+    return row
 
 
 def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, Any]:
-    """One navigation trial → one ``trials.csv`` row (module docstring)."""
-    from fluoronav.navigation.navigate import femur_from_cm_registered, tip_correction_target
-    from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
-    from fluoronav.studies.metrics import axis_error_deg, cm_errors, point_error_mm, relative_error_mm
-    from fluoronav.studies.pipeline import _anatomy
+    """One navigation trial → one ``trials.csv`` row: the shared simulated navigation loop
+    (:func:`fluoronav.navigation.simulated.run_simulated_navigation`), the same pipeline as
+    ``fluoronav navigate`` and the demo."""
+    from fluoronav.navigation.simulated import SimulationConfig, run_simulated_navigation
 
     t0 = time.perf_counter()
     torch.set_num_threads(1)
-    rng = np.random.default_rng(seed)
     row = new_row(trial_id, seed, cfg.workflow)
     try:
-        volume, simulator = _anatomy(cfg.ct, 1000 * cfg.seed, cfg.image_size, cfg.device)
-        kin = CMKinematics()
-        sc = sample_handeye_scenario(volume, rng, n_poses=0)
-        tr = sc.trial
-        # the CM, the neck and the acetabulum in view; the verification slides the C-arm (_verify)
-        sc = dataclasses.replace(sc, camera=centre_on(sc.camera, working_view_centre(tr)))
-        cam = sc.camera.camera_from_world
-        q_regi = sc.q_work_deg
-        W_regi = sc.true_world_from_cm(sc.error_model.actual_joints_deg(q_regi, rng=rng))
-        img = simulate_scenario_images(
-            sc, simulator, seed=int(rng.integers(2**31)), image_size=cfg.image_size, world_from_cm=W_regi
-        )[0]
-        cpt = torch.as_tensor(sc.control_points_deg, dtype=torch.float64)
-        lm_true = img.camera.project(kin.landmarks_cm(cpt).numpy() @ W_regi[:3, :3].T + W_regi[:3, 3])
-        b = max(1, round(img.camera.pixel_spacing_mm / 0.194)) if img.camera.pixel_spacing_mm else 1
-        lm = lm_true + rng.uniform(-3.0, 3.0, (2, 2)) / b  # oracle: U(−3, 3) full-detector px
-        cp0 = tr.initial_control_points_deg
-        init = None if cfg.navigation_init == "centerline" else _perturb(W_regi, rng, 10.0, 10.0)
-        reg = _register_single(img, lm, cp0, init, cfg, int(rng.integers(2**31)))
-        row["seconds_registration"] = reg.seconds
-        row.update(
-            {
-                k: v
-                for k, v in cm_errors(
-                    carm_from_cm_est=cam @ reg.world_from_cm[0],
-                    carm_from_cm_true=cam @ W_regi,
-                    control_points_est_deg=reg.control_points_deg,
-                    control_points_true_deg=sc.control_points_deg,
-                ).items()
-                if k in CM_METRICS
-            }
+        sim = SimulationConfig(
+            seed=seed,
+            phantom_seed=1000 * cfg.seed,
+            image_size=cfg.image_size,
+            handeye_error_deg=cfg.handeye_error_deg,
+            handeye_error_mm=cfg.handeye_error_mm,
+            verify=cfg.corrections > 0,
+            device=cfg.device,
+            oracle_landmarks=cfg.oracle_landmarks,
         )
-        # femur: registered (pelvis then femur in the one view) or the truth
-        if cfg.register_bones:
-            from fluoronav.detection.instrument import instrument_mask_from_landmarks
-            from fluoronav.registration.bone import register_femur, register_pelvis, views_from_images
-
-            tb = time.perf_counter()
-            bv = views_from_images([img], [instrument_mask_from_landmarks(img.mask, lm, image=img.image)])
-            pelvis = register_pelvis(
-                bv,
-                volume,
-                initial_world_from_patient=tr.initial_world_from_patient,
-                seed=int(rng.integers(2**31)),
-            )
-            femur = register_femur(
-                bv,
-                volume,
-                side=tr.side,
-                world_from_patient=pelvis.world_from_bone,
-                seed=int(rng.integers(2**31)),
-            )
-            world_from_femur_est = femur.world_from_bone
-            row["seconds_bones"] = time.perf_counter() - tb
-        else:
-            world_from_femur_est = tr.world_from_femur
-        entry_est = (world_from_femur_est @ np.append(tr.entry_ct, 1.0))[:3]
-        tip_reg = reg.tip_world[0]
-        tip_true_regi = (W_regi @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3]
-        if cfg.register_bones:  # with the true femur pose these would only repeat the CM errors
-            row["entry_mm"] = point_error_mm(entry_est, tr.entry_world)
-            row["relative_mm"] = relative_error_mm(entry_est, tip_reg, tr.entry_world, tip_true_regi)
-        # plan (femur = CT frame): tip on the entry point, axis along the neck towards the head
-        plan = neck_entry_plan(tr.entry_ct, tr.femoral_head_ct, reg.control_points_deg)
-        femur_from_cm_target = planned_femur_from_cm(plan, kinematics=kin)
-        X_used = _perturb(sc.ee_from_cm, rng, cfg.handeye_error_deg, cfg.handeye_error_mm)
-        q_target, W_after = sc.move_to_plan(
-            q_regi,
-            ee_from_cm=X_used,
-            carm_from_femur=cam @ world_from_femur_est,
-            carm_from_cm=cam @ reg.world_from_cm[0],
-            femur_from_cm_target=femur_from_cm_target,
-            rng=rng,
-        )
-        tip_after = (W_after @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3]
-        planned_true = (tr.world_from_femur @ np.append(plan.tip_target_world_mm, 1.0))[:3]
-        row["reposition_open_loop_mm"] = point_error_mm(tip_after, planned_true)
-        row["reposition_tip_mm"] = row["reposition_open_loop_mm"]
-        # the CM base axis against the planned direction (the drilling direction)
-        axis_true = (tr.world_from_femur @ femur_from_cm_target)[:3, 2]
-        row["reposition_open_loop_axis_deg"] = axis_error_deg(W_after[:3, 2], axis_true)
-        row["reposition_axis_deg"] = row["reposition_open_loop_axis_deg"]
-        row["joint_motion_deg"] = float(np.max(np.abs(wrap_deg(q_target - q_regi))))
-        # error budget without image errors: true registrations, the same hand-eye and robot errors
-        plan_true = dataclasses.replace(plan, control_points_deg=sc.control_points_deg)
-        _, W_ideal = sc.move_to_plan(
-            q_regi,
-            ee_from_cm=X_used,
-            carm_from_femur=cam @ tr.world_from_femur,
-            carm_from_cm=cam @ W_regi,
-            femur_from_cm_target=planned_femur_from_cm(plan_true, kinematics=kin),
-            rng=rng,
-        )
-        row["reposition_robot_mm"] = point_error_mm(
-            (W_ideal @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3], planned_true
-        )
-        # new images at the reached pose (C-arm re-centred): what they say, and corrective moves
-        q_now, W_now = q_target, W_after
-        seconds_verify = 0.0
-        # one verification per correction (each moves again); one for the record when open loop
-        for k in range(max(1, cfg.corrections)):
-            ver = _verify(
-                sc,
-                simulator,
-                volume,
-                world_from_cm_now=W_now,
-                plan=plan,
-                femur_from_cm_target=femur_from_cm_target,
-                world_from_femur_est=world_from_femur_est,
-                control_points_deg=reg.control_points_deg,
-                binning=b,
-                cfg=cfg,
-                rng=rng,
-                kin=kin,
-            )
-            if ver is None:
-                row["reposition_reason"] = "reached pose outside the re-centred image"
-                break
-            seconds_verify += ver.seconds
-            if k == 0:
-                row["reposition_registered_mm"] = ver.registered_error_mm
-                row["verify_entry_mm"] = ver.entry_error_mm
-                row["verify_tip_mm"] = ver.tip_error_mm
-                row["verify_relative_mm"] = ver.relative_error_mm
-            if cfg.corrections == 0:
-                break
-            # slide the verified CM so that its registered tip meets the plan (tip_correction_target:
-            # the verification's tip is reliable, its base orientation trades against its shape)
-            tip_ver = kin.tip_cm(torch.as_tensor(ver.control_points_deg, dtype=torch.float64)).numpy()
-            target_k = tip_correction_target(
-                femur_from_cm_registered(ver.carm_from_femur, ver.carm_from_cm),
-                tip_ver,
-                plan.tip_target_world_mm,
-            )
-            q_now, W_now = sc.move_to_plan(
-                q_now,
-                ee_from_cm=X_used,
-                carm_from_femur=ver.carm_from_femur,
-                carm_from_cm=ver.carm_from_cm,
-                femur_from_cm_target=target_k,
-                rng=rng,
-            )
-            tip_now = (W_now @ np.append(kin.tip_cm(cpt).numpy(), 1.0))[:3]
-            row["reposition_tip_mm"] = point_error_mm(tip_now, planned_true)
-            row["reposition_axis_deg"] = axis_error_deg(W_now[:3, 2], axis_true)
-        row["seconds_verification"] = seconds_verify
+        row["landmarks"] = "oracle" if cfg.oracle_landmarks else "detector"
+        row.update(navigation_row(run_simulated_navigation(sim, ct=cfg.ct), cfg))
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
         mark_failed(row, exc, trial_id)
     return finish_row(row, t0)
@@ -952,6 +430,8 @@ def _columns(cfg: HandEyeStudyConfig) -> list[str]:
             *head,
             *NAVIGATION_METRICS,
             *NAVIGATION_DIAGNOSTICS,
+            *NAVIGATION_CHECKS,
+            "landmarks",
             "joint_motion_deg",
             "reposition_reason",
             *tail,
@@ -1062,8 +542,8 @@ def run_study(
         raise InputError("WORKFLOW", f"unknown workflow {cfg.workflow!r}; use hand-eye or navigation")
     if any(m < 1 for m in cfg.poses):
         raise InputError("--poses", "numbers of poses must be positive")
-    if cfg.verify_views < 1:
-        raise InputError("--verify-views", "at least one verification view is needed")
+    if cfg.corrections not in (0, 1):
+        raise InputError("--corrections", "0 (open loop) or 1 (one corrective move)")
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "config.json"
     cfg_dict = {**dataclasses.asdict(cfg), "version": __version__}
@@ -1094,7 +574,7 @@ def run_study(
     rows = sorted(csv_log.read(), key=lambda r: int(r["trial"]))
     names = list(HANDEYE_METRICS if cfg.workflow == "hand-eye" else NAVIGATION_METRICS)
     if cfg.workflow == "navigation":
-        names += list(NAVIGATION_DIAGNOSTICS)
+        names += list(NAVIGATION_DIAGNOSTICS) + list(NAVIGATION_CHECKS)
     if cfg.workflow == "hand-eye":
         names += list(HANDEYE_DIAGNOSTICS)
         names += [
@@ -1112,7 +592,7 @@ def run_study(
             "seed": cfg.seed,
             "ct": cfg.ct,
             "poses": list(cfg.poses),
-            "landmarks": "oracle" if cfg.oracle_landmarks else "detector or oracle",
+            "landmarks": "oracle" if cfg.oracle_landmarks else "detector",
             "image_size": cfg.image_size,
         },
     )
@@ -1133,10 +613,8 @@ def run_handeye_or_navigation_study(
     device: str = "cpu",
     poses: Sequence[int] = (4, 8, 15),
     image_size: int = 768,
-    register_bones: bool = True,
-    navigation_init: str = "perturbed",
     corrections: int = 1,
-    verify_views: int = 3,
+    oracle_landmarks: bool = True,
     calibration_bend_deg: float | None = 2.5,
 ) -> dict[str, Any]:
     """Entry point of ``fluoronav study hand-eye|navigation`` → the summary dict (CONTRACTS)."""
@@ -1148,10 +626,8 @@ def run_handeye_or_navigation_study(
         poses=tuple(int(m) for m in poses),
         image_size=image_size,
         device=device,
-        register_bones=register_bones,
-        navigation_init=navigation_init,
         corrections=corrections,
-        verify_views=verify_views,
+        oracle_landmarks=oracle_landmarks,
         calibration_bend_deg=calibration_bend_deg,
     )
     return run_study(cfg, Path(out), scheduler=scheduler, workers=workers)

@@ -1,6 +1,6 @@
 """The paper's simulation studies, one trial at a time (``fluoronav study``).
 
-A trial (§III-B; :mod:`fluoronav.studies.protocol`) samples the ground truth, simulates the X-ray
+A trial (§III-B; :mod:`fluoronav.simulation.protocol`) samples the ground truth, simulates the X-ray
 images with the physics simulator (moving pelvis and femur, voxelised CM; never the registration's
 renderer), finds the CM landmarks (the shipped detector, or ``--oracle-landmarks``: the truth plus
 U(−3, 3) px as the authors' code), registers pelvis and femur, initialises the CM from its centreline
@@ -24,10 +24,12 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import FluoronavError, InputError
-from fluoronav.studies.metrics import cm_errors, point_error_mm, relative_error_mm
+from fluoronav.registration.centerline_init import multiview_start_poses
+from fluoronav.registration.metrics import cm_errors, point_error_mm, relative_error_mm
 from fluoronav.studies.runner import CsvLog, finish_row, mark_failed, new_row, run_tasks
 
 log = logging.getLogger(__name__)
@@ -81,18 +83,10 @@ class StudyConfig:
 
 
 # ----- per-process caches ---------------------------------------------------------------------------
-@functools.lru_cache(maxsize=2)
 def _anatomy(ct: str, phantom_seed: int, image_size: int, device: str) -> tuple[Volume, Any]:
-    from fluoronav.anatomy.io import resolve_ct
-    from fluoronav.simulation.articulated import ArticulatedSimulator
-    from fluoronav.simulation.xray import SimulationConfig
+    from fluoronav.simulation.articulated import anatomy_and_simulator
 
-    volume = resolve_ct(ct, seed=phantom_seed)
-    side = "left"  # the protocol works on the left femur (labels femur_left, landmarks *_left)
-    sim = ArticulatedSimulator(
-        volume, femur_side=side, config=SimulationConfig(image_size=image_size), device=device
-    )
-    return volume, sim
+    return anatomy_and_simulator(ct, phantom_seed, image_size, device)
 
 
 @functools.lru_cache(maxsize=1)
@@ -246,28 +240,12 @@ def cm_start_poses(
     return [w for W in world for w in (W, mirror_about_chord(W, control_points_deg, cm_config))]
 
 
-def multiview_start_poses(
-    init: Any, *, max_starts: int = 2, cost_ratio: float = 1.5, slack_px: float = 0.25
-) -> list[np.ndarray]:
-    """Starts from a multi-view centreline initialisation: its roll minima whose cost is within
-    ``cost_ratio`` × the best + ``slack_px``, at most ``max_starts``, best first. Several views
-    usually leave one clear minimum (e.g. 0.45 px against 1.55 px for the next), and a start in a
-    clearly worse one only costs time and risks the short screening picking it."""
-    best = float(init.alternative_costs_px[0])
-    keep = [
-        W
-        for W, c in zip(init.alternatives, init.alternative_costs_px, strict=True)
-        if float(c) <= cost_ratio * best + slack_px
-    ]
-    return keep[:max_starts]
-
-
 def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
     """One trial → one ``trials.csv`` row (status ``ok`` or ``failed`` with its reason)."""
     from fluoronav.detection.instrument import instrument_masks
     from fluoronav.registration.centerline_init import centerline_initialize, depth_range_about
     from fluoronav.registration.cm import CMRegistrationConfig, CMView
-    from fluoronav.studies.protocol import sample_trial, simulate_trial_images
+    from fluoronav.simulation.protocol import sample_trial, simulate_trial_images
 
     t0 = time.perf_counter()
     torch.set_num_threads(1)  # one trial per worker process; numba kernels keep their own threads
@@ -522,3 +500,37 @@ def run_study(
     write_summary(out / "summary.json", summary)
     study_figures(rows, out / "figures", workflow=cfg.workflow)
     return summary
+
+
+def bone_registration_errors(trial: Any, images: list[Any], volume: Volume, *, seed: int) -> dict[str, float]:
+    """Register the pelvis (from the trial's initial pose) then the femur, jointly over the images;
+    errors w.r.t. the ground truth (mm, degrees) and run times (s, rough).
+
+    Keys: ``pelvis_mm`` (at the pelvis centre), ``pelvis_deg``, ``pelvis_depth_mm`` (along the first
+    view's axis), ``femur_deg``, ``entry_mm`` (‖entry_est − entry_true‖, frame independent),
+    ``pelvis_s``, ``femur_s``.
+    """
+    from fluoronav.registration.bone import register_femur, register_pelvis, views_from_images
+
+    views = views_from_images(images)
+    pelvis = register_pelvis(
+        views, volume, initial_world_from_patient=trial.initial_world_from_patient, seed=seed
+    )
+    femur = register_femur(
+        views, volume, side=trial.side, world_from_patient=pelvis.world_from_bone, seed=seed + 1
+    )
+
+    def rot_deg(A: np.ndarray, B: np.ndarray) -> float:
+        return float(np.degrees(np.linalg.norm(Rotation.from_matrix(A[:3, :3] @ B[:3, :3].T).as_rotvec())))
+
+    c = (pelvis.world_from_bone @ np.append(trial.pelvis_center_ct, 1.0))[:3] - trial.pelvis_center_world
+    entry = (femur.world_from_bone @ np.append(trial.entry_ct, 1.0))[:3]
+    return {
+        "pelvis_mm": float(np.linalg.norm(c)),
+        "pelvis_deg": rot_deg(pelvis.world_from_bone, trial.world_from_patient),
+        "pelvis_depth_mm": float(abs((trial.cameras[0].camera_from_world[:3, :3] @ c)[2])),
+        "femur_deg": rot_deg(femur.world_from_bone, trial.world_from_femur),
+        "entry_mm": float(np.linalg.norm(entry - trial.entry_world)),
+        "pelvis_s": pelvis.seconds,
+        "femur_s": femur.seconds,
+    }

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from fluoronav.registration.metrics import axis_error_deg, base_error, cm_errors, relative_error_mm
 from fluoronav.studies.figures import study_figures
-from fluoronav.studies.metrics import axis_error_deg, base_error, cm_errors, relative_error_mm
 from fluoronav.studies.summary import summarize
 
 

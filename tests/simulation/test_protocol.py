@@ -9,8 +9,8 @@ from scipy.spatial.transform import Rotation
 from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.simulation.articulated import ArticulatedSimulator
 from fluoronav.simulation.physics import XrayPhysics
+from fluoronav.simulation.protocol import WORKFLOWS, sample_trial, simulate_trial_images
 from fluoronav.simulation.xray import SimulationConfig
-from fluoronav.studies.protocol import WORKFLOWS, sample_trial, simulate_trial_images
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +126,7 @@ def test_simulated_images_match_the_trial(volume):
 
 @pytest.mark.slow
 def test_bone_registration_errors_on_a_trial():
-    from fluoronav.studies.protocol import bone_registration_errors
+    from fluoronav.studies.pipeline import bone_registration_errors
 
     vol = hip_phantom(seed=0, spacing_mm=2.0)
     sim = ArticulatedSimulator(vol, config=SimulationConfig())

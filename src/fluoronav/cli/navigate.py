@@ -1,0 +1,120 @@
+"""``fluoronav navigate CASE --out DIR``: the navigation loop on a user's own files.
+
+Reads a navigation case (docs/data-formats.md), runs :func:`fluoronav.navigation.pipeline.navigate`
+and writes ``DIR/navigation.json``, ``DIR/slicer/`` and ``DIR/report.html``. Exit status 0 when the
+navigation gives a robot command, 3 when it refused (no command; the reason is printed and in
+``navigation.json``), 2 for bad input.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import typer
+
+from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
+
+#: exit status of a navigation that refused to give a robot command
+EXIT_REFUSED = 3
+
+STAGE_LABELS = {
+    "detect": "detecting the CM in each view",
+    "pelvis": "registering the pelvis in each view",
+    "femur": "registering the femur",
+    "cm": "initialising and registering the CM (multi-view)",
+    "plan": "planning the target pose",
+    "robot": "computing the robot command (eqs. 7-8, IK)",
+    "verify_detect": "verification: detecting the CM",
+    "verify_pelvis": "verification: registering the pelvis",
+    "verify_femur": "verification: registering the femur",
+    "verify_cm": "verification: registering the CM",
+    "correct": "computing the corrective command",
+    "anatomy": "building the hip phantom and the X-ray simulator",
+    "scene": "placing robot, CM, pelvis, femur and C-arm",
+    "simulate": "simulating three C-arm X-rays (physics)",
+    "move": "moving the robot",
+    "verify_simulate": "simulating the verification X-rays",
+    "correct_move": "corrective move",
+}
+
+
+@contextmanager
+def stage_progress(total: int, description: str) -> Iterator[Callable[[str, str], None]]:
+    """A progress display on stderr; yields the ``on_stage`` callback the pipelines take. Without a
+    terminal (a log file), one line per finished stage."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    console = Console(stderr=True)
+    started: dict[str, float] = {}
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} stages"),
+        TimeElapsedColumn(),
+        console=console,
+        transient=False,
+    ) as progress:
+        task = progress.add_task(description, total=total)
+
+        def on_stage(name: str, event: str) -> None:
+            if event == "start":
+                started[name] = time.perf_counter()
+                progress.update(task, description=STAGE_LABELS.get(name, name))
+            else:
+                progress.advance(task)
+                if not console.is_terminal:
+                    console.print(f"{name}: done in {time.perf_counter() - started[name]:.1f} s")
+
+        yield on_stage
+
+
+def run(case_path: Path, out: Path, *, seed: int, device: str) -> int:
+    """Navigate on a case file and write the outputs; returns the exit status."""
+    from fluoronav.device import resolve_device
+    from fluoronav.navigation.case import load_navigation_case
+    from fluoronav.navigation.outputs import write_outputs
+    from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES, NavigationConfig, navigate
+
+    case = load_navigation_case(case_path)
+    cfg = NavigationConfig(device=str(resolve_device(device)), seed=seed)
+    total = len(STAGES) + (len(VERIFY_STAGES) if case.verification is not None else 0)
+    with stage_progress(total, "navigate") as on_stage:
+        result = navigate(case, cfg, on_stage=on_stage)
+    write_outputs(
+        result,
+        case,
+        out,
+        extra={"case": str(case_path)},
+        report_description=f"Navigation on {case_path} ({len(case.views)} views"
+        + (f", {len(case.verification.views)} verification views)" if case.verification else ")"),
+    )
+    if result.status != "ok":
+        typer.echo(f"refused: {result.reason}", err=True)
+        typer.echo(f"no robot command; wrote {out / 'navigation.json'} and {out / 'report.html'}")
+        return EXIT_REFUSED
+    assert result.joints_target_deg is not None
+    q = result.joints_correction_deg if result.joints_correction_deg is not None else result.joints_target_deg
+    what = "corrective" if result.joints_correction_deg is not None else "target"
+    typer.echo(f"{what} joints (deg): {' '.join(f'{v:.3f}' for v in q)}")
+    typer.echo(f"wrote {out / 'navigation.json'}, {out / 'slicer'} and {out / 'report.html'}")
+    return 0
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("navigate")
+    def navigate_command(
+        case: Path = typer.Argument(..., help="Navigation case (JSON), see docs/data-formats.md."),
+        out: Path = typer.Option(
+            ..., "--out", help="Output directory (navigation.json, slicer/, report.html)."
+        ),
+        seed: int = SEED_OPTION,
+        device: str = DEVICE_OPTION,
+    ) -> None:
+        """Navigation on your own files: detection → pelvis → femur → CM → plan → robot command
+        (and, with verification views, their registration and one corrective command). Exit status
+        3 when it refuses to give a command."""
+        raise typer.Exit(run(case, out, seed=seed, device=device))

@@ -1,0 +1,676 @@
+"""The navigation pipeline: from a navigation case to a robot command (``fluoronav navigate``).
+
+Stages, each timed and recorded with its diagnostics (:class:`StageRecord`):
+
+1. ``detect``: per view, the CM mask, landmarks A and B and centreline: the shipped detector, or the
+   landmarks (and mask) the case gives for that view.
+2. ``pelvis``: the pelvis registered to each view alone; each view's ``camera_from_ct`` follows, and
+   with it the views' relative geometry (§II-C). The CM and its shaft are left out of the bone
+   similarity.
+3. ``femur``: the femur registered to all views (rotation about the femoral head) →
+   ``ct_from_femur``, the femur's pose relative to where the CT shows it.
+4. ``cm``: the landmarks triangulated over the views, a scan of the roll about them scored by the
+   centrelines (multi-view centreline initialisation), then multi-view CM registration (pose and
+   shape) in the CT frame from the best one or two roll minima.
+5. ``plan``: the planned CM pose in the femur frame, with the CM's registered shape where the plan
+   gives none.
+6. ``robot``: eqs. 7–8 and inverse kinematics near the joints read while imaging →
+   ``rbase_from_ee_target``, ``joints_target_deg``.
+
+With verification views (the images after the move): ``verify_detect``, ``verify_pelvis``,
+``verify_femur``, ``verify_cm`` (the CM registered from the plan on the re-registered femur) and
+``correct``: one corrective command from the verification joints that slides the registered CM so
+that its tip meets the plan (:func:`~fluoronav.navigation.navigate.tip_correction_target`).
+
+A stage that cannot go on (fewer than two views with a CM, the target out of the robot's reach)
+ends the run with status ``"refused"`` and a reason naming the stage, the view and the check; no
+robot command is given then.
+
+Frames: ``ct`` (LPS, mm) throughout; ``femur`` is the CT frame moved with the femur
+(``ct_from_femur``), the frame the plan is drawn in; ``carm_k`` is view k's C-arm camera frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from fluoronav.calibration.robot import wrap_deg
+from fluoronav.detection.centerline import extract_centerline
+from fluoronav.detection.instrument import instrument_masks
+from fluoronav.errors import FluoronavError
+from fluoronav.geometry.camera import Camera
+from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.navigation.case import CaseView, NavigationCase
+from fluoronav.navigation.navigate import (
+    UnreachableTarget,
+    femur_from_cm_registered,
+    robot_target,
+    tip_correction_target,
+)
+from fluoronav.navigation.planning import Plan, planned_femur_from_cm
+from fluoronav.registration.bone import (
+    BoneRegistrationResult,
+    BoneView,
+    register_femur,
+    register_pelvis_per_view,
+    views_in_ct_frame,
+)
+from fluoronav.registration.centerline_init import (
+    MultiViewInitResult,
+    centerline_initialize_multiview,
+    multiview_start_poses,
+)
+from fluoronav.registration.cm import (
+    CMRegistrationConfig,
+    CMRegistrationResult,
+    CMView,
+    register_cm,
+    register_cm_multistart,
+)
+from fluoronav.registration.diagnostics import cm_view_diagnostics
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "STAGES",
+    "VERIFY_STAGES",
+    "NavigationConfig",
+    "NavigationRefused",
+    "NavigationResult",
+    "Registration",
+    "StageRecord",
+    "ViewDetection",
+    "navigate",
+    "verify",
+]
+
+STAGES = ("detect", "pelvis", "femur", "cm", "plan", "robot")
+VERIFY_STAGES = ("verify_detect", "verify_pelvis", "verify_femur", "verify_cm", "correct")
+
+
+@dataclass(frozen=True)
+class NavigationConfig:
+    """Settings of the pipeline (recorded in ``navigation.json``).
+
+    Attributes:
+        device: torch device of the detector, renderers and similarities.
+        seed: seeds every optimiser (the same seed gives the same result).
+        min_views: views with a usable CM detection that the first registration needs (the
+            triangulation of A and B needs two).
+        max_cm_starts: roll minima of the centreline initialisation the CM registration starts from.
+        landmark_band_mm: half-width at the detector of the CM region assumed about A–B in a view
+            whose case gives landmarks but no mask.
+        ik_tol_mm, ik_tol_deg: inverse-kinematics acceptance.
+    """
+
+    device: str = "cpu"
+    seed: int = 0
+    min_views: int = 2
+    max_cm_starts: int = 2
+    landmark_band_mm: float = 6.0
+    ik_tol_mm: float = 1e-6
+    ik_tol_deg: float = 1e-6
+
+
+class NavigationRefused(FluoronavError):
+    """A stage could not go on; no robot command may be given.
+
+    Args:
+        stage: the stage that refused; check: the check that failed; view: the view concerned or "".
+    """
+
+    def __init__(self, stage: str, check: str, detail: str, view: str = "") -> None:
+        self.stage, self.check, self.view, self.detail = stage, check, view, detail
+        where = f"stage {stage}" + (f", view {view}" if view else "")
+        super().__init__(f"{where}, check {check}: {detail}")
+
+
+@dataclass
+class StageRecord:
+    """One stage's record: wall time, whether its checks passed, and its diagnostics (JSON-ready)."""
+
+    seconds: float = 0.0
+    passed: bool = True
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"seconds": self.seconds, "passed": self.passed, **self.diagnostics}
+
+
+@dataclass(frozen=True, eq=False)
+class ViewDetection:
+    """The CM found in one view.
+
+    Attributes:
+        landmarks_px: (2, 2) A, B (u, v) in the view's pixels.
+        centerline_px: (P, 2) ordered A → B.
+        mask: (rows, cols) bool CM region.
+        confidence: (2,) the detector's confidence of A and B (1 for given landmarks).
+        source: "detector" or "case".
+    """
+
+    landmarks_px: np.ndarray
+    centerline_px: np.ndarray
+    mask: np.ndarray
+    confidence: np.ndarray
+    source: str
+
+
+@dataclass(frozen=True, eq=False)
+class Registration:
+    """Bones and CM registered in one set of views (the first images, or the verification's).
+
+    Attributes:
+        views: the case's views; detections: per view, None where no CM was usable.
+        pelvis: per-view pelvis registrations; cameras_ct: each view's camera placed by it
+            (``camera_from_world`` = ``carm_k_from_ct``).
+        femur: the femur registration (``world_from_bone`` = ``ct_from_femur``).
+        cm: the CM registration in the CT frame; cm_init: the multi-view centreline
+            initialisation it started from (None when it started from a given pose).
+    """
+
+    views: tuple[CaseView, ...]
+    detections: tuple[ViewDetection | None, ...]
+    pelvis: tuple[BoneRegistrationResult, ...]
+    cameras_ct: tuple[Camera, ...]
+    femur: BoneRegistrationResult
+    cm: CMRegistrationResult
+    cm_init: MultiViewInitResult | None = None
+
+    @property
+    def ct_from_femur(self) -> np.ndarray:
+        return np.asarray(self.femur.world_from_bone, np.float64)
+
+    @property
+    def ct_from_cm(self) -> np.ndarray:
+        return np.asarray(self.cm.world_from_cm[0], np.float64)
+
+    @property
+    def tip_ct_mm(self) -> np.ndarray:
+        return np.asarray(self.cm.tip_world[0], np.float64)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The contract's pose keys (CT frame, LPS mm)."""
+        return {
+            "ct_from_cm": self.ct_from_cm.tolist(),
+            "control_points_deg": np.asarray(self.cm.control_points_deg).tolist(),
+            "tip_ct_mm": self.tip_ct_mm.tolist(),
+            "ct_from_femur": self.ct_from_femur.tolist(),
+            "carm_from_ct": {
+                v.name: c.camera_from_world.tolist() for v, c in zip(self.views, self.cameras_ct, strict=True)
+            },
+        }
+
+
+@dataclass
+class NavigationResult:
+    """What ``navigate`` found and commanded (``navigation.json``: :meth:`to_json`).
+
+    ``first`` / ``verification`` are the registrations; ``plan`` is the plan as used (with the CM's
+    registered shape where the case's plan gives none); the robot commands are set only when the
+    status is "ok".
+    """
+
+    config: NavigationConfig
+    status: str = "ok"
+    reason: str = ""
+    stages: dict[str, StageRecord] = field(default_factory=dict)
+    first: Registration | None = None
+    plan: Plan | None = None
+    femur_from_cm_target: np.ndarray | None = None
+    rbase_from_ee_target: np.ndarray | None = None
+    joints_target_deg: np.ndarray | None = None
+    verification: Registration | None = None
+    correction_femur_from_cm_target: np.ndarray | None = None
+    rbase_from_ee_correction: np.ndarray | None = None
+    joints_correction_deg: np.ndarray | None = None
+
+    def refuse(self, exc: NavigationRefused) -> None:
+        """Mark the run refused and withdraw every robot command (none may be acted on)."""
+        self.status, self.reason = "refused", str(exc)
+        if exc.stage in self.stages:
+            self.stages[exc.stage].passed = False
+        self.rbase_from_ee_target = self.joints_target_deg = None
+        self.rbase_from_ee_correction = self.joints_correction_deg = None
+
+    def flat_diagnostics(self) -> dict[str, float]:
+        """The registrations' diagnostics in one flat dict (study rows): per set of views (prefix
+        ``""`` or ``"verify_"``) the worst view's CM landmark residual and edge NCC, the pelvis's
+        worst view cost, the femur cost; the verification's kinematic motion agreement."""
+        out: dict[str, float] = {}
+        for prefix in ("", "verify_"):
+            st = self.stages
+            if f"{prefix}cm" in st and "views" in st[f"{prefix}cm"].diagnostics:
+                views = st[f"{prefix}cm"].diagnostics["views"].values()
+                res = [v["landmark_residual_mm"] for v in views if v["landmark_residual_mm"] is not None]
+                if res:
+                    out[f"{prefix}cm_landmark_residual_mm"] = float(max(res))
+                out[f"{prefix}cm_edge_ncc"] = float(min(v["edge_ncc"] for v in views))
+                for key in ("motion_tip_mm", "motion_rotation_deg"):
+                    if key in st[f"{prefix}cm"].diagnostics:
+                        out[f"{prefix}{key}"] = float(st[f"{prefix}cm"].diagnostics[key])
+            if f"{prefix}pelvis" in st and "views" in st[f"{prefix}pelvis"].diagnostics:
+                out[f"{prefix}pelvis_cost"] = float(
+                    max(v["cost"] for v in st[f"{prefix}pelvis"].diagnostics["views"].values())
+                )
+            if f"{prefix}femur" in st and "cost" in st[f"{prefix}femur"].diagnostics:
+                out[f"{prefix}femur_cost"] = float(st[f"{prefix}femur"].diagnostics["cost"])
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        from fluoronav import __version__
+
+        d: dict[str, Any] = {
+            "version": __version__,
+            "status": self.status,
+            "reason": self.reason,
+            "config": dataclasses.asdict(self.config),
+            "stages": {k: v.to_dict() for k, v in self.stages.items()},
+        }
+        if self.first is not None:
+            d.update(self.first.to_dict())
+        if self.plan is not None:
+            d["plan"] = self.plan.to_dict()
+        if self.femur_from_cm_target is not None:
+            d["femur_from_cm_target"] = self.femur_from_cm_target.tolist()
+        if self.status == "ok" and self.joints_target_deg is not None:
+            assert self.rbase_from_ee_target is not None
+            d["rbase_from_ee_target"] = self.rbase_from_ee_target.tolist()
+            d["joints_target_deg"] = self.joints_target_deg.tolist()
+        if self.verification is not None:
+            v = self.verification.to_dict()
+            if self.plan is not None:
+                planned_tip_ct = _h(self.verification.ct_from_femur, self.plan.tip_target_world_mm)
+                v["tip_to_plan_mm"] = float(np.linalg.norm(self.verification.tip_ct_mm - planned_tip_ct))
+            if self.status == "ok" and self.joints_correction_deg is not None:
+                assert self.rbase_from_ee_correction is not None
+                v["rbase_from_ee_target"] = self.rbase_from_ee_correction.tolist()
+                v["joints_target_deg"] = self.joints_correction_deg.tolist()
+            d["verification"] = v
+        return d
+
+
+def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Apply a (4, 4) transform to (..., 3) points."""
+    return np.asarray(p, np.float64) @ T[:3, :3].T + T[:3, 3]
+
+
+class _Stages:
+    """Times stages into ``result.stages`` and reports them to a callback (progress displays)."""
+
+    def __init__(self, result: NavigationResult, on_stage: Callable[[str, str], None] | None) -> None:
+        self.result, self.on_stage = result, on_stage
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[StageRecord]:
+        rec = self.result.stages.setdefault(name, StageRecord())
+        if self.on_stage is not None:
+            self.on_stage(name, "start")
+        t0 = time.perf_counter()
+        try:
+            yield rec
+        finally:
+            rec.seconds = time.perf_counter() - t0
+            if self.on_stage is not None:
+                self.on_stage(name, "done")
+
+
+@functools.lru_cache(maxsize=2)
+def shipped_detector(device: str) -> Any:
+    """The shipped CM detector on ``device`` (loaded once per process)."""
+    from fluoronav.detection.detector import Detector
+
+    return Detector.load(None, device=device)
+
+
+def _band_mask(shape: tuple[int, int], ab: np.ndarray, half_width_px: float) -> np.ndarray:
+    """(rows, cols) bool: pixels within ``half_width_px`` of the segment A–B."""
+    rows, cols = shape
+    v, u = np.mgrid[0:rows, 0:cols]
+    p = np.stack([u, v], axis=-1).astype(np.float64)
+    a, b = np.asarray(ab[0], np.float64), np.asarray(ab[1], np.float64)
+    d = b - a
+    t = np.clip(((p - a) @ d) / max(float(d @ d), 1e-12), 0.0, 1.0)
+    return np.asarray(np.linalg.norm(p - (a + t[..., None] * d), axis=-1) <= half_width_px)
+
+
+def _as_bool(x: np.ndarray) -> np.ndarray:
+    return np.asarray(x, dtype=bool)
+
+
+def detect_views(
+    views: Sequence[CaseView], *, config: NavigationConfig
+) -> tuple[list[ViewDetection | None], dict[str, Any]]:
+    """Per view: the CM found (detector, or the case's landmarks), None where none is usable; and the
+    per-view diagnostics (found, why not, confidence)."""
+    out: list[ViewDetection | None] = []
+    diag: dict[str, Any] = {}
+    for v in views:
+        if v.landmarks_px is not None:
+            lm = np.asarray(v.landmarks_px, np.float64)
+            if v.mask is not None:
+                mask = _as_bool(v.mask)
+            else:
+                ps = v.camera.pixel_spacing_mm or 0.194
+                mask = _band_mask(v.image.shape, lm, config.landmark_band_mm / ps)
+            out.append(ViewDetection(lm, extract_centerline(mask, lm[0], lm[1]), mask, np.ones(2), "case"))
+            diag[v.name] = {"found": True, "source": "case"}
+            continue
+        det = shipped_detector(config.device).detect(v.image, pixel_spacing_mm=v.camera.pixel_spacing_mm)
+        if not det.usable or det.centerline_px is None:
+            why = det.unusable_reason or "no centreline"
+            log.warning("detector: %s in view %s; not used", why, v.name)
+            out.append(None)
+            diag[v.name] = {"found": False, "why": why}
+            continue
+        out.append(
+            ViewDetection(
+                np.asarray(det.landmarks_px, np.float64),
+                np.asarray(det.centerline_px, np.float64),
+                _as_bool(det.mask),
+                np.asarray(det.landmark_confidence, np.float64),
+                "detector",
+            )
+        )
+        diag[v.name] = {
+            "found": True,
+            "source": "detector",
+            "landmarks_px": np.asarray(det.landmarks_px).tolist(),
+            "confidence": [float(c) for c in det.landmark_confidence],
+        }
+    return out, diag
+
+
+def _bone_views(views: Sequence[CaseView], detections: Sequence[ViewDetection | None]) -> list[BoneView]:
+    """The views for the bone registrations, the CM and its shaft left out of the similarity."""
+    instruments = instrument_masks(
+        [None if d is None else d.mask for d in detections],
+        [None if d is None else d.centerline_px for d in detections],
+        [v.image for v in views],
+    )
+    return [
+        BoneView(np.asarray(v.image, np.float32), v.camera, None if m is None else ~_as_bool(m))
+        for v, m in zip(views, instruments, strict=True)
+    ]
+
+
+def _cm_views(
+    views: Sequence[CaseView], cameras_ct: Sequence[Camera], landmarks: Sequence[np.ndarray | None], tag: str
+) -> list[CMView]:
+    return [
+        CMView(np.asarray(v.image, np.float32), c, landmarks_px=lm, name=f"{v.name}{tag}")
+        for v, c, lm in zip(views, cameras_ct, landmarks, strict=True)
+    ]
+
+
+def _register(
+    case: NavigationCase,
+    views: Sequence[CaseView],
+    stage: _Stages,
+    config: NavigationConfig,
+    *,
+    prefix: str,
+    seed: int,
+    initial_ct_from_cm: Callable[[np.ndarray], np.ndarray] | None,
+    initial_control_points_deg: np.ndarray,
+) -> Registration:
+    """Detection, pelvis per view, femur, CM in one set of views.
+
+    ``initial_ct_from_cm``: None for the multi-view centreline initialisation, else a function of the
+    registered ``ct_from_femur`` giving the CM start (verification: the plan on the new femur).
+    """
+    with stage(f"{prefix}detect") as rec:
+        detections, rec.diagnostics["views"] = detect_views(views, config=config)
+        seen = [k for k, d in enumerate(detections) if d is not None]
+        rec.diagnostics["views_detected"] = len(seen)
+        need = config.min_views if initial_ct_from_cm is None else 1
+        if len(seen) < need:
+            missing = ", ".join(v.name for v, d in zip(views, detections, strict=True) if d is None)
+            raise NavigationRefused(
+                f"{prefix}detect",
+                "views_with_cm",
+                f"the CM was found in {len(seen)} of {len(views)} views, {need} needed",
+                view=missing,
+            )
+    bone_views = _bone_views(views, detections)
+    with stage(f"{prefix}pelvis") as rec:
+        pelvis = register_pelvis_per_view(
+            bone_views, case.volume, initial_world_from_patient=np.eye(4), seed=seed + 2
+        )
+        rec.diagnostics["views"] = {
+            v.name: {"cost": float(r.cost), "converged": bool(r.converged), "reason": r.reason}
+            for v, r in zip(views, pelvis, strict=True)
+        }
+    views_ct = views_in_ct_frame(bone_views, pelvis)
+    cams_ct = [bv.camera for bv in views_ct]
+    with stage(f"{prefix}femur") as rec:
+        femur = register_femur(
+            views_ct, case.volume, side=case.side, world_from_patient=np.eye(4), seed=seed + 3
+        )
+        rec.diagnostics.update(cost=float(femur.cost), converged=bool(femur.converged), reason=femur.reason)
+    cm_config = CMRegistrationConfig(device=config.device, cm_config=case.cm_config)
+    with stage(f"{prefix}cm") as rec:
+        init: MultiViewInitResult | None = None
+        lm_views: list[np.ndarray | None] = [None if d is None else d.landmarks_px for d in detections]
+        if initial_ct_from_cm is None:
+            init = centerline_initialize_multiview(
+                [cams_ct[k] for k in seen],
+                np.stack([detections[k].landmarks_px for k in seen]),  # type: ignore[union-attr]
+                [detections[k].centerline_px for k in seen],  # type: ignore[union-attr]
+                initial_control_points_deg,
+                config=case.cm_config,
+                landmark_confidence=np.stack([detections[k].confidence for k in seen]),  # type: ignore[union-attr]
+            )
+            # landmarks that disagreed with the other views: the triangulated consensus instead
+            for i, k in enumerate(seen):
+                lm_views[k] = init.landmarks_px[i]
+            cm = register_cm_multistart(
+                _cm_views(views, cams_ct, lm_views, ""),
+                multiview_start_poses(init, max_starts=config.max_cm_starts),
+                initial_control_points_deg=initial_control_points_deg,
+                config=cm_config,
+                seed=seed + 5,
+            )
+            rec.diagnostics["init_cost_px"] = float(init.cost_px)
+        else:
+            cm = register_cm(
+                _cm_views(views, cams_ct, lm_views, f" ({prefix.rstrip('_')})"),
+                initial_control_points_deg=initial_control_points_deg,
+                initial_world_from_cm=initial_ct_from_cm(femur.world_from_bone),
+                config=cm_config,
+                seed=seed + 7,
+            )
+        checks = cm_view_diagnostics(cm, lm_views, [v.camera.pixel_spacing_mm for v in views])
+        rec.diagnostics.update(
+            cost=float(cm.cost),
+            converged=bool(cm.converged),
+            reason=cm.reason,
+            views={v.name: c.to_dict() for v, c in zip(views, checks, strict=True)},
+        )
+    return Registration(
+        views=tuple(views),
+        detections=tuple(detections),
+        pelvis=tuple(pelvis),
+        cameras_ct=tuple(cams_ct),
+        femur=femur,
+        cm=cm,
+        cm_init=init,
+    )
+
+
+def _command(
+    case: NavigationCase,
+    reg: Registration,
+    joints_deg: np.ndarray,
+    femur_from_cm_target: np.ndarray,
+    config: NavigationConfig,
+    stage_name: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eqs. 7–8 + IK from the registration in its view 0; refuses an unreachable target."""
+    carm_from_ct = reg.cameras_ct[0].camera_from_world
+    try:
+        return robot_target(
+            case.robot,
+            joints_deg,
+            ee_from_cm=case.ee_from_cm,
+            carm_from_femur=carm_from_ct @ reg.ct_from_femur,
+            carm_from_cm=carm_from_ct @ reg.ct_from_cm,
+            femur_from_cm_target=femur_from_cm_target,
+            tol_mm=config.ik_tol_mm,
+            tol_deg=config.ik_tol_deg,
+        )
+    except UnreachableTarget as exc:
+        raise NavigationRefused(stage_name, "reachable", str(exc)) from None
+
+
+def predicted_femur_from_cm(
+    case: NavigationCase, first: Registration, joints_after_deg: np.ndarray
+) -> np.ndarray:
+    """(4, 4) where the robot's kinematics say the CM is after the move, in the femur frame: the
+    first registration moved by the nominal robot's motion between ``case.joints_deg`` and
+    ``joints_after_deg`` (the femur and the robot base do not move relative to each other)."""
+    rbase_from_cm_1 = case.robot.rbase_from_ee(case.joints_deg) @ case.ee_from_cm
+    rbase_from_cm_2 = case.robot.rbase_from_ee(np.asarray(joints_after_deg, np.float64)) @ case.ee_from_cm
+    femur_from_cm_1 = femur_from_cm_registered(first.ct_from_femur, first.ct_from_cm)
+    return femur_from_cm_1 @ np.linalg.inv(rbase_from_cm_1) @ rbase_from_cm_2
+
+
+def motion_consistency(case: NavigationCase, first: Registration, ver: Registration) -> dict[str, float]:
+    """Agreement of the verification's CM (femur frame) with the kinematic prediction: ``motion_tip_mm``
+    (tip distance) and ``motion_rotation_deg``. A verification registration that failed disagrees by
+    far more than the robot's and the first registration's errors."""
+    assert case.verification is not None
+    pred = predicted_femur_from_cm(case, first, case.verification.joints_deg)
+    reg = femur_from_cm_registered(ver.ct_from_femur, ver.ct_from_cm)
+    kin = CMKinematics(case.cm_config)
+    tip = kin.tip_cm(torch.as_tensor(ver.cm.control_points_deg, dtype=torch.float64)).numpy()
+    d = np.linalg.inv(pred) @ reg
+    c = (np.trace(d[:3, :3]) - 1.0) / 2.0
+    return {
+        "motion_tip_mm": float(np.linalg.norm(_h(reg, tip) - _h(pred, tip))),
+        "motion_rotation_deg": float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))),
+    }
+
+
+def navigate(
+    case: NavigationCase,
+    config: NavigationConfig | None = None,
+    *,
+    on_stage: Callable[[str, str], None] | None = None,
+) -> NavigationResult:
+    """Run the pipeline (module docstring) on ``case``; with verification views, :func:`verify` too.
+
+    Args:
+        case: the navigation case.
+        config: settings (default :class:`NavigationConfig`).
+        on_stage: called with (stage name, "start" | "done") for progress displays.
+
+    Returns:
+        :class:`NavigationResult`; status "refused" (and no robot command) where a stage could not
+        go on.
+    """
+    cfg = config or NavigationConfig()
+    res = NavigationResult(config=cfg)
+    stage = _Stages(res, on_stage)
+    torch.manual_seed(cfg.seed)
+    kin = CMKinematics(case.cm_config)
+    cp0 = (
+        np.zeros(case.cm_config.n_control_points)
+        if case.fbg_control_points_deg is None
+        else np.asarray(case.fbg_control_points_deg, np.float64)
+    )
+    try:
+        first = _register(
+            case,
+            case.views,
+            stage,
+            cfg,
+            prefix="",
+            seed=cfg.seed,
+            initial_ct_from_cm=None,
+            initial_control_points_deg=cp0,
+        )
+        res.first = first
+        with stage("plan") as rec:
+            plan = case.plan
+            if plan.control_points_deg is None:  # the CM keeps the shape it has now
+                plan = dataclasses.replace(plan, control_points_deg=np.asarray(first.cm.control_points_deg))
+            res.plan = plan
+            res.femur_from_cm_target = planned_femur_from_cm(plan, kinematics=kin)
+            rec.diagnostics["tip_target_ct_mm"] = plan.tip_target_world_mm.tolist()
+        with stage("robot") as rec:
+            target, q = _command(case, first, case.joints_deg, res.femur_from_cm_target, cfg, "robot")
+            res.rbase_from_ee_target, res.joints_target_deg = target, q
+            rec.diagnostics["joint_motion_deg"] = float(np.max(np.abs(wrap_deg(q - case.joints_deg))))
+    except NavigationRefused as exc:
+        log.warning("navigation refused: %s", exc)
+        res.refuse(exc)
+        return res
+    if case.verification is not None:
+        verify(case, res, on_stage=on_stage)
+    return res
+
+
+def verify(
+    case: NavigationCase,
+    result: NavigationResult,
+    *,
+    on_stage: Callable[[str, str], None] | None = None,
+) -> NavigationResult:
+    """Register the verification views of ``case`` and command one correction (updates ``result``).
+
+    The pelvis and femur are registered anew (the C-arm moved), the CM from the plan on the new
+    femur; the correction slides the registered CM so that its tip meets the plan, from the joints
+    read with the verification images.
+
+    Raises:
+        ValueError: the case has no verification views, or ``result`` has no first registration.
+    """
+    if case.verification is None or result.first is None or result.femur_from_cm_target is None:
+        raise ValueError("verify needs a case with verification views and a first registration")
+    if result.status != "ok":
+        return result
+    cfg = result.config
+    stage = _Stages(result, on_stage)
+    plan = result.plan
+    assert plan is not None
+    target = result.femur_from_cm_target
+    kin = CMKinematics(case.cm_config)
+    try:
+        ver = _register(
+            case,
+            case.verification.views,
+            stage,
+            cfg,
+            prefix="verify_",
+            seed=cfg.seed + 1000,
+            initial_ct_from_cm=lambda ct_from_femur: ct_from_femur @ target,
+            initial_control_points_deg=np.asarray(result.first.cm.control_points_deg),
+        )
+        result.verification = ver
+        motion = motion_consistency(case, result.first, ver)
+        result.stages["verify_cm"].diagnostics.update(motion)
+        with stage("correct") as rec:
+            tip_cm = kin.tip_cm(torch.as_tensor(ver.cm.control_points_deg, dtype=torch.float64)).numpy()
+            corr = tip_correction_target(
+                femur_from_cm_registered(ver.ct_from_femur, ver.ct_from_cm), tip_cm, plan.tip_target_world_mm
+            )
+            result.correction_femur_from_cm_target = corr
+            q_now = np.asarray(case.verification.joints_deg, np.float64)
+            T, q = _command(case, ver, q_now, corr, cfg, "correct")
+            result.rbase_from_ee_correction, result.joints_correction_deg = T, q
+            rec.diagnostics["joint_motion_deg"] = float(np.max(np.abs(wrap_deg(q - q_now))))
+    except NavigationRefused as exc:
+        log.warning("verification refused: %s", exc)
+        result.refuse(exc)
+    return result

@@ -1,0 +1,459 @@
+"""The navigation loop in simulation: a simulated case, the pipeline on it, the robot's moves, and
+every estimate against the truth. ``fluoronav demo`` and ``fluoronav study navigation`` both run it.
+
+1. ``scene``: the seeded hip phantom, a UR-10 (with joint and calibration errors) holding the CM
+   above the femoral head, pelvis and femur moved as the paper's protocol
+   (:mod:`fluoronav.simulation.robot_scene`), three C-arm views centred between the femoral head
+   and the CM: AP and two orbits about the patient's long axis.
+2. ``simulate``: physics X-rays of the views (never the registration's renderer) → a
+   :class:`~fluoronav.navigation.case.NavigationCase`: the CT, the plan (the CM tip on the femur's
+   entry point, its axis along the neck towards the head), the FBG reading, the nominal robot with
+   the joints read while imaging and a hand-eye matrix of documented error, and each view's camera
+   with the CT placed where the pelvis was before it moved (the registration's start). Optionally
+   written to files and read back (the demo), so that the pipeline sees only what a user's files give.
+3. :func:`~fluoronav.navigation.pipeline.navigate` on that case: detection, bones, CM, plan, command.
+4. ``move``: the *true* robot moves to the commanded joints; the true tip's distance to the plan is
+   the repositioning error.
+5. ``verify_simulate``: the C-arm slid to centre the femoral head and the planned CM as the
+   registrations placed them (± ``aim_error_mm``: a person positions it), images of the CM where the
+   robot took it, added to the case as its verification views; then
+   :func:`~fluoronav.navigation.pipeline.verify` (bones and CM registered anew, one corrective
+   command) and ``correct_move``.
+
+Frames: ``world`` is the simulation's world (the CT frame before the patient moved); ``ct`` is the
+CT frame the pipeline works in. CM and femur errors are measured in the C-arm frame of the AP view
+(as the paper's), repositioning in the world frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from fluoronav.calibration.robot import UR10
+from fluoronav.geometry.camera import Camera
+from fluoronav.geometry.carm import centre_on, orbit_camera
+from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.navigation import case as case_io
+from fluoronav.navigation.case import CaseView, NavigationCase, VerificationViews
+from fluoronav.navigation.pipeline import NavigationConfig, NavigationResult, navigate, verify
+from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
+from fluoronav.registration.metrics import axis_error_deg, cm_errors
+from fluoronav.simulation.articulated import anatomy_and_simulator
+from fluoronav.simulation.robot_scene import (
+    HandEyeScenario,
+    perturb_transform,
+    sample_handeye_scenario,
+    verification_view_centre,
+    working_view_centre,
+)
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "SIMULATION_STAGES",
+    "SimulatedNavigation",
+    "SimulationConfig",
+    "run_simulated_navigation",
+]
+
+#: the loop's own stages around the pipeline's (those are in ``NavigationResult.stages``)
+SIMULATION_STAGES = ("anatomy", "scene", "simulate", "move", "verify_simulate", "correct_move")
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """Settings of a simulated navigation (recorded in ``results.json`` and study configs).
+
+    Attributes:
+        seed: everything random derives from it (scene, noise, optimisers).
+        phantom_seed: the hip phantom's seed (default: ``seed``).
+        image_size: simulated image rows = cols (the 1536² CIOS Fusion detector binned).
+        orbit_deg: C-arm orbit angles of the extra views about the patient's long axis.
+        handeye_error_deg, handeye_error_mm: the hand-eye matrix in the case is the truth moved by
+            exactly these (the measured accuracy of the image-based calibration).
+        aim_error_mm: the verification C-arm's centre misses its aim by U(−a, a) mm per axis.
+        verify: take verification images after the move and command one correction.
+        device: torch device of the detector, renderers and similarities.
+        oracle_landmarks: the case gives the true landmarks + U(−3, 3) full-detector px and the true
+            CM mask for every view instead of leaving them to the detector.
+    """
+
+    seed: int = 0
+    phantom_seed: int | None = None
+    image_size: int = 768
+    orbit_deg: tuple[float, ...] = (20.0, -15.0)
+    handeye_error_deg: float = 0.4
+    handeye_error_mm: float = 0.5
+    aim_error_mm: float = 5.0
+    verify: bool = True
+    device: str = "cpu"
+    oracle_landmarks: bool = False
+
+
+@dataclass
+class SimulatedNavigation:
+    """What a simulated navigation measured.
+
+    ``errors`` is a flat dict of floats (against the truth); ``truth`` holds the true poses with the
+    keys of ``navigation.json`` (JSON-ready); ``timings_s`` the loop's and the pipeline's stages;
+    ``artifacts`` holds arrays for the report (not serialised).
+    """
+
+    config: SimulationConfig
+    result: NavigationResult | None = None
+    errors: dict[str, float] = field(default_factory=dict)
+    truth: dict[str, Any] = field(default_factory=dict)
+    timings_s: dict[str, float] = field(default_factory=dict)
+    artifacts: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def status(self) -> str:
+        return "failed" if self.result is None else self.result.status
+
+    @property
+    def reason(self) -> str:
+        return "" if self.result is None else self.result.reason
+
+
+def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return np.asarray(p, np.float64) @ T[:3, :3].T + T[:3, 3]
+
+
+def _rotation_deg(R: np.ndarray) -> float:
+    c = (np.trace(R[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+class _Timer:
+    """Times the loop's own stages into ``out`` and reports them to a callback."""
+
+    def __init__(self, out: dict[str, float], on_stage: Callable[[str, str], None] | None) -> None:
+        self.out, self.on_stage = out, on_stage
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        if self.on_stage is not None:
+            self.on_stage(name, "start")
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.out[name] = time.perf_counter() - t0
+            if self.on_stage is not None:
+                self.on_stage(name, "done")
+
+
+def _views(
+    images: list[Any],
+    names: list[str],
+    world_from_ct_initial: np.ndarray,
+    *,
+    oracle: bool,
+    rng: np.random.Generator,
+) -> tuple[CaseView, ...]:
+    """Case views of simulated images: each camera with the CT where the registration starts."""
+    out = []
+    for im, name in zip(images, names, strict=True):
+        cam: Camera = im.camera.with_pose(im.camera.camera_from_world @ world_from_ct_initial)
+        lm = mask = None
+        if oracle:
+            binning = max(1, round(1536 / cam.cols))
+            lm = im.landmarks_px + rng.uniform(-3.0, 3.0, (2, 2)) / binning
+            mask = im.mask.astype(bool)
+        out.append(CaseView(name, np.asarray(im.image, np.float32), cam, landmarks_px=lm, mask=mask))
+    return tuple(out)
+
+
+def _truth_poses(
+    world_from_ct: np.ndarray,
+    world_from_cm: np.ndarray,
+    world_from_femur: np.ndarray,
+    control_points_deg: np.ndarray,
+    tip_cm: np.ndarray,
+    cameras: list[Camera],
+    names: list[str],
+) -> dict[str, Any]:
+    ct_from_world = np.linalg.inv(world_from_ct)
+    return {
+        "ct_from_cm": (ct_from_world @ world_from_cm).tolist(),
+        "control_points_deg": np.asarray(control_points_deg).tolist(),
+        "tip_ct_mm": _h(ct_from_world @ world_from_cm, tip_cm).tolist(),
+        "ct_from_femur": (ct_from_world @ world_from_femur).tolist(),
+        "carm_from_ct": {
+            n: (c.camera_from_world @ world_from_ct).tolist() for n, c in zip(names, cameras, strict=True)
+        },
+    }
+
+
+def run_simulated_navigation(
+    config: SimulationConfig | None = None,
+    *,
+    ct: str = "phantom",
+    case_dir: Path | None = None,
+    navigation: NavigationConfig | None = None,
+    on_stage: Callable[[str, str], None] | None = None,
+) -> SimulatedNavigation:
+    """Simulate a case, navigate on it, move, verify and correct; measure everything (module docstring).
+
+    Args:
+        config: the simulation (default :class:`SimulationConfig`).
+        ct: ``"phantom"`` or a labelled CT path (labels ``pelvis``, ``femur_left``; landmarks
+            ``femoral_head_left``, ``entry_left``).
+        case_dir: when given, the case is written there (``navigation.json`` and its files, the truth
+            to ``truth.json`` beside it) and read back before the pipeline runs on it.
+        navigation: the pipeline's settings (default: device and seed of ``config``).
+        on_stage: called with (stage name, "start" | "done") for the loop's and the pipeline's stages.
+    """
+    cfg = config or SimulationConfig()
+    nav_cfg = navigation or NavigationConfig(device=cfg.device, seed=cfg.seed)
+    run = SimulatedNavigation(config=cfg)
+    T, E, A = _Timer(run.timings_s, on_stage), run.errors, run.artifacts
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    seeds = rng.integers(2**31, size=8)
+
+    with T("anatomy"):
+        phantom_seed = cfg.seed if cfg.phantom_seed is None else cfg.phantom_seed
+        volume, simulator = anatomy_and_simulator(ct, phantom_seed, cfg.image_size, cfg.device)
+    with T("scene"):
+        sc = sample_handeye_scenario(volume, np.random.default_rng(seeds[0]), n_poses=0)
+        tr = sc.trial
+        kin = CMKinematics(sc.cm_config)
+        cp_true = np.asarray(sc.control_points_deg, np.float64)
+        tip_cm = kin.tip_cm(torch.as_tensor(cp_true, dtype=torch.float64)).numpy()
+        q_regi = sc.q_work_deg
+        W_regi = sc.execute(q_regi, rng=rng)
+        iso = working_view_centre(tr)
+        ap = centre_on(sc.camera, iso)
+        cams = [ap] + [orbit_camera(ap, angle_deg=a, isocenter_world=iso) for a in cfg.orbit_deg]
+        names = ["AP"] + [f"orbit {a:+g}" for a in cfg.orbit_deg]
+        plan = neck_entry_plan(tr.entry_ct, tr.femoral_head_ct)
+        ee_from_cm_used = perturb_transform(sc.ee_from_cm, rng, cfg.handeye_error_deg, cfg.handeye_error_mm)
+
+    def simulate(world_from_cm: np.ndarray, cameras: list[Camera], seed: int) -> list[Any]:
+        return [
+            simulator.simulate(
+                cam,
+                world_from_patient=tr.world_from_patient,
+                world_from_femur=tr.world_from_femur,
+                cm=(world_from_cm, cp_true),
+                seed=seed + k,
+                image_size=cfg.image_size,
+                cm_config=sc.cm_config,
+            )
+            for k, cam in enumerate(cameras)
+        ]
+
+    with T("simulate"):
+        images = simulate(W_regi, cams, int(seeds[1]))
+        case = NavigationCase(
+            volume=volume,
+            plan=plan,
+            side=tr.side,
+            cm_config=sc.cm_config,
+            fbg_control_points_deg=np.asarray(tr.initial_control_points_deg, np.float64),
+            robot=UR10,
+            joints_deg=np.asarray(q_regi, np.float64),
+            ee_from_cm=ee_from_cm_used,
+            views=_views(images, names, tr.initial_world_from_patient, oracle=cfg.oracle_landmarks, rng=rng),
+        )
+        run.truth = _truth_poses(
+            tr.world_from_patient,
+            W_regi,
+            tr.world_from_femur,
+            cp_true,
+            tip_cm,
+            [i.camera for i in images],
+            names,
+        )
+        if case_dir is not None:
+            path = case_io.write_navigation_case(case, case_dir)
+            _write_truth(run, case_dir)
+            case = case_io.load_navigation_case(path)
+    A.update(volume=volume, scene=sc, images=images, names=names, case=case)
+
+    res = navigate(case, nav_cfg, on_stage=on_stage)
+    run.result = res
+    _first_errors(run, sc, images, W_regi, cp_true)
+    if res.status != "ok" or res.joints_target_deg is None:
+        return run
+    with T("move"):
+        W_after = sc.execute(res.joints_target_deg, rng=rng)
+        planned_tip_world = _h(tr.world_from_femur, res.plan.tip_target_world_mm)  # type: ignore[union-attr]
+        W_plan_true = tr.world_from_femur @ res.femur_from_cm_target
+        E["reposition_tip_mm"] = float(np.linalg.norm(_h(W_after, tip_cm) - planned_tip_world))
+        E["reposition_axis_deg"] = axis_error_deg(W_after[:3, 2], W_plan_true[:3, 2])
+        E["joint_motion_deg"] = float(res.stages["robot"].diagnostics["joint_motion_deg"])
+        E["reposition_robot_mm"] = _robot_only_error(sc, run, q_regi, W_regi, ee_from_cm_used, rng, tip_cm)
+    run.truth["world_from_cm_after"] = W_after.tolist()
+    A.update(W_after=W_after, W_plan_true=W_plan_true)
+    if not cfg.verify:
+        return run
+
+    with T("verify_simulate"):
+        first, target = res.first, res.femur_from_cm_target
+        assert first is not None and target is not None
+        carm_est_from_ct = first.cameras_ct[0].camera_from_world
+        centre_ct = _h(
+            first.ct_from_femur, verification_view_centre(target, tr.femoral_head_ct)
+        )
+        # where the person aims the C-arm, in the world (through the estimated AP C-arm frame)
+        centre = _h(np.linalg.inv(cams[0].camera_from_world) @ carm_est_from_ct, centre_ct)
+        centre = centre + rng.uniform(-cfg.aim_error_mm, cfg.aim_error_mm, 3)
+        ap2 = centre_on(cams[0], centre)
+        cams2 = [ap2] + [orbit_camera(ap2, angle_deg=a, isocenter_world=centre) for a in cfg.orbit_deg]
+        images2 = simulate(W_after, cams2, int(seeds[2]))
+        names2 = [f"{n} after the move" for n in names]
+        views2 = _views(images2, names2, tr.initial_world_from_patient, oracle=cfg.oracle_landmarks, rng=rng)
+        case = dataclasses.replace(
+            case, verification=VerificationViews(np.asarray(res.joints_target_deg), views2)
+        )
+        run.truth["verification"] = _truth_poses(
+            tr.world_from_patient, W_after, tr.world_from_femur, cp_true, tip_cm, cams2, names2
+        )
+        if case_dir is not None:
+            path = case_io.write_navigation_case(case, case_dir, ct_path=_ct_path(case_dir))
+            _write_truth(run, case_dir)
+            case = case_io.load_navigation_case(path)
+    A.update(images2=images2, case=case)
+    verify(case, res, on_stage=on_stage)
+    _verification_errors(run, sc, images2, W_after)
+    if res.status != "ok" or res.joints_correction_deg is None:
+        return run
+    with T("correct_move"):
+        W_final = sc.execute(res.joints_correction_deg, rng=rng)
+        E["corrected_tip_mm"] = float(np.linalg.norm(_h(W_final, tip_cm) - planned_tip_world))
+        E["corrected_axis_deg"] = axis_error_deg(W_final[:3, 2], W_plan_true[:3, 2])
+    run.truth["world_from_cm_corrected"] = W_final.tolist()
+    A["W_final"] = W_final
+    return run
+
+
+def _ct_path(case_dir: Path) -> str | None:
+    """The CT file an earlier write of the case left in ``case_dir`` (not written twice)."""
+    try:
+        d = json.loads((case_dir / "navigation.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    ct = d.get("ct")
+    return str(case_dir / ct) if isinstance(ct, str) and (case_dir / ct).is_file() else None
+
+
+def _write_truth(run: SimulatedNavigation, case_dir: Path) -> None:
+    path = case_dir.parent / "truth.json"
+    path.write_text(json.dumps(run.truth, indent=1) + "\n", encoding="utf-8")
+
+
+def _first_errors(
+    run: SimulatedNavigation, sc: HandEyeScenario, images: list[Any], W_regi: np.ndarray, cp_true: np.ndarray
+) -> None:
+    """Errors of the first registration against the truth (AP C-arm frame, as the paper's)."""
+    res, E, tr = run.result, run.errors, sc.trial
+    if res is None or res.first is None:
+        return
+    first = res.first
+    det_err = [
+        np.linalg.norm(d.landmarks_px - im.landmarks_px, axis=1)
+        for d, im in zip(first.detections, images, strict=True)
+        if d is not None
+    ]
+    if det_err:
+        ps = images[0].camera.pixel_spacing_mm or float("nan")
+        E["landmark_px"] = float(np.mean(det_err))
+        E["landmark_mm_at_detector"] = float(np.mean(det_err) * ps)
+    rot, cen = [], []
+    for cam_est, im in zip(first.cameras_ct, images, strict=True):
+        delta = np.linalg.inv(im.camera.camera_from_world @ tr.world_from_patient) @ cam_est.camera_from_world
+        rot.append(_rotation_deg(delta))
+        cen.append(float(np.linalg.norm(_h(delta, tr.pelvis_center_ct) - tr.pelvis_center_ct)))
+    E["pelvis_rotation_deg"], E["pelvis_center_mm"] = float(np.mean(rot)), float(np.mean(cen))
+    carm = images[0].camera.camera_from_world
+    carm_est = first.cameras_ct[0].camera_from_world
+    entry_est = _h(carm_est @ first.ct_from_femur, tr.entry_ct)
+    entry_true = _h(carm @ tr.world_from_femur, tr.entry_ct)
+    E["femur_entry_mm"] = float(np.linalg.norm(entry_est - entry_true))
+    E["femur_rotation_deg"] = _rotation_deg(
+        np.linalg.inv(carm @ tr.world_from_femur) @ (carm_est @ first.ct_from_femur)
+    )
+    errs = cm_errors(
+        carm_from_cm_est=carm_est @ first.ct_from_cm,
+        carm_from_cm_true=carm @ W_regi,
+        control_points_est_deg=first.cm.control_points_deg,
+        control_points_true_deg=cp_true,
+        config=sc.cm_config,
+    )
+    E.update({f"cm_{k}": float(v) for k, v in errs.items()})
+    tip_true_c = _h(carm @ W_regi, _tip(sc, cp_true))
+    E["cm_relative_mm"] = float(
+        np.linalg.norm((_h(carm_est, first.tip_ct_mm) - entry_est) - (tip_true_c - entry_true))
+    )
+    E["cm_tip_ct_mm"] = float(np.linalg.norm(first.tip_ct_mm - np.asarray(run.truth["tip_ct_mm"])))
+    if first.cm_init is not None:
+        E["cm_init_tip_mm"] = float(
+            np.linalg.norm(_h(carm_est @ first.cm_init.world_from_cm, _tip(sc, cp_true)) - tip_true_c)
+        )
+
+
+def _tip(sc: HandEyeScenario, cp_deg: np.ndarray) -> np.ndarray:
+    return CMKinematics(sc.cm_config).tip_cm(torch.as_tensor(cp_deg, dtype=torch.float64)).numpy()
+
+
+def _verification_errors(
+    run: SimulatedNavigation, sc: HandEyeScenario, images2: list[Any], W_after: np.ndarray
+) -> None:
+    res, E, tr = run.result, run.errors, sc.trial
+    if res is None or res.verification is None or res.plan is None:
+        return
+    ver = res.verification
+    carm2 = images2[0].camera.camera_from_world
+    carm2_est = ver.cameras_ct[0].camera_from_world
+    tip_after = _h(W_after, _tip(sc, sc.control_points_deg))
+    E["verify_tip_to_plan_mm"] = float(
+        np.linalg.norm(ver.tip_ct_mm - _h(ver.ct_from_femur, res.plan.tip_target_world_mm))
+    )
+    E["verify_tip_error_mm"] = float(np.linalg.norm(_h(carm2_est, ver.tip_ct_mm) - _h(carm2, tip_after)))
+    entry_est = _h(carm2_est @ ver.ct_from_femur, tr.entry_ct)
+    entry_true = _h(carm2 @ tr.world_from_femur, tr.entry_ct)
+    E["verify_femur_entry_mm"] = float(np.linalg.norm(entry_est - entry_true))
+    E["verify_relative_mm"] = float(
+        np.linalg.norm((_h(carm2_est, ver.tip_ct_mm) - entry_est) - (_h(carm2, tip_after) - entry_true))
+    )
+
+
+def _robot_only_error(
+    sc: HandEyeScenario,
+    run: SimulatedNavigation,
+    q_regi: np.ndarray,
+    W_regi: np.ndarray,
+    ee_from_cm_used: np.ndarray,
+    rng: np.random.Generator,
+    tip_cm: np.ndarray,
+) -> float:
+    """The first move's error with true registrations (the robot's and the hand-eye's share)."""
+    from fluoronav.navigation.navigate import robot_target
+
+    res, tr = run.result, sc.trial
+    assert res is not None and res.plan is not None
+    plan_true = dataclasses.replace(res.plan, control_points_deg=sc.control_points_deg)
+    target = planned_femur_from_cm(plan_true, kinematics=CMKinematics(sc.cm_config))
+    _, q = robot_target(
+        sc.nominal,
+        q_regi,
+        ee_from_cm=ee_from_cm_used,
+        carm_from_femur=tr.world_from_femur,
+        carm_from_cm=W_regi,
+        femur_from_cm_target=target,
+    )
+    W = sc.execute(q, rng=np.random.default_rng(int(rng.integers(2**31))))
+    return float(np.linalg.norm(_h(W, tip_cm) - _h(tr.world_from_femur, res.plan.tip_target_world_mm)))

@@ -1,0 +1,90 @@
+"""How far a CM registration can be trusted, per view: what its result says about itself.
+
+Two measures per view, both computable without the truth:
+
+- ``landmark_residual_mm``: the distance, at the detector, between the registered CM's landmarks A
+  and B projected into the view and the detected ones (the larger of the two). A registration that
+  slid along the CM or settled on another structure leaves them apart.
+- ``edge_ncc``: the gradient NCC between the view's ROI and the registered CM's DRR, over the pixels
+  where the DRR has an edge (the CM's outline, dilated by 2 px). It is near 1 where the outline lies
+  on the CM in the image and drops where the outline lies beside it.
+
+A registration whose views disagree with the CM it found is the failure a navigation must not act
+on; the thresholds that decide it are the navigation's (:class:`fluoronav.navigation.safety.SafetyConfig`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+from fluoronav.registration.cm import CMRegistrationResult
+from fluoronav.registration.similarity import grad_ncc
+
+__all__ = ["CMViewDiagnostics", "cm_view_diagnostics", "edge_ncc"]
+
+#: the CIOS Fusion detector's pixel pitch, mm: the unit of landmark residuals when a view has none
+FULL_PIXEL_SPACING_MM = 0.194
+
+
+@dataclass(frozen=True)
+class CMViewDiagnostics:
+    """One view's agreement with a CM registration.
+
+    Attributes:
+        landmark_residual_mm: max over A, B of |registered − detected| at the detector (mm); None
+            without a detection in that view.
+        edge_ncc: gradient NCC (−1 … 1) of the ROI and the registered CM's DRR on the DRR's edges.
+    """
+
+    landmark_residual_mm: float | None
+    edge_ncc: float
+
+    def to_dict(self) -> dict[str, float | None]:
+        return {"landmark_residual_mm": self.landmark_residual_mm, "edge_ncc": self.edge_ncc}
+
+
+def edge_ncc(image: np.ndarray, drr: np.ndarray, *, dilate_px: int = 2, sigma_px: float = 1.0) -> float:
+    """Gradient NCC of ``image`` and ``drr`` (both (h, w)) on the DRR's edges; 0 where it has none.
+
+    The edge pixels are those whose smoothed DRR gradient magnitude exceeds a tenth of its maximum,
+    dilated by ``dilate_px``: the comparison is about where the CM's outline lies, not about the
+    anatomy around it.
+    """
+    d = np.asarray(drr, np.float64)
+    gy, gx = np.gradient(ndimage.gaussian_filter(d, sigma_px))
+    mag = np.hypot(gx, gy)
+    if not np.isfinite(mag).all() or mag.max() <= 0:
+        return 0.0
+    edges = ndimage.binary_dilation(mag > 0.1 * mag.max(), iterations=dilate_px)
+    fixed = torch.as_tensor(np.asarray(image, np.float64))
+    moving = torch.as_tensor(d)[None]
+    cost = float(grad_ncc(fixed, moving, sigma_px=sigma_px, mask=torch.as_tensor(edges))[0])
+    return 1.0 - cost if np.isfinite(cost) else 0.0
+
+
+def cm_view_diagnostics(
+    result: CMRegistrationResult,
+    landmarks_px: Sequence[np.ndarray | None],
+    pixel_spacing_mm: Sequence[float | None],
+) -> list[CMViewDiagnostics]:
+    """Per view of ``result``: landmark residual (mm at the detector) and edge NCC.
+
+    Args:
+        result: a CM registration (its views in the order of ``landmarks_px``).
+        landmarks_px: per view the detected (2, 2) A, B in the view's image pixels, or None.
+        pixel_spacing_mm: per view the image's pixel pitch at the detector (None: the CIOS Fusion
+            pitch at full resolution).
+    """
+    out = []
+    for k, (lm, ps) in enumerate(zip(landmarks_px, pixel_spacing_mm, strict=True)):
+        res_mm = None
+        if lm is not None:
+            d_px = np.linalg.norm(np.asarray(result.landmarks_px[k]) - np.asarray(lm, np.float64), axis=1)
+            res_mm = float(d_px.max() * (ps if ps is not None else FULL_PIXEL_SPACING_MM))
+        out.append(CMViewDiagnostics(res_mm, edge_ncc(result.roi_images[k], result.roi_drrs[k])))
+    return out
