@@ -305,9 +305,7 @@ def run_simulated_navigation(
         first, target = res.first, res.femur_from_cm_target
         assert first is not None and target is not None
         carm_est_from_ct = first.cameras_ct[0].camera_from_world
-        centre_ct = _h(
-            first.ct_from_femur, verification_view_centre(target, tr.femoral_head_ct)
-        )
+        centre_ct = _h(first.ct_from_femur, verification_view_centre(target, tr.femoral_head_ct))
         # where the person aims the C-arm, in the world (through the estimated AP C-arm frame)
         centre = _h(np.linalg.inv(cams[0].camera_from_world) @ carm_est_from_ct, centre_ct)
         centre = centre + rng.uniform(-cfg.aim_error_mm, cfg.aim_error_mm, 3)
