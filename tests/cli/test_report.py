@@ -47,3 +47,18 @@ def test_report_rejects_non_study_dir(tmp_path: Path, capsys: pytest.CaptureFixt
     assert info.value.code == 2
     err = capsys.readouterr().err.strip()
     assert "no summary.json" in err and len(err.splitlines()) == 1
+
+
+def test_report_shows_refusals_and_unflagged_gross_failures(tmp_path: Path) -> None:
+    _summary(tmp_path / "nav", "navigation", 0.5)
+    s = json.loads((tmp_path / "nav" / "summary.json").read_text(encoding="utf-8"))
+    s.update(
+        refused=2,
+        refusal_reasons={"stage verify_cm, check robot_motion: 9 mm": 2},
+        unflagged_gross_failures=1,
+    )
+    (tmp_path / "nav" / "summary.json").write_text(json.dumps(s), encoding="utf-8")
+    main(["report", str(tmp_path / "nav"), "--out", str(tmp_path / "r")])
+    md = (tmp_path / "r" / "table_i.md").read_text(encoding="utf-8")
+    assert "| navigation (nav) | 20 | 0 | 2 | 1 | 2× stage verify_cm, check robot_motion: 9 mm |" in md
+    assert "2 refused" in (tmp_path / "r" / "report.html").read_text(encoding="utf-8")

@@ -238,6 +238,28 @@ def test_dicom_camera_places_the_isocentre_point_on_the_principal_point(
     np.testing.assert_allclose(np.linalg.norm(cam.source_world - iso_ct), 450.0)
 
 
+def test_a_view_may_give_its_own_isocentre(tmp_path: Path) -> None:
+    """Views taken with the C-arm moved between shots: each view's ``isocenter_ct_mm`` wins over the
+    case's."""
+    path = write_navigation_case(replace(_case(), verification=None), tmp_path)
+    _write_dicom(tmp_path / "frame.dcm", rows=48, cols=64)
+    d = json.loads(path.read_text())
+    d["isocenter_ct_mm"] = [1.0, 2.0, 3.0]
+    own = [10.0, -20.0, 5.0]
+    d["views"][1] = {"name": "dcm", "image": "frame.dcm", "camera": "dicom", "isocenter_ct_mm": own}
+    d["views"][2] = {"name": "dcm2", "image": "frame.dcm", "camera": "dicom"}
+    path.write_text(json.dumps(d))
+    views = load_navigation_case(path).views
+    np.testing.assert_allclose(views[1].camera.project(np.array([own]))[0], [31.5, 23.5], atol=1e-9)
+    np.testing.assert_allclose(
+        views[2].camera.project(np.array([[1.0, 2.0, 3.0]]))[0], [31.5, 23.5], atol=1e-9
+    )
+    d["views"][1]["isocenter_ct_mm"] = [1.0, 2.0]
+    path.write_text(json.dumps(d))
+    with pytest.raises(InputError, match=r"views\[1\]\.isocenter_ct_mm"):
+        load_navigation_case(path)
+
+
 # ----- malformed cases ---------------------------------------------------------------------------
 Edit = Callable[[dict[str, Any], Path], None]
 

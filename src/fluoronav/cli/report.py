@@ -18,7 +18,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Combine studies into the paper's Table I beside the paper's numbers, with their figures."""
         from fluoronav.errors import InputError
-        from fluoronav.studies.report import Section, html_page, table_i, table_markdown
+        from fluoronav.studies.report import Section, html_page, outcome_table, table_i, table_markdown
 
         for d in dirs:
             s = d / "summary.json"
@@ -31,13 +31,27 @@ def register(app: typer.Typer) -> None:
         header, rows = table_i(dirs)
         out.mkdir(parents=True, exist_ok=True)
         note = (
-            "Mean ± std (median). Columns follow FACTS.md's reading of the paper's Table I: tip, "
-            "relative (entry − tip), CM base translation and rotation, mean notch rotation."
+            "Mean ± std (median). Columns: tip, relative (entry − tip), CM base translation and "
+            "rotation, mean notch rotation, as the paper's Table I reports them."
         )
+        o_header, o_rows = outcome_table(dirs)
         (out / "table_i.md").write_text(
-            f"# Table I\n\n{note}\n\n{table_markdown(header, rows)}\n", encoding="utf-8"
+            f"# Table I\n\n{note}\n\n{table_markdown(header, rows)}\n\n## Outcomes\n\n"
+            f"{table_markdown(o_header, o_rows)}\n",
+            encoding="utf-8",
         )
-        sections = [Section("Table I", paragraphs=[note], tables=[(header, rows)])]
+        sections = [
+            Section("Table I", paragraphs=[note], tables=[(header, rows)]),
+            Section(
+                "Outcomes: failures and refusals",
+                paragraphs=[
+                    "A refused trial is one where the navigation found a registration failing its "
+                    "checks and gave no robot command; an unflagged gross failure is a trial that said "
+                    "ok and left the true tip more than 2 mm from the plan."
+                ],
+                tables=[(o_header, o_rows)],
+            ),
+        ]
         for d in dirs:
             summ = json.loads((d / "summary.json").read_text(encoding="utf-8"))
             figs = [
@@ -45,7 +59,8 @@ def register(app: typer.Typer) -> None:
                 for p in sorted((d / "figures").glob("*.png"))
             ]
             info = (
-                f"{summ['completed']} of {summ['trials']} trials completed, {summ['failed']} failed; "
+                f"{summ['completed']} of {summ['trials']} trials completed, {summ['failed']} failed, "
+                f"{summ.get('refused', 0)} refused; "
                 f"median {summ['seconds_per_trial'].get('median') or float('nan'):.1f} s per trial; "
                 f"device {summ.get('device')}; fluoronav {summ.get('version')}."
             )

@@ -48,7 +48,7 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 #: Keys of one view entry.
-VIEW_KEYS = ("name", "image", "camera", "landmarks_px", "mask")
+VIEW_KEYS = ("name", "image", "camera", "landmarks_px", "mask", "isocenter_ct_mm")
 #: Keys of the ``robot`` object.
 ROBOT_KEYS = ("model", "joints_deg", "ee_from_cm")
 
@@ -204,6 +204,10 @@ def _view(
     image_path = require_file(src, root, entry.get("image"), f"{vk}.image", what="an image file")
     with keyed(src, f"{vk}.image"):
         image, spacing = load_image(image_path)
+    if entry.get("isocenter_ct_mm") is not None:  # this view's own isocentre (the C-arm moved)
+        isocenter_ct_mm = vector(
+            entry["isocenter_ct_mm"], f"{vk}.isocenter_ct_mm", src, n=3, why="a CT point has 3"
+        )
     camera = _camera(entry, f"{vk}.camera", src, root, image_path, isocenter_ct_mm)
     if image.shape != (camera.rows, camera.cols):
         raise InputError(

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from fluoronav.navigation.pipeline import EventCallback
 from fluoronav.navigation.simulated import SimulatedNavigation, SimulationConfig, run_simulated_navigation
 
 __all__ = ["ERROR_ROWS", "run_demo", "write_demo_outputs"]
@@ -56,9 +57,10 @@ def run_demo(
     *,
     out: Path,
     on_stage: Callable[[str, str], None] | None = None,
+    on_event: EventCallback | None = None,
 ) -> SimulatedNavigation:
     """Simulate a case into ``out/case``, navigate on its files, move, verify, correct."""
-    return run_simulated_navigation(config, case_dir=out / "case", on_stage=on_stage)
+    return run_simulated_navigation(config, case_dir=out / "case", on_stage=on_stage, on_event=on_event)
 
 
 def results_json(run: SimulatedNavigation) -> dict[str, Any]:

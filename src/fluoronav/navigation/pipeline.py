@@ -58,6 +58,7 @@ from fluoronav.navigation.navigate import (
     tip_correction_target,
 )
 from fluoronav.navigation.planning import Plan, planned_femur_from_cm
+from fluoronav.navigation.safety import SafetyConfig, ViewVerdict, judge_cm_views, judge_motion
 from fluoronav.registration.bone import (
     BoneRegistrationResult,
     BoneView,
@@ -84,6 +85,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "STAGES",
     "VERIFY_STAGES",
+    "EventCallback",
     "NavigationConfig",
     "NavigationRefused",
     "NavigationResult",
@@ -111,6 +113,7 @@ class NavigationConfig:
         landmark_band_mm: half-width at the detector of the CM region assumed about A–B in a view
             whose case gives landmarks but no mask.
         ik_tol_mm, ik_tol_deg: inverse-kinematics acceptance.
+        safety: the thresholds of the registration checks.
     """
 
     device: str = "cpu"
@@ -120,6 +123,7 @@ class NavigationConfig:
     landmark_band_mm: float = 6.0
     ik_tol_mm: float = 1e-6
     ik_tol_deg: float = 1e-6
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
 
 
 class NavigationRefused(FluoronavError):
@@ -305,11 +309,34 @@ def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return np.asarray(p, np.float64) @ T[:3, :3].T + T[:3, 3]
 
 
-class _Stages:
-    """Times stages into ``result.stages`` and reports them to a callback (progress displays)."""
+#: ``on_event(kind, data)``: what the pipeline tells a listener (e.g. a live link to a viewer) as
+#: soon as it is known. Kinds and data: "views" (``prefix``, ``views``: the case's views of that
+#: set), "registration" (``prefix``, ``registration``: a :class:`Registration`), "plan" (``plan``,
+#: ``ct_from_femur``, ``femur_from_cm_target``), "status" (``status``, ``reason``; at the end of
+#: :func:`navigate` and of :func:`verify`). ``prefix`` is "" for the first images and "verify_"
+#: for the verification's.
+EventCallback = Callable[[str, dict[str, Any]], None]
 
-    def __init__(self, result: NavigationResult, on_stage: Callable[[str, str], None] | None) -> None:
-        self.result, self.on_stage = result, on_stage
+
+class _Stages:
+    """Times stages into ``result.stages`` and reports them to callbacks (progress displays and
+    listeners); a listener that fails is logged and never stops the navigation."""
+
+    def __init__(
+        self,
+        result: NavigationResult,
+        on_stage: Callable[[str, str], None] | None,
+        on_event: EventCallback | None = None,
+    ) -> None:
+        self.result, self.on_stage, self.on_event = result, on_stage, on_event
+
+    def emit(self, kind: str, **data: Any) -> None:
+        if self.on_event is None:
+            return
+        try:
+            self.on_event(kind, data)
+        except Exception:  # a listener must not cost the navigation its result
+            log.exception("navigation listener failed on %r", kind)
 
     @contextmanager
     def __call__(self, name: str) -> Iterator[StageRecord]:
@@ -423,13 +450,18 @@ def _register(
     seed: int,
     initial_ct_from_cm: Callable[[np.ndarray], np.ndarray] | None,
     initial_control_points_deg: np.ndarray,
+    recovery_ct_from_cm: Callable[[np.ndarray], np.ndarray] | None = None,
+    motion_check: Callable[[np.ndarray, CMRegistrationResult], dict[str, float]] | None = None,
 ) -> Registration:
     """Detection, pelvis per view, femur, CM in one set of views.
 
     ``initial_ct_from_cm``: None for the multi-view centreline initialisation, else a function of the
-    registered ``ct_from_femur`` giving the CM start (verification: the plan on the new femur).
+    registered ``ct_from_femur`` giving the CM start (verification: the plan on the new femur);
+    ``recovery_ct_from_cm`` likewise, a second start tried where the first fails its checks;
+    ``motion_check(ct_from_femur, cm)``: a further check of the CM against the robot's kinematics.
     """
     with stage(f"{prefix}detect") as rec:
+        stage.emit("views", prefix=prefix, views=tuple(views))
         detections, rec.diagnostics["views"] = detect_views(views, config=config)
         seen = [k for k, d in enumerate(detections) if d is not None]
         rec.diagnostics["views_detected"] = len(seen)
@@ -458,7 +490,6 @@ def _register(
             views_ct, case.volume, side=case.side, world_from_patient=np.eye(4), seed=seed + 3
         )
         rec.diagnostics.update(cost=float(femur.cost), converged=bool(femur.converged), reason=femur.reason)
-    cm_config = CMRegistrationConfig(device=config.device, cm_config=case.cm_config)
     with stage(f"{prefix}cm") as rec:
         init: MultiViewInitResult | None = None
         lm_views: list[np.ndarray | None] = [None if d is None else d.landmarks_px for d in detections]
@@ -474,30 +505,28 @@ def _register(
             # landmarks that disagreed with the other views: the triangulated consensus instead
             for i, k in enumerate(seen):
                 lm_views[k] = init.landmarks_px[i]
-            cm = register_cm_multistart(
-                _cm_views(views, cams_ct, lm_views, ""),
-                multiview_start_poses(init, max_starts=config.max_cm_starts),
-                initial_control_points_deg=initial_control_points_deg,
-                config=cm_config,
-                seed=seed + 5,
-            )
+            tries = [multiview_start_poses(init, max_starts=config.max_cm_starts)]
             rec.diagnostics["init_cost_px"] = float(init.cost_px)
         else:
-            cm = register_cm(
-                _cm_views(views, cams_ct, lm_views, f" ({prefix.rstrip('_')})"),
-                initial_control_points_deg=initial_control_points_deg,
-                initial_world_from_cm=initial_ct_from_cm(femur.world_from_bone),
-                config=cm_config,
-                seed=seed + 7,
-            )
-        checks = cm_view_diagnostics(cm, lm_views, [v.camera.pixel_spacing_mm for v in views])
-        rec.diagnostics.update(
-            cost=float(cm.cost),
-            converged=bool(cm.converged),
-            reason=cm.reason,
-            views={v.name: c.to_dict() for v, c in zip(views, checks, strict=True)},
+            tries = [[initial_ct_from_cm(femur.world_from_bone)]]
+        if recovery_ct_from_cm is not None:  # a second start, tried only where the first fails
+            tries.append([recovery_ct_from_cm(femur.world_from_bone)])
+        tag = f" ({prefix.rstrip('_')})" if prefix else ""
+        cm = _checked_cm(
+            _cm_views(views, cams_ct, lm_views, tag),
+            lm_views,
+            tries,
+            rec,
+            stage_name=f"{prefix}cm",
+            initial_control_points_deg=initial_control_points_deg,
+            cm_config=CMRegistrationConfig(device=config.device, cm_config=case.cm_config),
+            safety=config.safety,
+            seed=seed + 5,
+            motion_check=None
+            if motion_check is None
+            else functools.partial(motion_check, femur.world_from_bone),
         )
-    return Registration(
+    reg = Registration(
         views=tuple(views),
         detections=tuple(detections),
         pelvis=tuple(pelvis),
@@ -506,6 +535,95 @@ def _register(
         cm=cm,
         cm_init=init,
     )
+    stage.emit("registration", prefix=prefix, registration=reg)
+    return reg
+
+
+def _checked_cm(
+    cm_views: list[CMView],
+    landmarks_px: list[np.ndarray | None],
+    tries: list[list[np.ndarray]],
+    rec: StageRecord,
+    *,
+    stage_name: str,
+    initial_control_points_deg: np.ndarray,
+    cm_config: CMRegistrationConfig,
+    safety: SafetyConfig,
+    seed: int,
+    motion_check: Callable[[CMRegistrationResult], dict[str, float]] | None,
+) -> CMRegistrationResult:
+    """The CM registered and checked (:mod:`fluoronav.navigation.safety`).
+
+    Each entry of ``tries`` is a list of start poses; the next is tried only where the previous
+    failed its checks. Within a try, views that disagree with the registration are left out and the
+    CM registered again from where it was, while ``safety.min_views`` views remain.
+
+    Raises:
+        NavigationRefused: no try passed; the reason names the view and the check that failed last.
+    """
+    names = [v.name for v in cm_views]
+    spacing = [v.camera.pixel_spacing_mm for v in cm_views]
+    left_out: dict[str, str] = {}
+    last: ViewVerdict | None = None
+    for t, starts in enumerate(tries):
+        use = list(range(len(cm_views)))
+        cm = register_cm_multistart(
+            cm_views,
+            starts,
+            initial_control_points_deg=initial_control_points_deg,
+            config=cm_config,
+            seed=seed + t,
+        )
+        while True:
+            diags = cm_view_diagnostics(cm, [landmarks_px[k] for k in use], [spacing[k] for k in use])
+            verdicts = judge_cm_views([names[k] for k in use], [d.to_dict() for d in diags], safety)
+            failed = [v for v in verdicts if not v.passed]
+            motion = motion_check(cm) if motion_check is not None and not failed else None
+            moved = None if motion is None else judge_motion(motion, safety)
+            rec.diagnostics.update(
+                cost=float(cm.cost),
+                converged=bool(cm.converged),
+                reason=cm.reason,
+                views={names[k]: d.to_dict() for k, d in zip(use, diags, strict=True)},
+                views_used=[names[k] for k in use],
+                tries=t + 1,
+                **(motion or {}),
+            )
+            if not failed and moved is None:
+                if left_out:
+                    rec.diagnostics["left_out"] = left_out
+                return cm
+            last = failed[0] if failed else moved
+            if not failed or len(use) - len(failed) < safety.min_views:
+                break
+            for v in failed:
+                left_out[v.view] = f"{v.check}: {v.detail}"
+                log.warning("%s: view %s left out (%s: %s)", stage_name, v.view, v.check, v.detail)
+            use = [k for k, v in zip(use, verdicts, strict=True) if v.passed]
+            cm = register_cm(
+                [cm_views[k] for k in use],
+                initial_control_points_deg=cm.control_points_deg,
+                initial_world_from_cm=cm.world_from_cm[0],
+                config=cm_config,
+                seed=seed + 17 + t,
+            )
+        if t + 1 < len(tries):
+            log.warning(
+                "%s: %s failed (%s); trying the next start",
+                stage_name,
+                last.check if last else "",
+                last.detail if last else "",
+            )
+    assert last is not None
+    rec.passed = False
+    if left_out:
+        rec.diagnostics["left_out"] = left_out
+    raise NavigationRefused(stage_name, last.check, last.detail, view=last.view)
+
+
+def _stage_seed(seed: int, k: int) -> int:
+    """Optimiser seed of registration set k from the user's seed (any size; CMA-ES takes < 2³²)."""
+    return int(np.random.SeedSequence(abs(int(seed))).generate_state(k + 1)[k]) % 2**31
 
 
 def _command(
@@ -545,15 +663,17 @@ def predicted_femur_from_cm(
     return femur_from_cm_1 @ np.linalg.inv(rbase_from_cm_1) @ rbase_from_cm_2
 
 
-def motion_consistency(case: NavigationCase, first: Registration, ver: Registration) -> dict[str, float]:
+def motion_consistency(
+    case: NavigationCase, first: Registration, ct_from_femur: np.ndarray, cm: CMRegistrationResult
+) -> dict[str, float]:
     """Agreement of the verification's CM (femur frame) with the kinematic prediction: ``motion_tip_mm``
     (tip distance) and ``motion_rotation_deg``. A verification registration that failed disagrees by
     far more than the robot's and the first registration's errors."""
     assert case.verification is not None
     pred = predicted_femur_from_cm(case, first, case.verification.joints_deg)
-    reg = femur_from_cm_registered(ver.ct_from_femur, ver.ct_from_cm)
+    reg = femur_from_cm_registered(ct_from_femur, cm.world_from_cm[0])
     kin = CMKinematics(case.cm_config)
-    tip = kin.tip_cm(torch.as_tensor(ver.cm.control_points_deg, dtype=torch.float64)).numpy()
+    tip = kin.tip_cm(torch.as_tensor(cm.control_points_deg, dtype=torch.float64)).numpy()
     d = np.linalg.inv(pred) @ reg
     c = (np.trace(d[:3, :3]) - 1.0) / 2.0
     return {
@@ -567,6 +687,7 @@ def navigate(
     config: NavigationConfig | None = None,
     *,
     on_stage: Callable[[str, str], None] | None = None,
+    on_event: EventCallback | None = None,
 ) -> NavigationResult:
     """Run the pipeline (module docstring) on ``case``; with verification views, :func:`verify` too.
 
@@ -574,6 +695,7 @@ def navigate(
         case: the navigation case.
         config: settings (default :class:`NavigationConfig`).
         on_stage: called with (stage name, "start" | "done") for progress displays.
+        on_event: called as results become known (:data:`EventCallback`).
 
     Returns:
         :class:`NavigationResult`; status "refused" (and no robot command) where a stage could not
@@ -581,8 +703,8 @@ def navigate(
     """
     cfg = config or NavigationConfig()
     res = NavigationResult(config=cfg)
-    stage = _Stages(res, on_stage)
-    torch.manual_seed(cfg.seed)
+    stage = _Stages(res, on_stage, on_event)
+    torch.manual_seed(abs(int(cfg.seed)) % 2**63)
     kin = CMKinematics(case.cm_config)
     cp0 = (
         np.zeros(case.cm_config.n_control_points)
@@ -596,7 +718,7 @@ def navigate(
             stage,
             cfg,
             prefix="",
-            seed=cfg.seed,
+            seed=_stage_seed(cfg.seed, 0),
             initial_ct_from_cm=None,
             initial_control_points_deg=cp0,
         )
@@ -608,6 +730,12 @@ def navigate(
             res.plan = plan
             res.femur_from_cm_target = planned_femur_from_cm(plan, kinematics=kin)
             rec.diagnostics["tip_target_ct_mm"] = plan.tip_target_world_mm.tolist()
+        stage.emit(
+            "plan",
+            plan=plan,
+            ct_from_femur=first.ct_from_femur,
+            femur_from_cm_target=res.femur_from_cm_target,
+        )
         with stage("robot") as rec:
             target, q = _command(case, first, case.joints_deg, res.femur_from_cm_target, cfg, "robot")
             res.rbase_from_ee_target, res.joints_target_deg = target, q
@@ -615,9 +743,11 @@ def navigate(
     except NavigationRefused as exc:
         log.warning("navigation refused: %s", exc)
         res.refuse(exc)
+        stage.emit("status", status=res.status, reason=res.reason)
         return res
     if case.verification is not None:
-        verify(case, res, on_stage=on_stage)
+        return verify(case, res, on_stage=on_stage, on_event=on_event)
+    stage.emit("status", status=res.status, reason=res.reason)
     return res
 
 
@@ -626,6 +756,7 @@ def verify(
     result: NavigationResult,
     *,
     on_stage: Callable[[str, str], None] | None = None,
+    on_event: EventCallback | None = None,
 ) -> NavigationResult:
     """Register the verification views of ``case`` and command one correction (updates ``result``).
 
@@ -641,10 +772,13 @@ def verify(
     if result.status != "ok":
         return result
     cfg = result.config
-    stage = _Stages(result, on_stage)
+    stage = _Stages(result, on_stage, on_event)
     plan = result.plan
     assert plan is not None
     target = result.femur_from_cm_target
+    first = result.first
+    # where the robot's kinematics say the CM went: a second start, and a check of the verification
+    predicted = predicted_femur_from_cm(case, first, case.verification.joints_deg)
     kin = CMKinematics(case.cm_config)
     try:
         ver = _register(
@@ -653,13 +787,13 @@ def verify(
             stage,
             cfg,
             prefix="verify_",
-            seed=cfg.seed + 1000,
+            seed=_stage_seed(cfg.seed, 1),
             initial_ct_from_cm=lambda ct_from_femur: ct_from_femur @ target,
             initial_control_points_deg=np.asarray(result.first.cm.control_points_deg),
+            recovery_ct_from_cm=lambda ct_from_femur: ct_from_femur @ predicted,
+            motion_check=functools.partial(motion_consistency, case, first),
         )
         result.verification = ver
-        motion = motion_consistency(case, result.first, ver)
-        result.stages["verify_cm"].diagnostics.update(motion)
         with stage("correct") as rec:
             tip_cm = kin.tip_cm(torch.as_tensor(ver.cm.control_points_deg, dtype=torch.float64)).numpy()
             corr = tip_correction_target(
@@ -673,4 +807,5 @@ def verify(
     except NavigationRefused as exc:
         log.warning("verification refused: %s", exc)
         result.refuse(exc)
+    stage.emit("status", status=result.status, reason=result.reason)
     return result

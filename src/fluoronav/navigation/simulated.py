@@ -46,7 +46,7 @@ from fluoronav.geometry.carm import centre_on, orbit_camera
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation import case as case_io
 from fluoronav.navigation.case import CaseView, NavigationCase, VerificationViews
-from fluoronav.navigation.pipeline import NavigationConfig, NavigationResult, navigate, verify
+from fluoronav.navigation.pipeline import EventCallback, NavigationConfig, NavigationResult, navigate, verify
 from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
 from fluoronav.registration.metrics import axis_error_deg, cm_errors
 from fluoronav.simulation.articulated import anatomy_and_simulator
@@ -203,6 +203,7 @@ def run_simulated_navigation(
     case_dir: Path | None = None,
     navigation: NavigationConfig | None = None,
     on_stage: Callable[[str, str], None] | None = None,
+    on_event: EventCallback | None = None,
 ) -> SimulatedNavigation:
     """Simulate a case, navigate on it, move, verify and correct; measure everything (module docstring).
 
@@ -214,13 +215,15 @@ def run_simulated_navigation(
             to ``truth.json`` beside it) and read back before the pipeline runs on it.
         navigation: the pipeline's settings (default: device and seed of ``config``).
         on_stage: called with (stage name, "start" | "done") for the loop's and the pipeline's stages.
+        on_event: passed to the pipeline (:data:`fluoronav.navigation.pipeline.EventCallback`).
     """
     cfg = config or SimulationConfig()
     nav_cfg = navigation or NavigationConfig(device=cfg.device, seed=cfg.seed)
+    rng_seed = abs(int(cfg.seed))
     run = SimulatedNavigation(config=cfg)
     T, E, A = _Timer(run.timings_s, on_stage), run.errors, run.artifacts
-    torch.manual_seed(cfg.seed)
-    rng = np.random.default_rng(cfg.seed)
+    torch.manual_seed(rng_seed % 2**63)
+    rng = np.random.default_rng(rng_seed)
     seeds = rng.integers(2**31, size=8)
 
     with T("anatomy"):
@@ -283,7 +286,7 @@ def run_simulated_navigation(
             case = case_io.load_navigation_case(path)
     A.update(volume=volume, scene=sc, images=images, names=names, case=case)
 
-    res = navigate(case, nav_cfg, on_stage=on_stage)
+    res = navigate(case, nav_cfg, on_stage=on_stage, on_event=on_event)
     run.result = res
     _first_errors(run, sc, images, W_regi, cp_true)
     if res.status != "ok" or res.joints_target_deg is None:
@@ -325,7 +328,7 @@ def run_simulated_navigation(
             _write_truth(run, case_dir)
             case = case_io.load_navigation_case(path)
     A.update(images2=images2, case=case)
-    verify(case, res, on_stage=on_stage)
+    verify(case, res, on_stage=on_stage, on_event=on_event)
     _verification_errors(run, sc, images2, W_after)
     if res.status != "ok" or res.joints_correction_deg is None:
         return run

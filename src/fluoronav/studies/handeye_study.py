@@ -529,6 +529,24 @@ def _figures(rows: list[dict[str, Any]], out: Path, cfg: HandEyeStudyConfig) -> 
     return written
 
 
+#: a navigation that said "ok" and left the true tip further than this from the plan failed unflagged
+GROSS_FAILURE_MM = 2.0
+
+
+def _navigation_outcomes(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """``unflagged_gross_failures``: rows with status ok whose final true tip is more than
+    :data:`GROSS_FAILURE_MM` from the plan (CONTRACTS), with their trial numbers."""
+    bad = []
+    for r in rows:
+        try:
+            tip = float(r.get("reposition_tip_mm") or "nan")
+        except ValueError:
+            continue
+        if str(r.get("status")) == "ok" and tip > GROSS_FAILURE_MM:
+            bad.append(int(r["trial"]))
+    return {"unflagged_gross_failures": len(bad), "unflagged_gross_failure_trials": bad}
+
+
 def run_study(
     cfg: HandEyeStudyConfig, out: Path, *, scheduler: str | None = None, workers: int | None = None
 ) -> dict[str, Any]:
@@ -593,6 +611,7 @@ def run_study(
             "ct": cfg.ct,
             "poses": list(cfg.poses),
             "landmarks": "oracle" if cfg.oracle_landmarks else "detector",
+            **(_navigation_outcomes(rows) if cfg.workflow == "navigation" else {}),
             "image_size": cfg.image_size,
         },
     )

@@ -8,9 +8,18 @@ from typing import Any
 
 from fluoronav.htmlpage import Section, cell_text, figure_png, html_page, table_html
 
-__all__ = ["PAPER_TABLE_I", "Section", "figure_png", "html_page", "table_html", "table_i", "table_markdown"]
+__all__ = [
+    "PAPER_TABLE_I",
+    "Section",
+    "figure_png",
+    "html_page",
+    "outcome_table",
+    "table_html",
+    "table_i",
+    "table_markdown",
+]
 
-#: The paper's Table I (mean, std, median) for the CM workflows; FACTS.md explains the column reading.
+#: The paper's Table I (mean, std, median) for the CM workflows.
 PAPER_TABLE_I: dict[str, dict[str, tuple[float, float, float]]] = {
     "single-view": {
         "tip_mm": (1.65, 1.13, 1.33),
@@ -34,7 +43,7 @@ PAPER_TABLE_I: dict[str, dict[str, tuple[float, float, float]]] = {
         "notch_rotation_deg": (0.18, 0.21, 0.12),
     },
 }
-#: Best figures of the running text (FACTS.md): the numbers to beat.
+#: Best figures of the paper's running text: the numbers to beat.
 PAPER_BEST_TIP_MM = {"single-view": 1.17, "multi-view": 0.59, "multi-cm": 0.99}
 TABLE_COLUMNS = ("tip_mm", "relative_mm", "base_translation_mm", "base_rotation_deg", "notch_rotation_deg")
 
@@ -76,4 +85,25 @@ def table_i(study_dirs: list[Path]) -> tuple[list[str], list[list[Any]]]:
                     *[f"{p[c][0]:.2f} ± {p[c][1]:.2f} ({p[c][2]:.2f})" for c in TABLE_COLUMNS],
                 ]
             )
+    return header, rows
+
+
+def outcome_table(study_dirs: list[Path]) -> tuple[list[str], list[list[Any]]]:
+    """Per study: trials, failed, refused (the navigation gave no command), unflagged gross
+    failures (status ok, final true tip more than 2 mm from the plan) and the refusal reasons."""
+    header = ["study", "trials", "failed", "refused", "unflagged gross failures", "refusal reasons"]
+    rows: list[list[Any]] = []
+    for d in study_dirs:
+        s = json.loads((Path(d) / "summary.json").read_text(encoding="utf-8"))
+        reasons = "; ".join(f"{n}× {r}" for r, n in s.get("refusal_reasons", {}).items()) or "–"
+        rows.append(
+            [
+                f"{s['workflow']} ({Path(d).name})",
+                s["completed"],
+                s["failed"],
+                s.get("refused", 0),
+                s.get("unflagged_gross_failures", "–"),
+                reasons,
+            ]
+        )
     return header, rows

@@ -44,28 +44,35 @@ def summarize(
 ) -> dict[str, Any]:
     """Summary per CONTRACTS: counts, per-metric mean/std/median/p95 over converged trials, timing.
 
-    Failed trials (``status != "ok"``) are counted, never dropped; their metrics are left out of the
-    statistics, and the failure rate and reasons are reported.
+    Failed trials (``status`` "failed") and trials whose navigation refused to act (``status``
+    "refused") are counted, never dropped; their metrics are left out of the statistics, and the
+    failure and refusal rates and reasons are reported.
     """
     ok = [r for r in rows if str(r.get("status", "ok")) == "ok"]
-    failed = [r for r in rows if str(r.get("status", "ok")) != "ok"]
+    failed = [r for r in rows if str(r.get("status", "ok")) not in ("ok", "refused")]
+    refused = [r for r in rows if str(r.get("status", "ok")) == "refused"]
     metrics: dict[str, Any] = {}
     for name in metric_names:
         vals = [v for v in (_float(r.get(name)) for r in ok) if v is not None]
         if vals:
             metrics[name] = _stats(vals)
     secs = [v for v in (_float(r.get("seconds")) for r in rows) if v is not None]
-    reasons: dict[str, int] = {}
-    for r in failed:
-        key = str(r.get("reason", "unknown"))[:120]
-        reasons[key] = reasons.get(key, 0) + 1
+    def count(group: list[dict[str, Any]]) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for r in group:
+            key = str(r.get("reason", "unknown"))[:120]
+            out[key] = out.get(key, 0) + 1
+        return out
+
     out = {
         "workflow": workflow,
         "trials": trials,
         "completed": len(rows),
         "failed": len(failed),
         "failure_rate": len(failed) / len(rows) if rows else 0.0,
-        "failure_reasons": reasons,
+        "failure_reasons": count(failed),
+        "refused": len(refused),
+        "refusal_reasons": count(refused),
         "metrics": metrics,
         "seconds_per_trial": {
             "median": float(np.median(secs)) if secs else None,
