@@ -1,18 +1,25 @@
-# The README quick start calls exactly two targets: `make demo` and `make test`.
-PY ?= python3
+# The README quick start calls exactly two targets: `make demo` and `make test`. Both install into a
+# project virtual environment (.venv) made with the `python3` found on PATH, so that a distribution's
+# system Python (which refuses `pip install` under PEP 668) is left alone.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 OUT ?= demo_out
 SEED ?= 0
 
 .PHONY: install demo test test-slow lint bench
 
-install:
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+
+install: $(PY)
 	# torch first, pinned, so that no dependency pulls a CUDA build
 	$(PIP) install -q torch==2.13.0
 	$(PIP) install -q -c constraints.txt -e ".[dev]"
 
 demo: install
-	fluoronav demo --out $(OUT) --seed $(SEED)
+	$(VENV)/bin/fluoronav demo --out $(OUT) --seed $(SEED)
 
 test: install
 	$(PY) -m pytest -q -m "not slow" -p no:cacheprovider
@@ -20,10 +27,10 @@ test: install
 test-slow: install
 	$(PY) -m pytest -q -m slow -p no:cacheprovider
 
-lint:
-	ruff check src tests
-	ruff format --check src tests
-	mypy
+lint: install
+	$(VENV)/bin/ruff check src tests
+	$(VENV)/bin/ruff format --check src tests
+	$(VENV)/bin/mypy
 
-bench:
-	fluoronav bench
+bench: install
+	$(VENV)/bin/fluoronav bench

@@ -3,7 +3,7 @@
 # dependencies, run the tests that exercise CUDA (and their neighbours) with a GPU present, then each
 # benchmark stage on CUDA, writing every result to $OUT as it comes. One stage's timeout does not
 # stop the next. Usage there: bash tools/device_check.sh [quick|full] [STAGE...]; the stages default
-# to rendering, detection and simulation (~3 min with the tests on an H100 at stop 49); registration
+# to rendering, detection and simulation (~3 min with the tests on an H100); registration
 # on CUDA takes longer (its per-candidate baseline alone ~1 min per view in quick mode), so name it
 # on its own with a call of its own.
 set -u

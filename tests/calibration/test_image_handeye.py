@@ -99,8 +99,8 @@ def test_shape_prior_is_free_within_the_fbg_tolerance_with_gaussian_walls() -> N
 @pytest.mark.slow
 def test_recovers_a_known_hand_eye_from_physics_images() -> None:
     """Perfect robot (nominal = true, no encoder noise), exact landmarks, physics images of the
-    phantom (384², 6 poses), initial hand-eye 5°/5 mm off. Bars from the noisy runs in
-    docs/robot-and-calibration.md (M = 4-8 with robot errors and ±3 px landmarks: tip 0.16-1.04 mm,
+    phantom (384², 6 poses), initial hand-eye 5°/5 mm off. Bars from noisy runs of such
+    scenes (M = 4-8 with robot errors and ±3 px landmarks: tip 0.16-1.04 mm,
     translation 0.05-0.38 mm, rotation 2.0-2.1°, residual 0.5-0.7 px at 384²): tip < 1 mm,
     translation < 1 mm, rotation and axis tilt < 3° (better than the initial 5°), residual < 2 px."""
     from fluoronav.calibration.handeye import transform_error

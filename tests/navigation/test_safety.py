@@ -12,8 +12,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-import fluoronav.navigation.pipeline as pipeline
-from fluoronav.navigation.pipeline import NavigationRefused, StageRecord, _checked_cm
+import fluoronav.navigation.checks as checks
+from fluoronav.navigation.checks import register_cm_checked
+from fluoronav.navigation.result import NavigationRefused, StageRecord
 from fluoronav.navigation.safety import SafetyConfig, judge_cm_views, judge_motion
 from fluoronav.registration.diagnostics import CMViewDiagnostics
 
@@ -81,9 +82,9 @@ def _run(
     def diagnostics(cm: _Reg, lms: list[Any], ps: list[Any]) -> list[CMViewDiagnostics]:
         return [CMViewDiagnostics(**bad.get((cm.start, n), GOOD)) for n in cm.views]
 
-    monkeypatch.setattr(pipeline, "register_cm_multistart", multistart)
-    monkeypatch.setattr(pipeline, "register_cm", single)
-    monkeypatch.setattr(pipeline, "cm_view_diagnostics", diagnostics)
+    monkeypatch.setattr(checks, "register_cm_multistart", multistart)
+    monkeypatch.setattr(checks, "register_cm", single)
+    monkeypatch.setattr(checks, "cm_view_diagnostics", diagnostics)
     starts = []
     for t in range(tries):
         s = np.eye(4)
@@ -91,7 +92,7 @@ def _run(
         starts.append([s])
     rec = StageRecord()
     check = None if motion is None else (lambda cm: {"motion_tip_mm": motion[cm.start]})
-    cm = _checked_cm(
+    cm = register_cm_checked(
         views,  # type: ignore[arg-type]
         [np.zeros((2, 2))] * 3,
         starts,

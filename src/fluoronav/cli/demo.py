@@ -7,24 +7,37 @@ See :mod:`fluoronav.navigation.demo`. Writes the simulated case to ``DIR/case/``
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from pathlib import Path
 
 import typer
 
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
+from fluoronav.cli.navigate import IGTL_OPTION
 
 
-def run(out: Path, *, seed: int, device: str, image_size: int, oracle_landmarks: bool) -> int:
-    """Run the demo, print its table, write its files; returns the exit status (3: refused)."""
+def run(
+    out: Path,
+    *,
+    seed: int,
+    device: str,
+    image_size: int,
+    oracle_landmarks: bool,
+    igtl: str | None = None,
+) -> int:
+    """Run the demo, print its table, write its files; returns the exit status (3: refused). With
+    ``igtl`` (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer)."""
     from rich.console import Console
     from rich.table import Table
 
     from fluoronav.cli.navigate import EXIT_REFUSED, stage_progress
     from fluoronav.device import resolve_device
     from fluoronav.navigation.demo import ERROR_ROWS, ordered_timings, run_demo, write_demo_outputs
+    from fluoronav.navigation.igtl import IGTLinkStreamer, chain_stage_callbacks
     from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES
     from fluoronav.navigation.simulated import SIMULATION_STAGES, SimulationConfig
 
+    link = IGTLinkStreamer(igtl) if igtl is not None else None  # a malformed address is bad input
     console = Console(stderr=True)
     cfg = SimulationConfig(
         seed=seed,
@@ -32,8 +45,14 @@ def run(out: Path, *, seed: int, device: str, image_size: int, oracle_landmarks:
         device=str(resolve_device(device)),
         oracle_landmarks=oracle_landmarks,
     )
-    with stage_progress(len(SIMULATION_STAGES) + len(STAGES) + len(VERIFY_STAGES), "demo") as on_stage:
-        run_ = run_demo(cfg, out=out, on_stage=on_stage)
+    total = len(SIMULATION_STAGES) + len(STAGES) + len(VERIFY_STAGES)
+    with stage_progress(total, "demo") as progress, link or nullcontext():
+        run_ = run_demo(
+            cfg,
+            out=out,
+            on_stage=chain_stage_callbacks(progress, link.on_stage if link is not None else None),
+            on_event=link.on_event if link is not None else None,
+        )
     write_demo_outputs(run_, out)
 
     table = Table(title=f"fluoronav demo (seed {seed}): errors against the simulated truth")
@@ -75,10 +94,18 @@ def register(app: typer.Typer) -> None:
         oracle_landmarks: bool = typer.Option(
             False, "--oracle-landmarks", help="True landmarks + U(-3, 3) px instead of the detector."
         ),
+        igtl: str | None = IGTL_OPTION,
     ) -> None:
         """Simulated navigation on the built-in phantom: a simulated case written to files, then the
         navigate pipeline on them (detection → registration → robot command), the move, verification
         and one correction; writes case/, truth.json, results.json, navigation.json, slicer/ and
         report.html to --out. Exit status 3 when the navigation refused."""
-        code = run(out, seed=seed, device=device, image_size=image_size, oracle_landmarks=oracle_landmarks)
+        code = run(
+            out,
+            seed=seed,
+            device=device,
+            image_size=image_size,
+            oracle_landmarks=oracle_landmarks,
+            igtl=igtl,
+        )
         raise typer.Exit(code)

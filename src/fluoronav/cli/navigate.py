@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import typer
@@ -19,6 +19,18 @@ from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
 
 #: exit status of a navigation that refused to give a robot command
 EXIT_REFUSED = 3
+
+IGTL_OPTION = typer.Option(
+    None,
+    "--igtl",
+    metavar="HOST:PORT",
+    help=(
+        "Stream the navigation live to 3D Slicer: the OpenIGTLink server of Slicer's OpenIGTLinkIF "
+        "module (e.g. 127.0.0.1:18944). Sends the views as images, the CMToCT, FemurToCT and "
+        "PlanToCT transforms and a Status text; without a server the navigation runs as without "
+        "the option (one warning)."
+    ),
+)
 
 STAGE_LABELS = {
     "detect": "detecting the CM in each view",
@@ -72,18 +84,26 @@ def stage_progress(total: int, description: str) -> Iterator[Callable[[str, str]
         yield on_stage
 
 
-def run(case_path: Path, out: Path, *, seed: int, device: str) -> int:
-    """Navigate on a case file and write the outputs; returns the exit status."""
+def run(case_path: Path, out: Path, *, seed: int, device: str, igtl: str | None = None) -> int:
+    """Navigate on a case file and write the outputs; returns the exit status. With ``igtl``
+    (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer)."""
     from fluoronav.device import resolve_device
     from fluoronav.navigation.case import load_navigation_case
+    from fluoronav.navigation.igtl import IGTLinkStreamer, chain_stage_callbacks
     from fluoronav.navigation.outputs import write_outputs
     from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES, NavigationConfig, navigate
 
+    link = IGTLinkStreamer(igtl) if igtl is not None else None  # a malformed address is bad input
     case = load_navigation_case(case_path)
     cfg = NavigationConfig(device=str(resolve_device(device)), seed=seed)
     total = len(STAGES) + (len(VERIFY_STAGES) if case.verification is not None else 0)
-    with stage_progress(total, "navigate") as on_stage:
-        result = navigate(case, cfg, on_stage=on_stage)
+    with stage_progress(total, "navigate") as progress, link or nullcontext():
+        result = navigate(
+            case,
+            cfg,
+            on_stage=chain_stage_callbacks(progress, link.on_stage if link is not None else None),
+            on_event=link.on_event if link is not None else None,
+        )
     write_outputs(
         result,
         case,
@@ -113,8 +133,9 @@ def register(app: typer.Typer) -> None:
         ),
         seed: int = SEED_OPTION,
         device: str = DEVICE_OPTION,
+        igtl: str | None = IGTL_OPTION,
     ) -> None:
         """Navigation on your own files: detection → pelvis → femur → CM → plan → robot command
         (and, with verification views, their registration and one corrective command). Exit status
         3 when it refuses to give a command."""
-        raise typer.Exit(run(case, out, seed=seed, device=device))
+        raise typer.Exit(run(case, out, seed=seed, device=device, igtl=igtl))

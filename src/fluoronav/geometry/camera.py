@@ -258,7 +258,7 @@ class Camera:
 
     # ----- files --------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict per CONTRACTS (rows, cols, K, camera_from_world, + pixel_spacing_mm)."""
+        """JSON-ready camera-file dict (rows, cols, K, camera_from_world, + pixel_spacing_mm)."""
         d: dict[str, Any] = {
             "rows": self.rows,
             "cols": self.cols,

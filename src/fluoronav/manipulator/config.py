@@ -1,6 +1,6 @@
 """Parametric description of a notched continuum manipulator (CM).
 
-Defaults are the paper's CM (Gao et al. 2022; FACTS.md): a nitinol tube, 6 mm outer and 4 mm inner
+Defaults are the paper's CM (Gao et al. 2022): a nitinol tube, 6 mm outer and 4 mm inner
 diameter, 35 mm long, 27 notches cut alternately on two opposite sides, bending in one plane, with
 joint angles interpolated by a cubic spline through 5 control points.
 
@@ -15,7 +15,7 @@ Dimensions the paper does not give, and why we chose them:
   typical of bidirectional notched nitinol CMs (the cut passes through the lumen).
 - ``base_length_mm = 4.0`` of plain tube below landmark A (the origin), the rest above the last notch.
 
-Frame (CONTRACTS): origin A between the base and the first notch, on the axis; +z along the axis
+Frame (docs/conventions.md): origin A between the base and the first notch, on the axis; +z along the axis
 towards the tip; bending in the y-z plane, joints rotate about x. Notch ``j`` (0-based) is centred at
 ``z_j = first_notch_offset_mm + j · notch_pitch_mm`` and opens towards +y for even ``j``, −y for odd.
 A positive joint angle rotates the distal part about +x (bending the tip towards −y).

@@ -38,7 +38,6 @@ import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -47,20 +46,26 @@ import torch
 from fluoronav.calibration.robot import wrap_deg
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.instrument import instrument_masks
-from fluoronav.errors import FluoronavError
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.case import CaseView, NavigationCase
+from fluoronav.navigation.checks import motion_consistency, predicted_femur_from_cm, register_cm_checked
 from fluoronav.navigation.navigate import (
     UnreachableTarget,
     femur_from_cm_registered,
     robot_target,
     tip_correction_target,
 )
-from fluoronav.navigation.planning import Plan, planned_femur_from_cm
-from fluoronav.navigation.safety import SafetyConfig, ViewVerdict, judge_cm_views, judge_motion
+from fluoronav.navigation.planning import planned_femur_from_cm
+from fluoronav.navigation.result import (
+    NavigationConfig,
+    NavigationRefused,
+    NavigationResult,
+    Registration,
+    StageRecord,
+    ViewDetection,
+)
 from fluoronav.registration.bone import (
-    BoneRegistrationResult,
     BoneView,
     register_femur,
     register_pelvis_per_view,
@@ -75,10 +80,7 @@ from fluoronav.registration.cm import (
     CMRegistrationConfig,
     CMRegistrationResult,
     CMView,
-    register_cm,
-    register_cm_multistart,
 )
-from fluoronav.registration.diagnostics import cm_view_diagnostics
 
 log = logging.getLogger(__name__)
 
@@ -98,215 +100,6 @@ __all__ = [
 
 STAGES = ("detect", "pelvis", "femur", "cm", "plan", "robot")
 VERIFY_STAGES = ("verify_detect", "verify_pelvis", "verify_femur", "verify_cm", "correct")
-
-
-@dataclass(frozen=True)
-class NavigationConfig:
-    """Settings of the pipeline (recorded in ``navigation.json``).
-
-    Attributes:
-        device: torch device of the detector, renderers and similarities.
-        seed: seeds every optimiser (the same seed gives the same result).
-        min_views: views with a usable CM detection that the first registration needs (the
-            triangulation of A and B needs two).
-        max_cm_starts: roll minima of the centreline initialisation the CM registration starts from.
-        landmark_band_mm: half-width at the detector of the CM region assumed about A–B in a view
-            whose case gives landmarks but no mask.
-        ik_tol_mm, ik_tol_deg: inverse-kinematics acceptance.
-        safety: the thresholds of the registration checks.
-    """
-
-    device: str = "cpu"
-    seed: int = 0
-    min_views: int = 2
-    max_cm_starts: int = 2
-    landmark_band_mm: float = 6.0
-    ik_tol_mm: float = 1e-6
-    ik_tol_deg: float = 1e-6
-    safety: SafetyConfig = field(default_factory=SafetyConfig)
-
-
-class NavigationRefused(FluoronavError):
-    """A stage could not go on; no robot command may be given.
-
-    Args:
-        stage: the stage that refused; check: the check that failed; view: the view concerned or "".
-    """
-
-    def __init__(self, stage: str, check: str, detail: str, view: str = "") -> None:
-        self.stage, self.check, self.view, self.detail = stage, check, view, detail
-        where = f"stage {stage}" + (f", view {view}" if view else "")
-        super().__init__(f"{where}, check {check}: {detail}")
-
-
-@dataclass
-class StageRecord:
-    """One stage's record: wall time, whether its checks passed, and its diagnostics (JSON-ready)."""
-
-    seconds: float = 0.0
-    passed: bool = True
-    diagnostics: dict[str, Any] = field(default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"seconds": self.seconds, "passed": self.passed, **self.diagnostics}
-
-
-@dataclass(frozen=True, eq=False)
-class ViewDetection:
-    """The CM found in one view.
-
-    Attributes:
-        landmarks_px: (2, 2) A, B (u, v) in the view's pixels.
-        centerline_px: (P, 2) ordered A → B.
-        mask: (rows, cols) bool CM region.
-        confidence: (2,) the detector's confidence of A and B (1 for given landmarks).
-        source: "detector" or "case".
-    """
-
-    landmarks_px: np.ndarray
-    centerline_px: np.ndarray
-    mask: np.ndarray
-    confidence: np.ndarray
-    source: str
-
-
-@dataclass(frozen=True, eq=False)
-class Registration:
-    """Bones and CM registered in one set of views (the first images, or the verification's).
-
-    Attributes:
-        views: the case's views; detections: per view, None where no CM was usable.
-        pelvis: per-view pelvis registrations; cameras_ct: each view's camera placed by it
-            (``camera_from_world`` = ``carm_k_from_ct``).
-        femur: the femur registration (``world_from_bone`` = ``ct_from_femur``).
-        cm: the CM registration in the CT frame; cm_init: the multi-view centreline
-            initialisation it started from (None when it started from a given pose).
-    """
-
-    views: tuple[CaseView, ...]
-    detections: tuple[ViewDetection | None, ...]
-    pelvis: tuple[BoneRegistrationResult, ...]
-    cameras_ct: tuple[Camera, ...]
-    femur: BoneRegistrationResult
-    cm: CMRegistrationResult
-    cm_init: MultiViewInitResult | None = None
-
-    @property
-    def ct_from_femur(self) -> np.ndarray:
-        return np.asarray(self.femur.world_from_bone, np.float64)
-
-    @property
-    def ct_from_cm(self) -> np.ndarray:
-        return np.asarray(self.cm.world_from_cm[0], np.float64)
-
-    @property
-    def tip_ct_mm(self) -> np.ndarray:
-        return np.asarray(self.cm.tip_world[0], np.float64)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The contract's pose keys (CT frame, LPS mm)."""
-        return {
-            "ct_from_cm": self.ct_from_cm.tolist(),
-            "control_points_deg": np.asarray(self.cm.control_points_deg).tolist(),
-            "tip_ct_mm": self.tip_ct_mm.tolist(),
-            "ct_from_femur": self.ct_from_femur.tolist(),
-            "carm_from_ct": {
-                v.name: c.camera_from_world.tolist() for v, c in zip(self.views, self.cameras_ct, strict=True)
-            },
-        }
-
-
-@dataclass
-class NavigationResult:
-    """What ``navigate`` found and commanded (``navigation.json``: :meth:`to_json`).
-
-    ``first`` / ``verification`` are the registrations; ``plan`` is the plan as used (with the CM's
-    registered shape where the case's plan gives none); the robot commands are set only when the
-    status is "ok".
-    """
-
-    config: NavigationConfig
-    status: str = "ok"
-    reason: str = ""
-    stages: dict[str, StageRecord] = field(default_factory=dict)
-    first: Registration | None = None
-    plan: Plan | None = None
-    femur_from_cm_target: np.ndarray | None = None
-    rbase_from_ee_target: np.ndarray | None = None
-    joints_target_deg: np.ndarray | None = None
-    verification: Registration | None = None
-    correction_femur_from_cm_target: np.ndarray | None = None
-    rbase_from_ee_correction: np.ndarray | None = None
-    joints_correction_deg: np.ndarray | None = None
-
-    def refuse(self, exc: NavigationRefused) -> None:
-        """Mark the run refused and withdraw every robot command (none may be acted on)."""
-        self.status, self.reason = "refused", str(exc)
-        if exc.stage in self.stages:
-            self.stages[exc.stage].passed = False
-        self.rbase_from_ee_target = self.joints_target_deg = None
-        self.rbase_from_ee_correction = self.joints_correction_deg = None
-
-    def flat_diagnostics(self) -> dict[str, float]:
-        """The registrations' diagnostics in one flat dict (study rows): per set of views (prefix
-        ``""`` or ``"verify_"``) the worst view's CM landmark residual and edge NCC, the pelvis's
-        worst view cost, the femur cost; the verification's kinematic motion agreement."""
-        out: dict[str, float] = {}
-        for prefix in ("", "verify_"):
-            st = self.stages
-            if f"{prefix}cm" in st and "views" in st[f"{prefix}cm"].diagnostics:
-                views = st[f"{prefix}cm"].diagnostics["views"].values()
-                res = [v["landmark_residual_mm"] for v in views if v["landmark_residual_mm"] is not None]
-                if res:
-                    out[f"{prefix}cm_landmark_residual_mm"] = float(max(res))
-                out[f"{prefix}cm_edge_ncc"] = float(min(v["edge_ncc"] for v in views))
-                for key in ("motion_tip_mm", "motion_rotation_deg"):
-                    if key in st[f"{prefix}cm"].diagnostics:
-                        out[f"{prefix}{key}"] = float(st[f"{prefix}cm"].diagnostics[key])
-            if f"{prefix}pelvis" in st and "views" in st[f"{prefix}pelvis"].diagnostics:
-                out[f"{prefix}pelvis_cost"] = float(
-                    max(v["cost"] for v in st[f"{prefix}pelvis"].diagnostics["views"].values())
-                )
-            if f"{prefix}femur" in st and "cost" in st[f"{prefix}femur"].diagnostics:
-                out[f"{prefix}femur_cost"] = float(st[f"{prefix}femur"].diagnostics["cost"])
-        return out
-
-    def to_json(self) -> dict[str, Any]:
-        from fluoronav import __version__
-
-        d: dict[str, Any] = {
-            "version": __version__,
-            "status": self.status,
-            "reason": self.reason,
-            "config": dataclasses.asdict(self.config),
-            "stages": {k: v.to_dict() for k, v in self.stages.items()},
-        }
-        if self.first is not None:
-            d.update(self.first.to_dict())
-        if self.plan is not None:
-            d["plan"] = self.plan.to_dict()
-        if self.femur_from_cm_target is not None:
-            d["femur_from_cm_target"] = self.femur_from_cm_target.tolist()
-        if self.status == "ok" and self.joints_target_deg is not None:
-            assert self.rbase_from_ee_target is not None
-            d["rbase_from_ee_target"] = self.rbase_from_ee_target.tolist()
-            d["joints_target_deg"] = self.joints_target_deg.tolist()
-        if self.verification is not None:
-            v = self.verification.to_dict()
-            if self.plan is not None:
-                planned_tip_ct = _h(self.verification.ct_from_femur, self.plan.tip_target_world_mm)
-                v["tip_to_plan_mm"] = float(np.linalg.norm(self.verification.tip_ct_mm - planned_tip_ct))
-            if self.status == "ok" and self.joints_correction_deg is not None:
-                assert self.rbase_from_ee_correction is not None
-                v["rbase_from_ee_target"] = self.rbase_from_ee_correction.tolist()
-                v["joints_target_deg"] = self.joints_correction_deg.tolist()
-            d["verification"] = v
-        return d
-
-
-def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Apply a (4, 4) transform to (..., 3) points."""
-    return np.asarray(p, np.float64) @ T[:3, :3].T + T[:3, 3]
 
 
 #: ``on_event(kind, data)``: what the pipeline tells a listener (e.g. a live link to a viewer) as
@@ -512,7 +305,7 @@ def _register(
         if recovery_ct_from_cm is not None:  # a second start, tried only where the first fails
             tries.append([recovery_ct_from_cm(femur.world_from_bone)])
         tag = f" ({prefix.rstrip('_')})" if prefix else ""
-        cm = _checked_cm(
+        cm = register_cm_checked(
             _cm_views(views, cams_ct, lm_views, tag),
             lm_views,
             tries,
@@ -537,88 +330,6 @@ def _register(
     )
     stage.emit("registration", prefix=prefix, registration=reg)
     return reg
-
-
-def _checked_cm(
-    cm_views: list[CMView],
-    landmarks_px: list[np.ndarray | None],
-    tries: list[list[np.ndarray]],
-    rec: StageRecord,
-    *,
-    stage_name: str,
-    initial_control_points_deg: np.ndarray,
-    cm_config: CMRegistrationConfig,
-    safety: SafetyConfig,
-    seed: int,
-    motion_check: Callable[[CMRegistrationResult], dict[str, float]] | None,
-) -> CMRegistrationResult:
-    """The CM registered and checked (:mod:`fluoronav.navigation.safety`).
-
-    Each entry of ``tries`` is a list of start poses; the next is tried only where the previous
-    failed its checks. Within a try, views that disagree with the registration are left out and the
-    CM registered again from where it was, while ``safety.min_views`` views remain.
-
-    Raises:
-        NavigationRefused: no try passed; the reason names the view and the check that failed last.
-    """
-    names = [v.name for v in cm_views]
-    spacing = [v.camera.pixel_spacing_mm for v in cm_views]
-    left_out: dict[str, str] = {}
-    last: ViewVerdict | None = None
-    for t, starts in enumerate(tries):
-        use = list(range(len(cm_views)))
-        cm = register_cm_multistart(
-            cm_views,
-            starts,
-            initial_control_points_deg=initial_control_points_deg,
-            config=cm_config,
-            seed=seed + t,
-        )
-        while True:
-            diags = cm_view_diagnostics(cm, [landmarks_px[k] for k in use], [spacing[k] for k in use])
-            verdicts = judge_cm_views([names[k] for k in use], [d.to_dict() for d in diags], safety)
-            failed = [v for v in verdicts if not v.passed]
-            motion = motion_check(cm) if motion_check is not None and not failed else None
-            moved = None if motion is None else judge_motion(motion, safety)
-            rec.diagnostics.update(
-                cost=float(cm.cost),
-                converged=bool(cm.converged),
-                reason=cm.reason,
-                views={names[k]: d.to_dict() for k, d in zip(use, diags, strict=True)},
-                views_used=[names[k] for k in use],
-                tries=t + 1,
-                **(motion or {}),
-            )
-            if not failed and moved is None:
-                if left_out:
-                    rec.diagnostics["left_out"] = left_out
-                return cm
-            last = failed[0] if failed else moved
-            if not failed or len(use) - len(failed) < safety.min_views:
-                break
-            for v in failed:
-                left_out[v.view] = f"{v.check}: {v.detail}"
-                log.warning("%s: view %s left out (%s: %s)", stage_name, v.view, v.check, v.detail)
-            use = [k for k, v in zip(use, verdicts, strict=True) if v.passed]
-            cm = register_cm(
-                [cm_views[k] for k in use],
-                initial_control_points_deg=cm.control_points_deg,
-                initial_world_from_cm=cm.world_from_cm[0],
-                config=cm_config,
-                seed=seed + 17 + t,
-            )
-        if t + 1 < len(tries):
-            log.warning(
-                "%s: %s failed (%s); trying the next start",
-                stage_name,
-                last.check if last else "",
-                last.detail if last else "",
-            )
-    assert last is not None
-    rec.passed = False
-    if left_out:
-        rec.diagnostics["left_out"] = left_out
-    raise NavigationRefused(stage_name, last.check, last.detail, view=last.view)
 
 
 def _stage_seed(seed: int, k: int) -> int:
@@ -649,37 +360,6 @@ def _command(
         )
     except UnreachableTarget as exc:
         raise NavigationRefused(stage_name, "reachable", str(exc)) from None
-
-
-def predicted_femur_from_cm(
-    case: NavigationCase, first: Registration, joints_after_deg: np.ndarray
-) -> np.ndarray:
-    """(4, 4) where the robot's kinematics say the CM is after the move, in the femur frame: the
-    first registration moved by the nominal robot's motion between ``case.joints_deg`` and
-    ``joints_after_deg`` (the femur and the robot base do not move relative to each other)."""
-    rbase_from_cm_1 = case.robot.rbase_from_ee(case.joints_deg) @ case.ee_from_cm
-    rbase_from_cm_2 = case.robot.rbase_from_ee(np.asarray(joints_after_deg, np.float64)) @ case.ee_from_cm
-    femur_from_cm_1 = femur_from_cm_registered(first.ct_from_femur, first.ct_from_cm)
-    return femur_from_cm_1 @ np.linalg.inv(rbase_from_cm_1) @ rbase_from_cm_2
-
-
-def motion_consistency(
-    case: NavigationCase, first: Registration, ct_from_femur: np.ndarray, cm: CMRegistrationResult
-) -> dict[str, float]:
-    """Agreement of the verification's CM (femur frame) with the kinematic prediction: ``motion_tip_mm``
-    (tip distance) and ``motion_rotation_deg``. A verification registration that failed disagrees by
-    far more than the robot's and the first registration's errors."""
-    assert case.verification is not None
-    pred = predicted_femur_from_cm(case, first, case.verification.joints_deg)
-    reg = femur_from_cm_registered(ct_from_femur, cm.world_from_cm[0])
-    kin = CMKinematics(case.cm_config)
-    tip = kin.tip_cm(torch.as_tensor(cm.control_points_deg, dtype=torch.float64)).numpy()
-    d = np.linalg.inv(pred) @ reg
-    c = (np.trace(d[:3, :3]) - 1.0) / 2.0
-    return {
-        "motion_tip_mm": float(np.linalg.norm(_h(reg, tip) - _h(pred, tip))),
-        "motion_rotation_deg": float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))),
-    }
 
 
 def navigate(

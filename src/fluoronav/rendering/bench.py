@@ -1,4 +1,4 @@
-"""Rendering benchmarks (``fluoronav bench``): each ``run_*`` returns CONTRACTS keys with baselines.
+"""Rendering benchmarks (``fluoronav bench``): each ``run_*`` returns figure keys with baselines.
 
 Add a renderer's benchmark by writing ``run_<name>(quick: bool, device: str) -> dict[str, float]``
 here and appending it to :data:`BENCHMARKS`; :func:`run` merges them all. Each figure and its

@@ -1,10 +1,11 @@
 """Simulated data sets (``fluoronav simulate``): resumable, parallel, reproducible per seed.
 
-Layout (CONTRACTS.md): ``DIR/manifest.jsonl`` (one object per sample, appended as samples finish),
-``DIR/samples/<id>.npz`` (``image``, ``mask``, ``landmarks_px``), ``DIR/dataset.json`` (the run's
-configuration) and ``DIR/contact_sheet.png``. Sample ``i`` depends only on the run seed and ``i``:
-its seed picks the anatomy (phantom seed or CT) and the scene, so the same seed gives the same
-samples for any number of workers, and a rerun skips finished samples.
+Layout (docs/simulation.md, "Data set format"): ``DIR/manifest.jsonl`` (one object per sample,
+appended as samples finish), ``DIR/samples/<id>.npz`` (``image``, ``mask``, ``landmarks_px``),
+``DIR/dataset.json`` (the run's configuration) and ``DIR/contact_sheet.png``. Sample ``i``
+depends only on the run seed and ``i``: its seed picks the anatomy (phantom seed or CT) and the
+scene, so the same seed gives the same samples for any number of workers, and a rerun skips
+finished samples.
 """
 
 from __future__ import annotations
@@ -285,7 +286,7 @@ def contact_sheet(data_dir: Path, rows: list[dict[str, Any]], path: Path) -> Non
     plt.close(fig)
 
 
-#: manifest keys required by CONTRACTS.md ("Data set format")
+#: manifest keys every sample has (docs/simulation.md, "Data set format")
 MANIFEST_KEYS = (
     "id",
     "file",

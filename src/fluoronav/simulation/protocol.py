@@ -1,4 +1,4 @@
-"""The paper's simulation protocol (Gao et al. 2022 §III-B; FACTS.md "Simulation protocol").
+"""The paper's simulation protocol (Gao et al. 2022 §III-B, and the authors' simulation code).
 
 One :class:`Trial` holds the ground truth of one simulated experiment and the initialisation noise
 of the authors' code. Sampling, in this order (all from the one ``rng``):

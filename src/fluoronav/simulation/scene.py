@@ -1,6 +1,6 @@
 """Scenes: a CT volume, a C-arm view and a CM pose/shape, sampled as in the paper's data set.
 
-Sampling (Gao et al. 2022, §III-A; FACTS.md): control points U[−7.9°, 7.9°], source-to-isocentre
+Sampling (Gao et al. 2022, §III-A): control points U[−7.9°, 7.9°], source-to-isocentre
 U[400, 500] mm, LAO/RAO U[0°, 360°], CRAN/CAUD U[75°, 105°], volume translation U[−20, 20] mm per
 axis (applied here as the opposite shift of the isocentre, which is the same relative geometry).
 

@@ -42,7 +42,7 @@ def summarize(
     device: str,
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Summary per CONTRACTS: counts, per-metric mean/std/median/p95 over converged trials, timing.
+    """Study summary (``summary.json``): counts, per-metric mean/std/median/p95 over converged trials, timing.
 
     Failed trials (``status`` "failed") and trials whose navigation refused to act (``status``
     "refused") are counted, never dropped; their metrics are left out of the statistics, and the

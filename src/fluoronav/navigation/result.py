@@ -1,0 +1,241 @@
+"""What the navigation pipeline finds: its settings, per-stage records, registrations and result.
+
+``navigation.json`` is :meth:`NavigationResult.to_json`: the status and reason, every stage with
+its seconds, checks and diagnostics, the registered poses in the CT frame (LPS, mm), and the robot
+command only when the status is "ok".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fluoronav.errors import FluoronavError
+from fluoronav.geometry.camera import Camera
+from fluoronav.navigation.case import CaseView
+from fluoronav.navigation.planning import Plan
+from fluoronav.navigation.safety import SafetyConfig
+from fluoronav.registration.bone import BoneRegistrationResult
+from fluoronav.registration.centerline_init import MultiViewInitResult
+from fluoronav.registration.cm import CMRegistrationResult
+
+__all__ = [
+    "NavigationConfig",
+    "NavigationRefused",
+    "NavigationResult",
+    "Registration",
+    "StageRecord",
+    "ViewDetection",
+]
+
+
+@dataclass(frozen=True)
+class NavigationConfig:
+    """Settings of the pipeline (recorded in ``navigation.json``).
+
+    Attributes:
+        device: torch device of the detector, renderers and similarities.
+        seed: seeds every optimiser (the same seed gives the same result).
+        min_views: views with a usable CM detection that the first registration needs (the
+            triangulation of A and B needs two).
+        max_cm_starts: roll minima of the centreline initialisation the CM registration starts from.
+        landmark_band_mm: half-width at the detector of the CM region assumed about A–B in a view
+            whose case gives landmarks but no mask.
+        ik_tol_mm, ik_tol_deg: inverse-kinematics acceptance.
+        safety: the thresholds of the registration checks.
+    """
+
+    device: str = "cpu"
+    seed: int = 0
+    min_views: int = 2
+    max_cm_starts: int = 2
+    landmark_band_mm: float = 6.0
+    ik_tol_mm: float = 1e-6
+    ik_tol_deg: float = 1e-6
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+
+
+class NavigationRefused(FluoronavError):
+    """A stage could not go on; no robot command may be given.
+
+    Args:
+        stage: the stage that refused; check: the check that failed; view: the view concerned or "".
+    """
+
+    def __init__(self, stage: str, check: str, detail: str, view: str = "") -> None:
+        self.stage, self.check, self.view, self.detail = stage, check, view, detail
+        where = f"stage {stage}" + (f", view {view}" if view else "")
+        super().__init__(f"{where}, check {check}: {detail}")
+
+
+@dataclass
+class StageRecord:
+    """One stage's record: wall time, whether its checks passed, and its diagnostics (JSON-ready)."""
+
+    seconds: float = 0.0
+    passed: bool = True
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"seconds": self.seconds, "passed": self.passed, **self.diagnostics}
+
+
+@dataclass(frozen=True, eq=False)
+class ViewDetection:
+    """The CM found in one view.
+
+    Attributes:
+        landmarks_px: (2, 2) A, B (u, v) in the view's pixels.
+        centerline_px: (P, 2) ordered A → B.
+        mask: (rows, cols) bool CM region.
+        confidence: (2,) the detector's confidence of A and B (1 for given landmarks).
+        source: "detector" or "case".
+    """
+
+    landmarks_px: np.ndarray
+    centerline_px: np.ndarray
+    mask: np.ndarray
+    confidence: np.ndarray
+    source: str
+
+
+@dataclass(frozen=True, eq=False)
+class Registration:
+    """Bones and CM registered in one set of views (the first images, or the verification's).
+
+    Attributes:
+        views: the case's views; detections: per view, None where no CM was usable.
+        pelvis: per-view pelvis registrations; cameras_ct: each view's camera placed by it
+            (``camera_from_world`` = ``carm_k_from_ct``).
+        femur: the femur registration (``world_from_bone`` = ``ct_from_femur``).
+        cm: the CM registration in the CT frame; cm_init: the multi-view centreline
+            initialisation it started from (None when it started from a given pose).
+    """
+
+    views: tuple[CaseView, ...]
+    detections: tuple[ViewDetection | None, ...]
+    pelvis: tuple[BoneRegistrationResult, ...]
+    cameras_ct: tuple[Camera, ...]
+    femur: BoneRegistrationResult
+    cm: CMRegistrationResult
+    cm_init: MultiViewInitResult | None = None
+
+    @property
+    def ct_from_femur(self) -> np.ndarray:
+        return np.asarray(self.femur.world_from_bone, np.float64)
+
+    @property
+    def ct_from_cm(self) -> np.ndarray:
+        return np.asarray(self.cm.world_from_cm[0], np.float64)
+
+    @property
+    def tip_ct_mm(self) -> np.ndarray:
+        return np.asarray(self.cm.tip_world[0], np.float64)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The contract's pose keys (CT frame, LPS mm)."""
+        return {
+            "ct_from_cm": self.ct_from_cm.tolist(),
+            "control_points_deg": np.asarray(self.cm.control_points_deg).tolist(),
+            "tip_ct_mm": self.tip_ct_mm.tolist(),
+            "ct_from_femur": self.ct_from_femur.tolist(),
+            "carm_from_ct": {
+                v.name: c.camera_from_world.tolist() for v, c in zip(self.views, self.cameras_ct, strict=True)
+            },
+        }
+
+
+@dataclass
+class NavigationResult:
+    """What ``navigate`` found and commanded (``navigation.json``: :meth:`to_json`).
+
+    ``first`` / ``verification`` are the registrations; ``plan`` is the plan as used (with the CM's
+    registered shape where the case's plan gives none); the robot commands are set only when the
+    status is "ok".
+    """
+
+    config: NavigationConfig
+    status: str = "ok"
+    reason: str = ""
+    stages: dict[str, StageRecord] = field(default_factory=dict)
+    first: Registration | None = None
+    plan: Plan | None = None
+    femur_from_cm_target: np.ndarray | None = None
+    rbase_from_ee_target: np.ndarray | None = None
+    joints_target_deg: np.ndarray | None = None
+    verification: Registration | None = None
+    correction_femur_from_cm_target: np.ndarray | None = None
+    rbase_from_ee_correction: np.ndarray | None = None
+    joints_correction_deg: np.ndarray | None = None
+
+    def refuse(self, exc: NavigationRefused) -> None:
+        """Mark the run refused and withdraw every robot command (none may be acted on)."""
+        self.status, self.reason = "refused", str(exc)
+        if exc.stage in self.stages:
+            self.stages[exc.stage].passed = False
+        self.rbase_from_ee_target = self.joints_target_deg = None
+        self.rbase_from_ee_correction = self.joints_correction_deg = None
+
+    def flat_diagnostics(self) -> dict[str, float]:
+        """The registrations' diagnostics in one flat dict (study rows): per set of views (prefix
+        ``""`` or ``"verify_"``) the worst view's CM landmark residual and edge NCC, the pelvis's
+        worst view cost, the femur cost; the verification's kinematic motion agreement."""
+        out: dict[str, float] = {}
+        for prefix in ("", "verify_"):
+            st = self.stages
+            if f"{prefix}cm" in st and "views" in st[f"{prefix}cm"].diagnostics:
+                views = st[f"{prefix}cm"].diagnostics["views"].values()
+                res = [v["landmark_residual_mm"] for v in views if v["landmark_residual_mm"] is not None]
+                if res:
+                    out[f"{prefix}cm_landmark_residual_mm"] = float(max(res))
+                out[f"{prefix}cm_edge_ncc"] = float(min(v["edge_ncc"] for v in views))
+                for key in ("motion_tip_mm", "motion_rotation_deg"):
+                    if key in st[f"{prefix}cm"].diagnostics:
+                        out[f"{prefix}{key}"] = float(st[f"{prefix}cm"].diagnostics[key])
+            if f"{prefix}pelvis" in st and "views" in st[f"{prefix}pelvis"].diagnostics:
+                out[f"{prefix}pelvis_cost"] = float(
+                    max(v["cost"] for v in st[f"{prefix}pelvis"].diagnostics["views"].values())
+                )
+            if f"{prefix}femur" in st and "cost" in st[f"{prefix}femur"].diagnostics:
+                out[f"{prefix}femur_cost"] = float(st[f"{prefix}femur"].diagnostics["cost"])
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        from fluoronav import __version__
+
+        d: dict[str, Any] = {
+            "version": __version__,
+            "status": self.status,
+            "reason": self.reason,
+            "config": dataclasses.asdict(self.config),
+            "stages": {k: v.to_dict() for k, v in self.stages.items()},
+        }
+        if self.first is not None:
+            d.update(self.first.to_dict())
+        if self.plan is not None:
+            d["plan"] = self.plan.to_dict()
+        if self.femur_from_cm_target is not None:
+            d["femur_from_cm_target"] = self.femur_from_cm_target.tolist()
+        if self.status == "ok" and self.joints_target_deg is not None:
+            assert self.rbase_from_ee_target is not None
+            d["rbase_from_ee_target"] = self.rbase_from_ee_target.tolist()
+            d["joints_target_deg"] = self.joints_target_deg.tolist()
+        if self.verification is not None:
+            v = self.verification.to_dict()
+            if self.plan is not None:
+                planned_tip_ct = _h(self.verification.ct_from_femur, self.plan.tip_target_world_mm)
+                v["tip_to_plan_mm"] = float(np.linalg.norm(self.verification.tip_ct_mm - planned_tip_ct))
+            if self.status == "ok" and self.joints_correction_deg is not None:
+                assert self.rbase_from_ee_correction is not None
+                v["rbase_from_ee_target"] = self.rbase_from_ee_correction.tolist()
+                v["joints_target_deg"] = self.joints_correction_deg.tolist()
+            d["verification"] = v
+        return d
+
+
+def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Apply a (4, 4) transform to (..., 3) points."""
+    return np.asarray(p, np.float64) @ T[:3, :3].T + T[:3, 3]

@@ -1,0 +1,122 @@
+"""Settings of the CM registration (:func:`~fluoronav.registration.cm.register_cm`): its levels and
+:class:`CMRegistrationConfig` (Gao et al., IEEE TBME 69(1), 2022, sec. II-C; the authors' code)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
+
+from fluoronav.manipulator.config import CMConfig
+from fluoronav.registration.levels import CM_SIGMA, LevelConfig
+
+__all__ = [
+    "CM_COARSE_LEVEL",
+    "CM_FINE_LEVEL",
+    "DEFAULT_CM_MU_PER_MM",
+    "CMRegistrationConfig",
+    "default_cm_levels",
+]
+
+#: μ of the CM material for the analytic DRR, 1/mm: nitinol is 0.76/mm at 60 keV and 0.52/mm at
+#: 70 keV (xraylib); 0.6 sits between, consistent with μ_water = 0.02/mm of ``hu_to_mu`` (≈ 60 keV).
+#: It only matters relative to a background DRR (the similarity is invariant to a global scale).
+DEFAULT_CM_MU_PER_MM = 0.6
+
+#: the authors' CMA-ES level at 4× (σ 2°/5 mm/1.5°, stride 5, population 50, tolx 0.01) with tolfun
+#: 1e-3 instead of 0.01 (the cost changes by only ~0.002 per mm of depth at 4×: 0.01 stops before the
+#: depth is resolved)
+CM_COARSE_LEVEL = LevelConfig(sigma=CM_SIGMA, downsample=4, stride=5, popsize=50, tolfun=1e-3, name="cm-4x")
+#: a local CMA-ES level at 2× (σ / 4, population 20, tolfun 1e-4), where depth is ~3× better resolved
+#: (our choice, see docs/registration.md)
+CM_FINE_LEVEL = LevelConfig(
+    sigma=tuple(s / 4.0 for s in CM_SIGMA),
+    downsample=2,
+    stride=5,
+    popsize=20,
+    tolfun=1e-4,
+    name="cm-2x",
+)
+
+
+def default_cm_levels(
+    *, popsize: int = CM_COARSE_LEVEL.popsize, refine: bool = True
+) -> tuple[LevelConfig, ...]:
+    """CM levels: :data:`CM_COARSE_LEVEL` with population ``popsize``, then with ``refine``
+    :data:`CM_FINE_LEVEL`."""
+    coarse = CM_COARSE_LEVEL.with_(popsize=popsize)
+    return (coarse, CM_FINE_LEVEL) if refine else (coarse,)
+
+
+@dataclass(frozen=True)
+class CMRegistrationConfig:
+    """Settings of :func:`register_cm`.
+
+    Attributes:
+        levels: registration levels; ``downsample`` is counted in full-detector pixels (4 = the
+            authors' 4× of a 1536² image), whatever the binning of the input images; a level finer
+            than the coarsest image binning is skipped (e.g. the 2× level for 384² CIOS images).
+        roi_size_full_px: side of the square crop around the landmarks, full-detector pixels.
+        landmark_sigma_full_px: landmark prior σ in full-detector pixels (authors: 100); None
+            disables the prior.
+        control_point_sigma_deg, control_point_tolerance_deg: prior of the control points around
+            their initial values (the FBG reading): free within ± tolerance, Gaussian walls of σ
+            beyond (:func:`~fluoronav.registration.priors.gaussian_parameter_prior`); σ None disables
+            it (the authors have none). Why a flat bottom: a plain Gaussian (σ 1°) held the notch
+            angles at the FBG error (multi-view notch 0.37 → 0.13° and 0.40 → 0.05° without it),
+            and without any prior one of eight multi-view trials traded the base rotation against
+            the shape (notch error 4.4°). The tolerance is the FBG accuracy with a margin (the
+            simulated reading is within ±0.5°); docs/registration.md.
+        single_view_control_point_sigma_deg: one view without a measured response (a single
+            level, e.g. 384² images, or ``response="linear"``): a plain Gaussian of this σ instead of
+            the flat-bottomed prior; there one view does not tell depth from shape (a 384² test case:
+            depth 7.1 mm off with the flat prior, < 6 mm with σ = 1°). With the measured response
+            the flat prior is used in every workflow: on six 768² single-view scenes it beat σ = 1°
+            (tip 0.55 → 0.29 mm mean, notch 0.31 → 0.06°; docs/registration.md).
+        use_background: add the views' background DRRs (when given) to the CM DRR.
+        cm_mu_per_mm: attenuation of the CM in the DRR (matters only relative to a background).
+        cm_config: CM geometry.
+        shaft_length_mm: length of the rigid tube the CM is mounted on, rendered as a longer base
+            (:func:`~fluoronav.manipulator.config.with_shaft`): it shows in the images and pins the
+            base's direction down; 0 for a bare CM. The simulator's default is the same 50 mm.
+        max_rotation_deg, max_translation_mm: search box of the pose around each start (per
+            parameter: rotation-vector components, translation components; None: unbounded). A
+            result on the box's edge is reported as a failure (``success`` False): the optimiser
+            left the region it was started in, typically pulled by a wrong landmark (a single-view
+            trial with a mis-detected B otherwise ended 583 mm away, "converged").
+        response: ``"measured"``: before every level after the first, each view's response to the
+            CM (:mod:`~fluoronav.rendering.response`: gain and veil, from scatter, glare and beam
+            hardening) is fitted on the CM's shaft at the current estimate
+            (:func:`~fluoronav.detection.tube_profile.fit_tube_profile`, the shaft's scale known
+            from the pose) and applied to the DRR; a view whose fit fails stays linear.
+            ``"linear"``: the plain DRR throughout. Why: against physics-simulated images the linear
+            DRR put single-view depth 0.5–2.7 mm nearer the source (the image's compressed profile
+            matches a larger CM); with the measured response the tip error fell from 1.10 to
+            0.35 mm mean on six scenes (docs/registration.md).
+        response_shaft_span: the stretch of the shaft whose profiles are fitted for the response,
+            as fractions of ``shaft_length_mm`` behind A.
+        response_profiles: number of profiles fitted along that stretch.
+        chunk_size: render at most this many candidates per call (None: the whole population).
+        device: torch device of rendering and similarity.
+    """
+
+    levels: tuple[LevelConfig, ...] = field(default_factory=default_cm_levels)
+    roi_size_full_px: int = 500
+    landmark_sigma_full_px: float | None = 100.0
+    control_point_sigma_deg: float | None = 0.25
+    control_point_tolerance_deg: float = 1.0
+    single_view_control_point_sigma_deg: float | None = 1.0
+    use_background: bool = True
+    cm_mu_per_mm: float = DEFAULT_CM_MU_PER_MM
+    cm_config: CMConfig = field(default_factory=CMConfig)
+    shaft_length_mm: float = 50.0
+    max_rotation_deg: float | None = 45.0
+    max_translation_mm: float | None = 50.0
+    response: Literal["linear", "measured"] = "measured"
+    response_shaft_span: tuple[float, float] = (0.1, 0.9)
+    response_profiles: int = 40
+    chunk_size: int | None = None
+    device: str = "cpu"
+
+    def with_(self, **changes: Any) -> CMRegistrationConfig:
+        """Copy with changes."""
+        return replace(self, **changes)
