@@ -49,7 +49,7 @@ D = np.diag([-1.0, -1.0, 1.0])  # ras_from_lps for points
 # helpers
 
 
-class _RecordingServer(pyigtl.OpenIGTLinkServer):  # type: ignore[misc]
+class _RecordingServer(pyigtl.OpenIGTLinkServer):
     """pyigtl's server, keeping every message it receives in order (pyigtl itself keeps only the
     latest message per device name)."""
 

@@ -211,3 +211,68 @@ def test_navigation_trial_runs_the_shared_loop_and_corrects() -> None:
     assert abs(row["reposition_registered_mm"] - row["reposition_open_loop_mm"]) < 1.0
     assert row["reposition_tip_mm"] < min(1.5, row["reposition_open_loop_mm"] + 0.1)
     assert row["verify_relative_mm"] < 1.5
+
+
+def test_summary_counts_refusals_apart_and_flags_unflagged_gross_failures() -> None:
+    from fluoronav.studies.handeye_study import _navigation_outcomes
+    from fluoronav.studies.summary import summarize
+
+    rows = [
+        {"trial": 0, "status": "ok", "reposition_tip_mm": 0.4, "seconds": 10.0},
+        {"trial": 1, "status": "ok", "reposition_tip_mm": 2.6, "seconds": 10.0},  # said ok, was not
+        {
+            "trial": 2,
+            "status": "refused",
+            "reason": "stage verify_cm, check robot_motion: 9 mm",
+            "seconds": 9.0,
+        },
+        {"trial": 3, "status": "failed", "reason": "ValueError: x", "seconds": 1.0},
+        {"trial": 4, "status": "refused", "reposition_tip_mm": 8.0, "reason": "stage cm, check edge_ncc"},
+    ]
+    s = summarize(
+        "navigation", rows, ["reposition_tip_mm"], trials=5, device="cpu", extra=_navigation_outcomes(rows)
+    )
+    assert s["failed"] == 1 and s["refused"] == 2
+    assert s["refusal_reasons"] == {
+        "stage verify_cm, check robot_motion: 9 mm": 1,
+        "stage cm, check edge_ncc": 1,
+    }
+    assert s["metrics"]["reposition_tip_mm"]["n"] == 2  # over the rows with status ok only
+    assert s["unflagged_gross_failures"] == 1 and s["unflagged_gross_failure_trials"] == [1]
+
+
+def test_navigation_rows_take_the_final_tip_and_the_checks() -> None:
+    from fluoronav.navigation.pipeline import NavigationConfig
+    from fluoronav.navigation.result import NavigationResult, StageRecord
+    from fluoronav.navigation.simulated import SimulatedNavigation, SimulationConfig
+    from fluoronav.studies.handeye_study import navigation_row
+
+    res = NavigationResult(config=NavigationConfig())
+    res.stages["cm"] = StageRecord(
+        seconds=3.0,
+        diagnostics={
+            "views": {
+                "AP": {"landmark_residual_mm": 0.3, "edge_ncc": 0.96},
+                "B": {"landmark_residual_mm": 0.7, "edge_ncc": 0.91},
+            }
+        },
+    )
+    res.stages["verify_cm"] = StageRecord(
+        seconds=2.0,
+        diagnostics={"views": {"AP": {"landmark_residual_mm": None, "edge_ncc": 0.8}}, "motion_tip_mm": 1.2},
+    )
+    res.stages["pelvis"] = StageRecord(
+        seconds=5.0, diagnostics={"views": {"AP": {"cost": 0.5}, "B": {"cost": 0.6}}}
+    )
+    run = SimulatedNavigation(config=SimulationConfig(), result=res)
+    run.errors.update(reposition_tip_mm=1.5, corrected_tip_mm=0.3, corrected_axis_deg=0.2, cm_tip_mm=0.25)
+    row = navigation_row(run, HandEyeStudyConfig(workflow="navigation", trials=1, seed=0))
+    assert row["reposition_open_loop_mm"] == 1.5 and row["reposition_tip_mm"] == 0.3 and row["tip_mm"] == 0.25
+    assert row["cm_landmark_residual_mm"] == 0.7 and row["cm_edge_ncc"] == 0.91
+    assert row["verify_cm_edge_ncc"] == 0.8 and row["verify_motion_tip_mm"] == 1.2
+    assert "verify_cm_landmark_residual_mm" not in row and row["pelvis_cost"] == 0.6
+    assert row["seconds_registration"] == 3.0 and row["seconds_verification"] == 2.0
+    open_loop = navigation_row(
+        run, HandEyeStudyConfig(workflow="navigation", trials=1, seed=0, corrections=0)
+    )
+    assert open_loop["reposition_tip_mm"] == 1.5

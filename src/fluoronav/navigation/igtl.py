@@ -55,6 +55,7 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self
 
 import numpy as np
+import pyigtl
 
 from fluoronav.errors import InputError
 
@@ -208,7 +209,8 @@ class IGTLinkStreamer:
         InputError: ``address`` is not ``HOST:PORT``.
 
     Use as a context manager (connects on entry, closes on exit), or call :meth:`start` and
-    :meth:`close`. Every method is safe to call whatever the state of the link, and never raises.
+    :meth:`close`; a message sent before :meth:`start` starts the link. Once constructed, every
+    method is safe to call whatever the state of the link, and never raises.
     """
 
     def __init__(self, address: str, *, timeout_s: float = 2.0) -> None:
@@ -246,9 +248,13 @@ class IGTLinkStreamer:
             except OSError as exc:
                 self._give_up(f"no OpenIGTLink server answered at {self.address} ({_why(exc)})")
                 return self
-            sock.settimeout(self.timeout_s)
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self._sock = sock
+            try:
+                sock.settimeout(self.timeout_s)
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            except OSError as exc:
+                self._give_up(f"the connection to OpenIGTLink server {self.address} failed ({_why(exc)})")
+                return self
             log.info("streaming the navigation to OpenIGTLink server %s", self.address)
             return self
 
@@ -359,18 +365,12 @@ class IGTLinkStreamer:
         return self._names[view_name]
 
     def _send_status(self, text: str) -> None:
-        import pyigtl
-
         self._send(pyigtl.StringMessage(ascii_text(text), device_name="Status"))
 
     def _send_transform(self, name: str, T_lps: np.ndarray) -> None:
-        import pyigtl
-
         self._send(pyigtl.TransformMessage(ras_from_lps_transform(T_lps), device_name=device_name(name)))
 
     def _send_image(self, name: str, image: np.ndarray, camera: Camera) -> None:
-        import pyigtl
-
         pixels = np.nan_to_num(np.asarray(image, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
         if pixels.ndim != 2:
             raise ValueError(f"view {name}: an image must be (rows, cols), got shape {pixels.shape}")

@@ -384,7 +384,8 @@ def navigation_row(run: Any, cfg: HandEyeStudyConfig) -> dict[str, Any]:
     final = "corrected" if cfg.corrections else "reposition"
     if f"{final}_tip_mm" in E:
         row["reposition_tip_mm"] = E[f"{final}_tip_mm"]
-        row["reposition_axis_deg"] = E[f"{final}_axis_deg"]
+        if f"{final}_axis_deg" in E:
+            row["reposition_axis_deg"] = E[f"{final}_axis_deg"]
     if run.result is not None:
         row.update(run.result.flat_diagnostics())
         st = run.result.stages
@@ -535,7 +536,7 @@ GROSS_FAILURE_MM = 2.0
 
 def _navigation_outcomes(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """``unflagged_gross_failures``: rows with status ok whose final true tip is more than
-    :data:`GROSS_FAILURE_MM` from the plan (CONTRACTS), with their trial numbers."""
+    :data:`GROSS_FAILURE_MM` from the plan (docs/data-formats.md, study output), with their trial numbers."""
     bad = []
     for r in rows:
         try:
@@ -636,7 +637,7 @@ def run_handeye_or_navigation_study(
     oracle_landmarks: bool = True,
     calibration_bend_deg: float | None = 2.5,
 ) -> dict[str, Any]:
-    """Entry point of ``fluoronav study hand-eye|navigation`` → the summary dict (CONTRACTS)."""
+    """Entry point of ``fluoronav study hand-eye|navigation`` → the summary dict."""
     cfg = HandEyeStudyConfig(
         workflow=workflow,
         trials=trials,

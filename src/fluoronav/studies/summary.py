@@ -57,6 +57,7 @@ def summarize(
         if vals:
             metrics[name] = _stats(vals)
     secs = [v for v in (_float(r.get("seconds")) for r in rows) if v is not None]
+
     def count(group: list[dict[str, Any]]) -> dict[str, int]:
         out: dict[str, int] = {}
         for r in group:
