@@ -15,12 +15,18 @@ from scipy.spatial.transform import Rotation
 from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.geometry.carm import carm_camera, orbit_camera
 from fluoronav.registration.bone import (
+    FEMUR_AUTHORS_PRESET,
+    FEMUR_MULTI_VIEW_PRESET,
+    FEMUR_ONE_VIEW_PRESET,
+    PELVIS_AUTHORS_PRESET,
+    PELVIS_PRESET,
     BoneLevel,
     BoneRegistrationConfig,
     BoneRegistrationResult,
     BoneView,
-    _box_downsample,
     bone_excess_mu,
+    femur_config,
+    pelvis_config,
     register_femur,
     register_pelvis,
     register_pelvis_per_view,
@@ -29,6 +35,7 @@ from fluoronav.registration.bone import (
     views_from_images,
     views_in_ct_frame,
 )
+from fluoronav.registration.bone_levels import box_downsample
 from fluoronav.registration.levels import LevelConfig
 from fluoronav.registration.trace import RegistrationTrace
 from fluoronav.rendering.ct import render_line_integrals
@@ -81,6 +88,16 @@ def _rotation_about(rotvec_deg, center):
 
 
 # ----- fast pieces ---------------------------------------------------------------------------------
+def test_presets_are_data() -> None:
+    assert pelvis_config() == PELVIS_PRESET and pelvis_config(authors=True) == PELVIS_AUTHORS_PRESET
+    assert femur_config() == FEMUR_ONE_VIEW_PRESET and femur_config(views=3) == FEMUR_MULTI_VIEW_PRESET
+    assert femur_config(authors=True, views=3) == FEMUR_AUTHORS_PRESET
+    assert pelvis_config(device="cuda").device == "cuda" and PELVIS_PRESET.device == "cpu"
+    # the one-view femur: the initial pose and a 3 x 3 grid of tilts about x and y, the best 3 kept
+    starts = FEMUR_ONE_VIEW_PRESET.starts
+    assert len(starts) == 8 and (0.0, 0.0, 0.0) not in starts and FEMUR_ONE_VIEW_PRESET.keep == 3
+
+
 def test_bone_excess_volume_is_cropped_and_label_masked(volume):
     mu, w = bone_excess_mu(volume, ["pelvis"])
     assert mu.min() >= 0.0 and mu.max() > 0.02
@@ -112,7 +129,7 @@ def test_box_downsample_keeps_the_integral_and_the_geometry():
     mu = torch.rand(9, 10, 11, dtype=torch.float64)
     w = np.diag([0.5, 0.7, 0.9, 1.0])
     w[:3, 3] = [3.0, -2.0, 1.0]
-    small, w2 = _box_downsample(mu, w, 2)
+    small, w2 = box_downsample(mu, w, 2)
     assert small.shape == (5, 5, 6)
     assert float(small.sum()) * 8 == pytest.approx(float(mu.sum()))
     # the first coarse voxel centre is the centre of the first 2×2×2 block

@@ -18,6 +18,7 @@ from fluoronav.geometry import carm_camera
 from fluoronav.geometry.rotations import euler_to_matrix
 from fluoronav.manipulator import CMKinematics
 from fluoronav.registration.centerline_init import (
+    CenterlineInitConfig,
     centerline_cost,
     centerline_initialize,
     depth_range_about,
@@ -81,8 +82,12 @@ def test_noise_free_recovers_pose() -> None:
 
 def test_refinement_lowers_cost() -> None:
     camera, _, landmarks, centerline, _ = _oblique_scene()
-    grid = centerline_initialize(camera, landmarks, centerline, CP, refine=False, n_samples=300)
-    refined = centerline_initialize(camera, landmarks, centerline, CP, refine=True, n_samples=300)
+    grid = centerline_initialize(
+        camera, landmarks, centerline, CP, config=CenterlineInitConfig(refine=False, n_samples=300)
+    )
+    refined = centerline_initialize(
+        camera, landmarks, centerline, CP, config=CenterlineInitConfig(refine=True, n_samples=300)
+    )
     assert grid.cost_px == grid.grid_cost_px
     assert refined.grid_cost_px == pytest.approx(grid.cost_px)
     assert refined.cost_px < 0.5 * grid.cost_px
@@ -184,7 +189,7 @@ def test_input_errors() -> None:
 
 def test_seeded_and_user_range() -> None:
     camera, _, landmarks, centerline, _ = _oblique_scene()
-    kw = dict(n_samples=200, refine=False, return_candidates=True)
+    kw = dict(config=CenterlineInitConfig(n_samples=200, refine=False, return_candidates=True))
     a = centerline_initialize(camera, landmarks, centerline, CP, seed=5, **kw)
     b = centerline_initialize(camera, landmarks, centerline, CP, seed=5, **kw)
     c = centerline_initialize(camera, landmarks, centerline, CP, seed=6, **kw)
@@ -208,7 +213,7 @@ def test_synthetic_scene_and_evaluation_smoke() -> None:
     )
     np.testing.assert_allclose(sc.landmarks_px, lm, atol=1e-9)
     np.testing.assert_allclose(sc.centerline_px[[0, -1]], lm, atol=1e-6)
-    out = evaluate_centerline_init(2, 0, n_samples=100, refine=False)
+    out = evaluate_centerline_init(2, 0, config=CenterlineInitConfig(n_samples=100, refine=False))
     assert set(out) >= {"depth_error_mm_mean", "theta_error_deg_mean", "seconds_per_init"}
     assert 0.0 <= out["theta_error_deg_mean"] <= 180.0
 
@@ -216,9 +221,10 @@ def test_synthetic_scene_and_evaluation_smoke() -> None:
 def test_joint_refinement_reduces_depth_error_under_noise() -> None:
     # landmarks ±3 px and FBG ±0.5°: the grid's pinned landmarks slide the depth; the 11-DoF fit
     # (landmarks and control points as priors) recovers much of it (8 scenes, seed 3: 18.8 → 12.3 mm)
-    kw = dict(fbg_noise_deg=0.5, landmark_noise_px=3.0, n_samples=400, depth_window_mm=100.0)
-    grid = evaluate_centerline_init(8, 3, joint_refine=False, **kw)
-    joint = evaluate_centerline_init(8, 3, joint_refine=True, **kw)
+    kw = dict(fbg_noise_deg=0.5, landmark_noise_px=3.0, depth_window_mm=100.0)
+    cfg = CenterlineInitConfig(n_samples=400)
+    grid = evaluate_centerline_init(8, 3, config=cfg.with_(joint_refine=False), **kw)
+    joint = evaluate_centerline_init(8, 3, config=cfg.with_(joint_refine=True), **kw)
     assert joint["depth_error_mm_mean"] < 0.75 * grid["depth_error_mm_mean"], (grid, joint)
     assert joint["cost_px_mean"] < grid["cost_px_mean"]
 
@@ -348,7 +354,7 @@ def test_shaft_width_gives_the_depth_on_a_physics_image() -> None:
     one view's centreline alone cannot tell depth from tilt (docs/registration.md)."""
     from fluoronav.manipulator.config import CMConfig
     from fluoronav.registration.case import simulate_cm_case
-    from fluoronav.registration.centerline_init import _shaft_depth_residual, measure_shaft_depth
+    from fluoronav.registration.centerline_init import measure_shaft_depth, shaft_depth_residual
 
     case = simulate_cm_case("single-view", seed=3, image_size=384, rotation_deg=5.0, translation_mm=5.0)
     view = case.views[0]
@@ -369,7 +375,7 @@ def test_shaft_width_gives_the_depth_on_a_physics_image() -> None:
     )
     assert cue is not None
     K = torch.as_tensor(view.camera.K)
-    err_mm = float(_shaft_depth_residual(cue, K, torch.as_tensor(T)[None])[0]) * cue.sigma_mm
+    err_mm = float(shaft_depth_residual(cue, K, torch.as_tensor(T)[None])[0]) * cue.sigma_mm
     assert abs(err_mm) < 15.0, err_mm
     init = centerline_initialize(
         view.camera, view.landmarks_px, centerline, case.initial_control_points_deg, image=view.image, seed=0

@@ -1,4 +1,4 @@
-"""Level presets (FACTS numbers), ROI cameras and trace serialisation."""
+"""Level presets (the authors' numbers), ROI cameras and trace serialisation."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from fluoronav.registration.trace import LevelTrace, RegistrationTrace
 
 
 def test_patch_radius_rule() -> None:
-    # FACTS: round(41 × downsampling factor) with xReg's factor = scale = 1/downsample
+    # the authors: round(41 × downsampling factor) with xReg's factor = scale = 1/downsample
     assert patch_radius_for(1) == 41
     assert patch_radius_for(4) == 10  # 10.25
     assert patch_radius_for(2) == 21  # 20.5 rounds half away from zero, as C++

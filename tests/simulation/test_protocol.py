@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.simulation.articulated import ArticulatedSimulator
 from fluoronav.simulation.physics import XrayPhysics
-from fluoronav.simulation.protocol import WORKFLOWS, sample_trial, simulate_trial_images
+from fluoronav.simulation.protocol import WORKFLOWS, ProtocolConfig, sample_trial, simulate_trial_images
 from fluoronav.simulation.xray import SimulationConfig
 
 
@@ -135,3 +135,13 @@ def test_bone_registration_errors_on_a_trial():
     assert err["pelvis_mm"] < 2.0 and err["pelvis_deg"] < 1.0
     assert err["pelvis_depth_mm"] <= err["pelvis_mm"] + 1e-9
     assert err["femur_deg"] < 3.0 and err["entry_mm"] < 3.0
+
+
+def test_image_counts_follow_the_config(volume):
+    default = ProtocolConfig()
+    assert [default.n_images(w) for w in WORKFLOWS] == [1, 1, 3, 4, 4, 1]
+    cfg = ProtocolConfig(view_offsets_deg=((20.0, 3.0),), multi_cm_poses=2)
+    assert cfg.n_images("multi-view") == 2 and cfg.n_images("hand-eye") == 2
+    rng = np.random.default_rng(0)
+    assert sample_trial("multi-view", volume, rng, config=cfg).n_images == 2
+    assert sample_trial("multi-cm", volume, rng, config=cfg).world_from_cm.shape == (2, 4, 4)

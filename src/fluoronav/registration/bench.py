@@ -14,14 +14,20 @@ from __future__ import annotations
 import logging
 import statistics
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import torch
 
+from fluoronav.detection.centerline import extract_centerline
 from fluoronav.registration.case import CMCase, simulate_cm_case
-from fluoronav.registration.cm import CMProblem, CMRegistrationConfig, cm_pose_errors
+from fluoronav.registration.centerline_single import centerline_initialize
+from fluoronav.registration.cm_config import CMRegistrationConfig
+from fluoronav.registration.cm_problem import CMProblem
+from fluoronav.registration.cm_result import cm_pose_errors
 from fluoronav.registration.levels import LevelConfig
+from fluoronav.rendering.cm import CMRenderer
 
 __all__ = ["evaluate_cm_registration", "run", "summarize"]
 
@@ -70,9 +76,8 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
 
     ``quick`` runs one repeat instead of three; the problems are the same (simulated on the CPU).
     """
-    # torch keeps its default threads, as `fluoronav register` and the demo run: with one thread
-    # (as this benchmark had it until stop 49) a registration took ~1.4x as long once an earlier
-    # stage in the process had run torch on every core
+    # torch keeps its default threads, as `fluoronav register` and the demo run: with one thread a
+    # registration took ~1.4x as long once an earlier stage in the process had run torch on every core
     size, repeats = 768, (1 if quick else 3)
     config = CMRegistrationConfig(device=device)
     out: dict[str, float] = {}
@@ -157,12 +162,7 @@ def evaluate_cm_registration(
 
 def _centerline_init(case: CMCase) -> CMCase:
     """Replace the initial pose by the centreline initialisation of the first view (true mask)."""
-    from dataclasses import replace
-
-    from fluoronav.detection.centerline import extract_centerline
-    from fluoronav.registration.centerline_init import centerline_initialize
-    from fluoronav.rendering.cm import CMRenderer
-    from fluoronav.simulation.xray import envelope_config
+    from fluoronav.simulation.xray import envelope_config  # the physics simulator: heavy to import
 
     v = case.views[0]
     assert case.world_from_cm_true is not None and v.landmarks_px is not None

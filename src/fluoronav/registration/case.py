@@ -1,8 +1,9 @@
 """CM registration cases: simulated test cases (physics simulator) and case files for ``fluoronav register``.
 
-Simulated cases (:func:`simulate_cm_case`) follow the authors' simulation protocol (FACTS.md) with
-AP-ish views: LAO/RAO U(−10°, 10°), CRAN/CAUD U(80°, 100°), source-to-isocentre 450 mm, control
-points U(−5°, 5°), the CM in the femur towards the femoral head. The images come from
+Simulated cases (:func:`simulate_cm_case`) follow the authors' simulation protocol (Gao et al., IEEE
+TBME 69(1), 2022, sec. III-B, and the authors' code) with AP-ish views (:class:`CMCaseProtocol`):
+LAO/RAO U(−10°, 10°), CRAN/CAUD U(80°, 100°), source-to-isocentre 450 mm, control points U(−5°, 5°),
+the CM in the femur towards the femoral head. The images come from
 :class:`~fluoronav.simulation.xray.XraySimulator` (voxelised nitinol CM over the CT, polychromatic
 physics), never from the analytic CM renderer used by the registration. The initial pose is the
 truth perturbed in the CM base frame (rotation U(−r, r) about a random axis, translation U(−t, t)
@@ -28,11 +29,17 @@ from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import InputError, read_json_object
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.carm import orbit_camera
-from fluoronav.registration.cm import CMRegistrationConfig, CMView
+from fluoronav.geometry.dicom import camera_from_dicom
+from fluoronav.registration.background import CTBackground
+from fluoronav.registration.centerline_single import centerline_initialize
+from fluoronav.registration.cm_config import CM_COARSE_LEVEL, CMRegistrationConfig, default_cm_levels
+from fluoronav.registration.cm_roll_scan import roll_scan_initialization
+from fluoronav.registration.cm_views import CMView
 
 __all__ = [
     "WORKFLOWS",
     "CMCase",
+    "CMCaseProtocol",
     "load_case",
     "perturb_pose",
     "simulate_cm_case",
@@ -72,6 +79,42 @@ class CMCase:
 
 
 # ----- simulation -----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CMCaseProtocol:
+    """The distributions of :func:`simulate_cm_case` (the authors' protocol; see the module docstring).
+
+    Attributes:
+        control_point_range_deg: true control points U(range).
+        source_to_isocenter_mm, lao_rao_deg, cran_caud_deg: C-arm pose U(range) each.
+        energy_bin_keV: spectrum bin width of the polychromatic simulation.
+        view_orbits_deg: multi-view: each further view orbited by mean + U(−h, h) degrees, (mean, h).
+        n_cm_poses: multiple-CM: CM poses (images) in the AP view.
+        multi_cm_rotation_deg, multi_cm_translation_mm: multiple-CM: each further pose is the first
+            perturbed in its own frame by these (rotation U(−r, r), translation U(−t, t) per axis).
+        robot_base_rotation_deg, robot_base_translation_mm: multiple-CM: the robot base frame is the
+            world perturbed by these.
+        rotation_deg, translation_mm: initial pose = truth perturbed in the CM base frame by these.
+        control_point_noise_deg: initial control points = truth + U(−x, x).
+        landmark_noise_full_px: landmarks = truth + U(−x, x) full-detector pixels.
+    """
+
+    control_point_range_deg: tuple[float, float] = (-5.0, 5.0)
+    source_to_isocenter_mm: tuple[float, float] = (450.0, 450.0)
+    lao_rao_deg: tuple[float, float] = (-10.0, 10.0)
+    cran_caud_deg: tuple[float, float] = (80.0, 100.0)
+    energy_bin_keV: float = 3.0  # noqa: N815 (unit suffix)
+    view_orbits_deg: tuple[tuple[float, float], ...] = ((20.0, 3.0), (-15.0, 3.0))
+    n_cm_poses: int = 4
+    multi_cm_rotation_deg: float = 30.0
+    multi_cm_translation_mm: float = 10.0
+    robot_base_rotation_deg: float = 180.0
+    robot_base_translation_mm: float = 500.0
+    rotation_deg: float = 10.0
+    translation_mm: float = 10.0
+    control_point_noise_deg: float = 0.5
+    landmark_noise_full_px: float = 3.0
+
+
 def _rotvec_matrix(v: np.ndarray) -> np.ndarray:
     th = float(np.linalg.norm(v))
     if th < 1e-15:
@@ -99,7 +142,7 @@ _VOLUMES: dict[tuple[int, float], Volume] = {}
 
 def default_volume(seed: int = 0, spacing_mm: float = 2.0) -> Volume:
     """The hip phantom (cached per process; 2 mm voxels keep simulation fast)."""
-    from fluoronav.anatomy.phantom import hip_phantom
+    from fluoronav.anatomy.phantom import hip_phantom  # heavy import, needed only without a CT
 
     key = (seed, spacing_mm)
     if key not in _VOLUMES:
@@ -114,11 +157,12 @@ def simulate_cm_case(
     volume: Volume | None = None,
     image_size: int = 768,
     photons_per_pixel: float | None = 5000.0,
-    rotation_deg: float = 10.0,
-    translation_mm: float = 10.0,
-    control_point_noise_deg: float = 0.5,
-    landmark_noise_full_px: float = 3.0,
-    n_cm_poses: int = 4,
+    protocol: CMCaseProtocol | None = None,
+    rotation_deg: float | None = None,
+    translation_mm: float | None = None,
+    control_point_noise_deg: float | None = None,
+    landmark_noise_full_px: float | None = None,
+    n_cm_poses: int | None = None,
     background: bool = False,
     config: CMRegistrationConfig | None = None,
     device: str = "cpu",
@@ -127,37 +171,47 @@ def simulate_cm_case(
 
     Args:
         workflow: "single-view" (one AP-ish view), "multi-view" (the AP view plus views orbited by
-            +20 ± 3° and −15 ± 3°) or "multi-cm" (``n_cm_poses`` CM poses in the AP view, the first
-            as sampled and the others ±10 mm, ±30° about random axes; the robot base frame is a
-            random rigid transform of the world).
+            ``protocol.view_orbits_deg``: +20 ± 3° and −15 ± 3°) or "multi-cm" (``n_cm_poses`` CM
+            poses in the AP view, the first as sampled and the others ±10 mm, ±30° about random axes;
+            the robot base frame is a random rigid transform of the world).
         seed: everything random derives from it.
         volume: CT in HU (default: the hip phantom at 2 mm).
         image_size: stored image side; the 1536² CIOS detector is binned to it (768 → binning 2).
         photons_per_pixel: Poisson noise level (None: noise-free).
-        rotation_deg, translation_mm: initial pose perturbation (CM base frame).
-        control_point_noise_deg: initial control points = truth + U(−x, x).
-        landmark_noise_full_px: landmarks = truth + U(−x, x) full-detector pixels.
+        protocol: the distributions (default :class:`CMCaseProtocol`).
+        rotation_deg, translation_mm: initial pose perturbation (CM base frame); None: the protocol's.
+        control_point_noise_deg: initial control points = truth + U(−x, x); None: the protocol's.
+        landmark_noise_full_px: landmarks = truth + U(−x, x) full-detector pixels; None: the
+            protocol's.
+        n_cm_poses: multiple-CM poses; None: the protocol's.
         background: attach the anatomy DRR at the true CT pose to each view (the bone registration
             result in the study).
         config: registration settings stored in the case.
         device: simulation device.
     """
+    # the physics simulator is heavy to import (numba kernels, xraylib) and needed only here
     from fluoronav.simulation.physics import XrayPhysics
     from fluoronav.simulation.scene import Scene, SceneSampling, sample_scene
     from fluoronav.simulation.xray import SimulationConfig, XraySimulator
 
     if workflow not in WORKFLOWS:
         raise ValueError(f"unknown workflow {workflow!r}; use one of {WORKFLOWS}")
+    pc = protocol or CMCaseProtocol()
+    rotation_deg = pc.rotation_deg if rotation_deg is None else rotation_deg
+    translation_mm = pc.translation_mm if translation_mm is None else translation_mm
+    cp_noise = pc.control_point_noise_deg if control_point_noise_deg is None else control_point_noise_deg
+    lm_noise = pc.landmark_noise_full_px if landmark_noise_full_px is None else landmark_noise_full_px
+    n_poses = pc.n_cm_poses if n_cm_poses is None else n_cm_poses
     rng = np.random.default_rng(seed)
     vol = volume if volume is not None else default_volume()
     sampling = SceneSampling(
-        control_point_range_deg=(-5.0, 5.0),
-        source_to_isocenter_mm=(450.0, 450.0),
-        lao_rao_deg=(-10.0, 10.0),
-        cran_caud_deg=(80.0, 100.0),
+        control_point_range_deg=pc.control_point_range_deg,
+        source_to_isocenter_mm=pc.source_to_isocenter_mm,
+        lao_rao_deg=pc.lao_rao_deg,
+        cran_caud_deg=pc.cran_caud_deg,
     )
     scene = sample_scene(vol, rng, sampling=sampling)
-    physics = XrayPhysics(energy_bin_keV=3.0, photons_per_pixel=photons_per_pixel)
+    physics = XrayPhysics(energy_bin_keV=pc.energy_bin_keV, photons_per_pixel=photons_per_pixel)
     sim = XraySimulator(vol, config=SimulationConfig(physics=physics, image_size=image_size), device=device)
     binning = max(1, round(scene.camera.cols / image_size))
     # isocentre of the C-arm: the point on the central ray nearest the CM base
@@ -170,7 +224,7 @@ def simulate_cm_case(
     scenes: list[Scene] = [scene]
     base_from_cm = None
     if workflow == "multi-view":
-        for a in (20.0 + rng.uniform(-3, 3), -15.0 + rng.uniform(-3, 3)):
+        for a in tuple(mean + rng.uniform(-h, h) for mean, h in pc.view_orbits_deg):
             cam = orbit_camera(scene.camera, angle_deg=a, isocenter_world=iso)
             scenes.append(
                 Scene(
@@ -183,8 +237,13 @@ def simulate_cm_case(
                 )
             )
     elif workflow == "multi-cm":
-        for _ in range(n_cm_poses - 1):
-            T = perturb_pose(scene.world_from_cm, rng, rotation_deg=30.0, translation_mm=10.0)
+        for _ in range(n_poses - 1):
+            T = perturb_pose(
+                scene.world_from_cm,
+                rng,
+                rotation_deg=pc.multi_cm_rotation_deg,
+                translation_mm=pc.multi_cm_translation_mm,
+            )
             scenes.append(
                 Scene(
                     scene.camera,
@@ -195,19 +254,22 @@ def simulate_cm_case(
                     cm_config=scene.cm_config,
                 )
             )
-        world_from_base = perturb_pose(np.eye(4), rng, rotation_deg=180.0, translation_mm=500.0)
+        world_from_base = perturb_pose(
+            np.eye(4),
+            rng,
+            rotation_deg=pc.robot_base_rotation_deg,
+            translation_mm=pc.robot_base_translation_mm,
+        )
         base_from_cm = np.stack([np.linalg.inv(world_from_base) @ s.world_from_cm for s in scenes])
 
     bg_renderer = None
     if background:
-        from fluoronav.registration.background import CTBackground
-
         bg_renderer = CTBackground(vol, device=device)
     views = []
     for k, s in enumerate(scenes):
         im = sim.simulate(s, seed=seed * 100 + k)
         assert im.landmarks_px is not None
-        lm = im.landmarks_px + rng.uniform(-landmark_noise_full_px, landmark_noise_full_px, (2, 2)) / binning
+        lm = im.landmarks_px + rng.uniform(-lm_noise, lm_noise, (2, 2)) / binning
         views.append(
             CMView(
                 image=im.image,
@@ -225,8 +287,7 @@ def simulate_cm_case(
         initial_world_from_cm=perturb_pose(
             scene.world_from_cm, rng, rotation_deg=rotation_deg, translation_mm=translation_mm
         ),
-        initial_control_points_deg=cp_true
-        + rng.uniform(-control_point_noise_deg, control_point_noise_deg, 5),
+        initial_control_points_deg=cp_true + rng.uniform(-cp_noise, cp_noise, 5),
         base_from_cm=base_from_cm,
         world_from_cm_true=np.stack(
             [s.world_from_cm for s in (scenes if workflow == "multi-cm" else scenes[:1])]
@@ -248,8 +309,6 @@ def _matrix(value: Any, shape: tuple[int, ...], what: str, source: str) -> np.nd
 
 
 def _config_from(d: Any, source: str) -> CMRegistrationConfig:
-    from fluoronav.registration.cm import default_cm_levels
-
     if d is None:
         return CMRegistrationConfig()
     if not isinstance(d, dict):
@@ -266,13 +325,15 @@ def _config_from(d: Any, source: str) -> CMRegistrationConfig:
     if unknown:
         raise InputError(source, f"unknown config keys {sorted(unknown)}; known: {sorted(known)}")
     try:
-        levels = default_cm_levels(popsize=int(d.get("popsize", 50)), refine=bool(d.get("refine", True)))
-        sigma = d.get("landmark_sigma_full_px", 100.0)
+        levels = default_cm_levels(
+            popsize=int(d.get("popsize", CM_COARSE_LEVEL.popsize)), refine=bool(d.get("refine", True))
+        )
+        sigma = d.get("landmark_sigma_full_px", CMRegistrationConfig.landmark_sigma_full_px)
         return CMRegistrationConfig(
             levels=levels,
-            roi_size_full_px=int(d.get("roi_size_full_px", 500)),
+            roi_size_full_px=int(d.get("roi_size_full_px", CMRegistrationConfig.roi_size_full_px)),
             landmark_sigma_full_px=None if sigma is None else float(sigma),
-            use_background=bool(d.get("use_background", True)),
+            use_background=bool(d.get("use_background", CMRegistrationConfig.use_background)),
             cm_mu_per_mm=float(d.get("cm_mu_per_mm", CMRegistrationConfig.cm_mu_per_mm)),
         )
     except (TypeError, ValueError) as exc:
@@ -280,7 +341,7 @@ def _config_from(d: Any, source: str) -> CMRegistrationConfig:
 
 
 def _detect_landmarks(image: np.ndarray, source: str, pixel_spacing_mm: float | None = None) -> np.ndarray:
-    try:
+    try:  # the detector (a trained network) is heavy and optional
         from fluoronav.detection.detector import Detector
     except ImportError:
         raise InputError(source, "no landmarks given and no detector available; add 'landmarks_px'") from None
@@ -302,7 +363,7 @@ def load_case(path: str | Path) -> CMCase:
     Raises:
         InputError: naming the file, for any malformed or missing entry.
     """
-    from fluoronav.detection.detector import load_image
+    from fluoronav.detection.detector import load_image  # heavy (the detector's network stack)
 
     p = Path(path)
     src = str(p)
@@ -329,8 +390,6 @@ def load_case(path: str | Path) -> CMCase:
         if isinstance(cam_entry, dict):
             camera = Camera.from_dict(cam_entry, source=f"{src} views[{k}].camera")
         elif cam_entry == "dicom":  # the geometry tags of the (DICOM) image itself
-            from fluoronav.geometry.dicom import camera_from_dicom
-
             camera = camera_from_dicom(root / v["image"])
         else:
             camera = Camera.load(root / str(cam_entry))
@@ -418,9 +477,6 @@ def _centerline_initial_pose(view: CMView, entry: dict[str, Any], cp0: np.ndarra
     cl = np.asarray(entry["centerline_px"], dtype=np.float64)
     if cl.ndim != 2 or cl.shape[1] != 2 or len(cl) < 2 or not np.all(np.isfinite(cl)):
         raise InputError(src, "views[0].centerline_px must be a (P >= 2, 2) array")
-    from fluoronav.registration.centerline_init import centerline_initialize
-    from fluoronav.registration.cm import roll_scan_initialization
-
     assert view.landmarks_px is not None
     init = centerline_initialize(view.camera, view.landmarks_px, cl, cp0, image=view.image)
     # the roll about the chord, which the centreline leaves open, from the image (as the studies)

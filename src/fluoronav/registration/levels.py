@@ -1,8 +1,9 @@
-"""Per-level registration settings and the authors' presets (FACTS.md).
+"""Per-level registration settings and the authors' presets (Gao et al., IEEE TBME 69(1), 2022, and
+the authors' code).
 
 Resolution convention: ``downsample`` is the integer binning factor of the working image (4 means a
 quarter of the rows and columns). xReg's "downsampling factor" is the *scale* ``1 / downsample``
-(0.25 for 4×), so FACTS' "patch radius = round(41 × downsampling factor)" becomes
+(0.25 for 4×), so the authors' "patch radius = round(41 × downsampling factor)" becomes
 ``round(41 / downsample)`` here: 41 px at full resolution, 10 px at 4× (41 × 0.25 = 10.25). Rounding
 is half away from zero, as C++ ``std::round`` (Python's ``round`` would give 20 for 20.5).
 Likewise "landmark σ = 100 px × downsampling factor" is ``100 / downsample`` px at the working
@@ -120,7 +121,7 @@ def cm_levels(*, downsample: int = 4, popsize: int = 50) -> list[LevelConfig]:
 def pelvis_levels(*, popsize: int = 50) -> list[LevelConfig]:
     """Pelvis: coarse level with the authors' σ (30°×3, 50/50/100 mm), then a finer level.
 
-    FACTS gives only "then a finer level"; the coarse level at 8× and the fine one at 4× with σ
+    The paper gives only "then a finer level"; the coarse level at 8× and the fine one at 4× with σ
     divided by 10 are our choice.
     """
     coarse = LevelConfig(sigma=PELVIS_SIGMA, downsample=8, stride=1, popsize=popsize, name="pelvis-coarse")

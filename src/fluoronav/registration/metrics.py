@@ -1,7 +1,7 @@
 """Error metrics of the paper's simulation study (§III-B), in one place.
 
 All positions are compared in the C-arm frame of the (first) view; distances do not depend on that
-choice. Names follow CONTRACTS.md: ``tip_mm``, ``entry_mm``, ``relative_mm``,
+choice. Names follow the study tables: ``tip_mm``, ``entry_mm``, ``relative_mm``,
 ``base_translation_mm``, ``base_rotation_deg``, ``notch_rotation_deg`` (+ ``depth_mm``,
 ``theta_deg`` for the centreline initialisation).
 """
@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
@@ -25,8 +26,6 @@ def _rotation_angle_deg(R: np.ndarray) -> float:
 
 
 def _rotvec_deg(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     return np.degrees(Rotation.from_matrix(R).as_rotvec())
 
 

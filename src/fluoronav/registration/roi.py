@@ -1,9 +1,9 @@
 """Region of interest for CM registration: crop around the two landmarks, then bin.
 
 The authors crop the image to 500 × 500 pixels around the two detected CM landmarks and downsample
-it 4× (FACTS.md). The crop is centred on the landmarks' midpoint. The ROI camera comes from
-``Camera.crop_around`` then ``Camera.downsample``, so a world point projects through the ROI camera
-exactly where its full-image projection lands after the same crop and binning
+it 4× (Gao et al., IEEE TBME 69(1), 2022; the authors' code). The crop is centred on the landmarks'
+midpoint. The ROI camera comes from ``Camera.crop_around`` then ``Camera.downsample``, so a world point
+projects through the ROI camera exactly where its full-image projection lands after the same crop and binning
 (``u_roi = (u − col0 − (f − 1)/2) / f``).
 """
 

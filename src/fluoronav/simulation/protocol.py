@@ -1,4 +1,4 @@
-"""The paper's simulation protocol (Gao et al. 2022 §III-B, and the authors' simulation code).
+"""The paper's simulation protocol (Gao et al., IEEE TBME 69(1), 2022, §III-B, and the authors' code).
 
 One :class:`Trial` holds the ground truth of one simulated experiment and the initialisation noise
 of the authors' code. Sampling, in this order (all from the one ``rng``):
@@ -61,20 +61,35 @@ __all__ = [
 ]
 
 WORKFLOWS = ("centerline", "single-view", "multi-view", "multi-cm", "hand-eye", "navigation")
-_N_IMAGES = {
-    "centerline": 1,
-    "single-view": 1,
-    "navigation": 1,
-    "multi-view": 3,
-    "multi-cm": 4,
-    "hand-eye": 4,
-}
+#: workflows with several CM poses in one view
+_MULTI_CM = ("multi-cm", "hand-eye")
 _ANTERIOR = np.array([0.0, -1.0, 0.0])  # LPS: +y is posterior
 
 
 @dataclass(frozen=True)
 class ProtocolConfig:
-    """Ranges of the protocol (defaults: the paper and the authors' code; see the module docstring)."""
+    """Ranges of the protocol (defaults: the paper and the authors' code; see the module docstring).
+
+    Attributes:
+        pelvis_translation_mm, pelvis_rotation_deg: 1. pelvis motion, U(0, t) mm and U(−r, r)°.
+        femur_rotation_deg: 2. femur rotation about the head, U(−r, r)°.
+        control_point_range_deg: 3. control points U(range).
+        source_to_isocenter_mm: 4. C-arm source-to-isocentre U(range).
+        angle_jitter_deg: 4. LAO/RAO U(±j)° and CRAN/CAUD ``cran_caud_deg`` + U(±j)°.
+        cran_caud_deg: 4. nominal CRAN/CAUD of the AP view.
+        isocenter_jitter_mm: 4. isocentre = femoral head + U(±j) mm per axis.
+        view_offsets_deg: 4. multi-view: the further views' orbit angles N(mean, σ)°, (mean, σ) each.
+        cm_anterior_mm, cm_setback_mm: 5. nominal CM base origin relative to the femoral head.
+        cm_translation_mm, cm_rotation_deg: 5. CM base perturbation.
+        multi_cm_poses, multi_cm_translation_mm, multi_cm_rotation_deg: 6. multiple-CM / hand-eye poses.
+        init_ct_rotation_deg, init_ct_translation_mm: 7. initial CT pose error (exact sizes).
+        init_cm_rotation_deg, init_cm_translation_mm: 7. initial CM base error (exact sizes).
+        fbg_noise_deg: 7. FBG control points = truth + U(±x)°.
+        landmark_noise_px: 7. oracle landmarks = truth + U(±x) full-detector pixels.
+        margin_px: 5. landmarks and tip at least this far inside every detector edge.
+        max_redraws: 5. CM poses drawn at most this often to get one in view.
+        detector: the C-arm detector.
+    """
 
     pelvis_translation_mm: float = 10.0
     pelvis_rotation_deg: float = 10.0
@@ -82,6 +97,7 @@ class ProtocolConfig:
     control_point_range_deg: tuple[float, float] = (-5.0, 5.0)
     source_to_isocenter_mm: tuple[float, float] = (400.0, 500.0)
     angle_jitter_deg: float = 5.0
+    cran_caud_deg: float = 90.0
     isocenter_jitter_mm: float = 15.0
     view_offsets_deg: tuple[tuple[float, float], ...] = ((20.0, 3.0), (-15.0, 3.0))
     cm_anterior_mm: tuple[float, float] = (20.0, 40.0)
@@ -100,6 +116,15 @@ class ProtocolConfig:
     margin_px: float = 100.0
     max_redraws: int = 200
     detector: DetectorSpec = CIOS_FUSION
+
+    def n_images(self, workflow: str) -> int:
+        """Images of a trial of ``workflow``: the AP view and the orbited views (multi-view), one per
+        CM pose (multiple-CM, hand-eye), else one."""
+        if workflow == "multi-view":
+            return 1 + len(self.view_offsets_deg)
+        if workflow in _MULTI_CM:
+            return self.multi_cm_poses
+        return 1
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,7 +295,7 @@ def sample_trial(
     j = cfg.angle_jitter_deg
     ap = carm_camera(
         lao_rao_deg=rng.uniform(-j, j),
-        cran_caud_deg=90.0 + rng.uniform(-j, j),
+        cran_caud_deg=cfg.cran_caud_deg + rng.uniform(-j, j),
         source_to_isocenter_mm=rng.uniform(*cfg.source_to_isocenter_mm),
         isocenter_world=iso,
         detector=cfg.detector,
@@ -280,8 +305,8 @@ def sample_trial(
         views += [
             orbit_camera(ap, angle_deg=rng.normal(m, s), isocenter_world=iso) for m, s in cfg.view_offsets_deg
         ]
-    n = _N_IMAGES[workflow]
-    multi_cm = workflow in ("multi-cm", "hand-eye")
+    n = cfg.n_images(workflow)
+    multi_cm = workflow in _MULTI_CM
 
     # 5-6. CM poses, redrawn until in view. Nominal axis: the femoral neck direction (entry → head)
     # in the patient's coronal plane, so that the AP view sees the CM side-on
