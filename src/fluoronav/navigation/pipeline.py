@@ -286,7 +286,10 @@ def _register(
     with stage(f"{prefix}cm") as rec:
         init: MultiViewInitResult | None = None
         lm_views: list[np.ndarray | None] = [None if d is None else d.landmarks_px for d in detections]
-        if initial_ct_from_cm is None:
+        if len(seen) >= 2:
+            # landmarks triangulated over the views; one that disagrees with the others (a
+            # detection of A where the CM leaves the image, say) gives way to the consensus, in the
+            # registration's ROI and landmark prior as in its start
             init = centerline_initialize_multiview(
                 [cams_ct[k] for k in seen],
                 np.stack([detections[k].landmarks_px for k in seen]),  # type: ignore[union-attr]
@@ -295,11 +298,13 @@ def _register(
                 config=case.cm_config,
                 landmark_confidence=np.stack([detections[k].confidence for k in seen]),  # type: ignore[union-attr]
             )
-            # landmarks that disagreed with the other views: the triangulated consensus instead
             for i, k in enumerate(seen):
                 lm_views[k] = init.landmarks_px[i]
-            tries = [multiview_start_poses(init, max_starts=config.max_cm_starts)]
             rec.diagnostics["init_cost_px"] = float(init.cost_px)
+            rec.diagnostics["landmarks_replaced"] = int((~np.asarray(init.landmark_inliers)).sum())
+        if initial_ct_from_cm is None:
+            assert init is not None  # detection needs two views for the first registration
+            tries = [multiview_start_poses(init, max_starts=config.max_cm_starts)]
         else:
             tries = [[initial_ct_from_cm(femur.world_from_bone)]]
         if recovery_ct_from_cm is not None:  # a second start, tried only where the first fails
