@@ -9,13 +9,34 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 from scipy import ndimage
 
-from fluoronav.detection.model import DetectorConfig
+from fluoronav.detection.config import STAGE_ORDER, DetectorConfig
 from fluoronav.detection.train import TrainConfig, train
+
+
+def with_settings(config: DetectorConfig, *, add: tuple[str, ...] = (), **updates: Any) -> DetectorConfig:
+    """``config`` with stages ``add`` listed and its settings updated: each keyword a top-level
+    setting, dicts merged into the settings there (``fine={"passes": {"tta": 2}}``)."""
+
+    def merge(old: Any, new: Any) -> Any:
+        if isinstance(old, dict) and isinstance(new, dict):
+            return {**old, **{k: merge(old.get(k), v) for k, v in new.items()}}
+        return new
+
+    data = merge(config.to_dict(), updates)
+    data["stages"] = [s for s in STAGE_ORDER if s in data["stages"] or s in add]
+    return DetectorConfig.model_validate(data)
+
+
+def tiny_config(size: int = 32, **updates: Any) -> DetectorConfig:
+    """A small model's configuration: coarse and fine U-Nets of channels (4, 8, 16) at ``size``²."""
+    view = {"network": {"channels": (4, 8, 16)}, "sampler": {"size": size}}
+    return with_settings(with_settings(DetectorConfig(), coarse=view, fine=view), **updates)
 
 
 def arc_polar(shape: tuple[int, int], centre: np.ndarray, mid_angle: float) -> tuple[np.ndarray, np.ndarray]:

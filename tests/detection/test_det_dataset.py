@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from det_synthetic import write_dataset
+from det_synthetic import with_settings, write_dataset
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -19,6 +19,7 @@ from fluoronav.detection.augment import (
     lower_dose,
     view_affine,
 )
+from fluoronav.detection.config import DetectorConfig
 from fluoronav.detection.dataset import (
     CMDetectionDataset,
     Sample,
@@ -32,11 +33,14 @@ from fluoronav.detection.dataset import (
     read_manifest,
     split_of,
 )
-from fluoronav.detection.model import DetectorConfig
 from fluoronav.detection.views import View, full_view
 from fluoronav.errors import InputError
 
-CFG = DetectorConfig(input_size=64, roi_size=48, channels=(4, 8, 16), roi_channels=(4, 8, 16))
+CFG = with_settings(
+    DetectorConfig(),
+    coarse={"network": {"channels": (4, 8, 16)}, "sampler": {"size": 64}},
+    fine={"network": {"channels": (4, 8, 16)}, "sampler": {"size": 48}},
+)
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +106,7 @@ def test_augmented_landmarks_stay_on_their_ends(data_dir: Path) -> None:
     view = full_view(img.shape, 96)
     aug = AugmentConfig(noise_std=0.0, p_blur=0.0, gamma=(1.0, 1.0), contrast=(1.0, 1.0), brightness=0.0)
     for seed in range(8):
-        image, mask, lm = make_view(s, view, CFG, rng=np.random.default_rng(seed), augment=aug)
+        image, mask, lm = make_view(s, view, CFG.fine.sampler, rng=np.random.default_rng(seed), augment=aug)
         for k in range(2):
             assert _near_mask(mask, lm[k], 1.5) > 0.5
         # the bright dot (A) is where landmark A went, not B
@@ -195,17 +199,18 @@ def test_lower_dose_matches_a_poisson_image_taken_at_that_dose(dose_fraction: fl
 
 def test_low_dose_augmentation_needs_the_data_sets_photon_count(data_dir: Path, tmp_path: Path) -> None:
     s = load_sample(data_dir, next(r for r in read_manifest(data_dir) if r.get("landmarks_px")))
-    view = full_view(s.image.shape, CFG.input_size)
+    view = full_view(s.image.shape, CFG.coarse.sampler.size)
     # every other augmentation off: the view differs from the plain one only by the added noise
     only_dose = AugmentConfig(
         p_flip=0.0, p_rot90=0.0, max_angle_deg=0.0, gamma=(1.0, 1.0), contrast=(1.0, 1.0),
         brightness=0.0, noise_std=0.0, p_blur=0.0, p_low_dose=1.0, min_dose_fraction=0.05,
     )  # fmt: skip
-    plain = make_view(s, view, CFG)[0]
-    same = make_view(s, view, CFG, rng=np.random.default_rng(0), augment=only_dose)[0]
-    noisy = make_view(s, view, CFG, rng=np.random.default_rng(0), augment=only_dose, photons_per_pixel=100.0)[
-        0
-    ]
+    sampler = CFG.coarse.sampler
+    plain = make_view(s, view, sampler)[0]
+    same = make_view(s, view, sampler, rng=np.random.default_rng(0), augment=only_dose)[0]
+    noisy = make_view(
+        s, view, sampler, rng=np.random.default_rng(0), augment=only_dose, photons_per_pixel=100.0
+    )[0]
     np.testing.assert_allclose(same, plain, atol=1e-6)  # no photon count: no dose augmentation
     assert np.abs(noisy - plain).mean() > 0.01
     assert photons_per_pixel_of(data_dir) is None

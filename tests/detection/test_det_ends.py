@@ -1,4 +1,5 @@
-"""Mask-end stage: training patches and their labels, pasting a patch mask back, detector use, training."""
+"""Patch-mask stages (mask ends, tube mask, shaft): training patches and their labels, pasting a patch
+mask back, detector use, training."""
 
 from __future__ import annotations
 
@@ -9,24 +10,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from det_synthetic import first_tiny_model
+from det_synthetic import first_tiny_model, tiny_config, with_settings
 from torch import nn
 
+from fluoronav.detection.config import DetectorConfig
 from fluoronav.detection.dataset import EndsDataset
-from fluoronav.detection.detector import Detector, cm_start_index
-from fluoronav.detection.ends import (
-    EndJitter,
-    end_zone_paste,
-    patch_grid_px,
-    sample_patches,
-    training_end_patch,
-    training_tube_patch,
-    tube_frames,
-    tube_paste,
-)
-from fluoronav.detection.model import DetectorConfig, DetectorNet
-from fluoronav.detection.refine import RefinePatch
+from fluoronav.detection.decoder import cm_start_index, end_zone_paste, tube_paste
+from fluoronav.detection.detector import Detector
+from fluoronav.detection.model import DetectorNet
+from fluoronav.detection.patches import RefinePatch, patch_grid_px, sample_patches, tube_frames
 from fluoronav.detection.train import TrainConfig, sidecar_path, train
+from fluoronav.detection.training_patches import EndJitter, training_end_patch, training_tube_patch
 
 NO_JITTER = EndJitter(along_sigma_px=0.0, across_sigma_px=0.0, angle_sigma_deg=0.0, p_mirror=0.0)
 
@@ -111,14 +105,13 @@ class _ShapeOracle(nn.Module):
         return x - x.mean(dim=(-2, -1), keepdim=True) + 1e-3
 
 
-ENDS_CFG = DetectorConfig(
-    input_size=32,
-    roi_size=32,
-    channels=(4, 8),
-    roi_channels=(4, 8),
-    ends_channels=(4, 8),
-    ends_shape=(40, 48),
-    ends_inner_px=6.0,
+_VIEW = {"network": {"channels": (4, 8)}, "sampler": {"size": 32}}
+ENDS_CFG = with_settings(
+    DetectorConfig(),
+    add=("ends",),
+    coarse=_VIEW,
+    fine=_VIEW,
+    ends={"network": {"channels": (4, 8)}, "sampler": {"shape": (40, 48)}, "inner_px": 6.0},
 )
 
 
@@ -133,28 +126,29 @@ def test_detector_redraws_the_mask_ends_from_the_patches() -> None:
     net = DetectorNet(ENDS_CFG)
     net.ends = _ShapeOracle()
     det = Detector(net, device="cpu")
-    out = det.mask_ends(image, np.stack([a, b]), rough, pixel_spacing_mm=0.291)  # 1 input px per patch px
+    assert det.ends is not None
+    out = det.ends(image, np.stack([a, b]), rough, pixel_spacing_mm=0.291)  # 1 input px per patch px
     # the zone at A: u ≤ 40.5 + 6; at B: u ≥ 149.5 − 6 (ends_inner_px 6 inside each landmark)
     np.testing.assert_array_equal(out[:, :47], mask[:, :47])  # A's end is the true one again
     np.testing.assert_array_equal(out[:, 144:], mask[:, 144:])  # the tube ends at u = 149 again
     np.testing.assert_array_equal(out[:, 47:144], rough[:, 47:144])  # between the zones: the fine mask
     assert (out[:, :47] != rough[:, :47]).any() and (out[:, 144:] != rough[:, 144:]).any()
-    # without the stage the mask is returned as it is
-    plain = Detector(DetectorNet(dataclasses.replace(ENDS_CFG, ends_channels=())), device="cpu")
-    assert plain.net.ends is None
-    assert plain.mask_ends(image, np.stack([a, b]), rough) is rough
+    # a model without the stage: no such network, and its last steps leave the fine mask's ends
+    plain = Detector(DetectorNet(tiny_config()), device="cpu")
+    assert plain.net.ends is None and plain.ends is None
+    assert plain.finish(image, rough, np.stack([a, b])).mask is rough
 
 
 def test_ends_settings_are_validated_and_round_trip() -> None:
-    cfg = dataclasses.replace(ENDS_CFG, ends_shape=(40, 48), ends_inner_px=2.5)
+    cfg = with_settings(ENDS_CFG, ends={"sampler": {"shape": (40, 48)}, "inner_px": 2.5})
     assert DetectorConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
-    with pytest.raises(ValueError, match="ends_shape"):
-        dataclasses.replace(ENDS_CFG, ends_shape=(41, 48))
-    with pytest.raises(ValueError, match="ends_inner_px"):
-        dataclasses.replace(ENDS_CFG, ends_inner_px=30.0)
+    with pytest.raises(ValueError, match="shape"):
+        with_settings(ENDS_CFG, ends={"sampler": {"shape": (41, 48)}})
+    with pytest.raises(ValueError, match="inner_px"):
+        with_settings(ENDS_CFG, ends={"inner_px": 30.0})
 
 
-TINY = DetectorConfig(input_size=32, roi_size=32, channels=(4, 8, 16), roi_channels=(4, 8, 16))
+TINY = tiny_config()
 
 
 def test_training_the_ends_stage_adds_it_and_leaves_the_others(tmp_path: Path) -> None:
@@ -169,13 +163,18 @@ def test_training_the_ends_stage_adds_it_and_leaves_the_others(tmp_path: Path) -
     )
     assert 0.0 <= m["val_end_error"] <= 1.0 and np.isfinite(m["val_loss"])
     det = Detector.load(out, device="cpu")
-    assert det.net.ends is not None and det.config.ends_channels == (16, 32, 64, 128)
+    assert det.net.ends is not None and det.config.ends is not None
+    assert det.config.ends.network.channels == (16, 32, 64, 128) and det.config.stages == (
+        "coarse",
+        "fine",
+        "ends",
+    )
     w1 = torch.load(out, weights_only=True)["state_dict"]
     assert all(torch.equal(w0[k], w1[k]) for k in w0)  # coarse and fine untouched
     assert any(k.startswith("ends.") for k in w1)
     assert json.loads(sidecar_path(out).read_text())["train"]["augmentation"]["along_sigma_px"] == 1.0
     # items: both landmarks' patches with their masks; none on negatives
-    ds = EndsDataset(data, config=det.config, split="all", repeats=2, seed=0)
+    ds = EndsDataset(data, config=det.config, split="all", repeats=2, seed=0, stage="ends")
     assert len(ds) == 2 * 8
     valid = np.stack([ds[i]["ends_valid"].numpy() for i in range(len(ds))])
     assert (valid == 1).any() and (valid == 0).all(axis=1).any()
@@ -196,9 +195,9 @@ def test_training_the_ends_stage_adds_it_and_leaves_the_others(tmp_path: Path) -
     )
     assert 0.0 <= m["val_end_error"] <= 1.0
     det = Detector.load(tube, device="cpu")
-    assert (
-        det.net.tube is not None and det.net.ends is not None and det.config.tube_channels == (8, 16, 32, 64)
-    )
+    assert det.net.tube is not None and det.net.ends is not None and det.config.tube is not None
+    assert det.config.tube.network.channels == (8, 16, 32, 64)
+    assert det.config.stages == ("coarse", "fine", "tube", "ends")
     w2 = torch.load(tube, weights_only=True)["state_dict"]
     assert all(torch.equal(w1[k], w2[k]) for k in w1) and any(k.startswith("tube.") for k in w2)
     # fine-tuning another stage of a model that has the patch-mask stages trains that stage only
@@ -207,7 +206,7 @@ def test_training_the_ends_stage_adds_it_and_leaves_the_others(tmp_path: Path) -
     w3 = torch.load(fine, weights_only=True)["state_dict"]
     assert all(torch.equal(w2[k], w3[k]) for k in w2 if not k.startswith("fine."))
     assert any(not torch.equal(w2[k], w3[k]) for k in w2 if k.startswith("fine."))
-    items = EndsDataset(data, config=det.config, split="all", repeats=1, seed=0, tube=True)
+    items = EndsDataset(data, config=det.config, split="all", repeats=1, seed=0, stage="tube")
     item = next(items[i] for i in range(len(items)) if bool(items[i]["ends_valid"].all()))
     # a patch centred on the tube's axis: CM along its middle row, background at its edges
     assert (
@@ -225,7 +224,8 @@ def test_training_the_ends_stage_adds_it_and_leaves_the_others(tmp_path: Path) -
         progress=False,
     )
     det = Detector.load(shaft, device="cpu")
-    assert det.net.shaft is not None and det.config.shaft_channels == det.config.tube_channels
+    assert det.net.shaft is not None and det.config.shaft is not None and det.config.tube is not None
+    assert det.config.shaft.network == det.config.tube.network and det.shaft is not None
     w4 = torch.load(shaft, weights_only=True)["state_dict"]
     assert all(torch.equal(w2[k], w4[k]) for k in w2)
     # lr 0: the copy is exact (BatchNorm's running statistics aside, which a training pass updates)

@@ -9,18 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from det_synthetic import first_tiny_model
+from det_synthetic import first_tiny_model, tiny_config, with_settings
 
+from fluoronav.detection.config import DetectorConfig
 from fluoronav.detection.dataset import RefineDataset
+from fluoronav.detection.decoder import add_center_prior, decode_refine_logits
 from fluoronav.detection.detector import Detector
-from fluoronav.detection.model import DetectorConfig, DetectorNet
-from fluoronav.detection.refine import (
-    RefinePatch,
-    add_center_prior,
-    decode_refine_logits,
-    landmark_direction,
-    refine_patch,
-)
+from fluoronav.detection.model import DetectorNet
+from fluoronav.detection.patches import RefinePatch, landmark_direction, refine_patch
 from fluoronav.detection.train import TrainConfig, sidecar_path, train
 
 
@@ -119,22 +115,26 @@ def _tube_scene(true_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: a detector small enough to build in a test; its refinement stage is replaced by :class:`_DotOracle`
-ORACLE_CFG = DetectorConfig(
-    input_size=32,
-    roi_size=32,
-    channels=(4, 8),
-    roi_channels=(4, 8),
-    refine_channels=(4, 8),
-    refine_shape=(16, 32),
-    refine_prior_px=3.0,
+_VIEW = {"network": {"channels": (4, 8)}, "sampler": {"size": 32}}
+ORACLE_CFG = with_settings(
+    DetectorConfig(),
+    add=("refine",),
+    coarse=_VIEW,
+    fine=_VIEW,
+    refine={"network": {"channels": (4, 8)}, "sampler": {"shape": (16, 32)}, "decoder": {"prior_px": 3.0}},
 )
 
 
-def test_detector_refines_landmarks_towards_what_the_patch_shows() -> None:
-    cfg = ORACLE_CFG
-    net = DetectorNet(cfg)
+def oracle_detector(config: DetectorConfig = ORACLE_CFG) -> Detector:
+    """A detector whose refinement network is :class:`_DotOracle`."""
+    net = DetectorNet(config)
     net.refine = _DotOracle()
-    det = Detector(net, device="cpu")
+    return Detector(net, device="cpu")
+
+
+def test_detector_refines_landmarks_towards_what_the_patch_shows() -> None:
+    det = oracle_detector()
+    assert det.refine is not None
     true = np.array([50.3, 40.6])
     image, mask = _tube_scene(true)
     start = np.array([true + np.array([2.0, 0.4]), [150.0, 40.0]])  # A 2 px off along the tube
@@ -143,22 +143,19 @@ def test_detector_refines_landmarks_towards_what_the_patch_shows() -> None:
     out = det.refine(image, start, mask_b, pixel_spacing_mm=0.582)
     assert np.linalg.norm(out[0] - true) < 0.35 < np.linalg.norm(start[0] - true)
     np.testing.assert_array_equal(out[1], start[1])
-    # without a refinement stage the landmarks are returned as they are
-    plain = Detector(DetectorNet(dataclasses.replace(cfg, refine_channels=())), device="cpu")
-    assert plain.net.refine is None
-    np.testing.assert_array_equal(plain.refine(image, start, mask_b), start)
+    # a model without a refinement stage: its last steps keep the fine landmarks
+    plain = Detector(DetectorNet(tiny_config()), device="cpu")
+    assert plain.net.refine is None and plain.refine is None
+    np.testing.assert_array_equal(plain.finish(image, mask_b, start).landmarks_px, start)
 
 
 def test_detector_averages_patches_moved_along_the_tube_with_the_prior_at_the_landmark() -> None:
-    cfg = ORACLE_CFG
-    net = DetectorNet(cfg)
-    net.refine = _DotOracle()
     true = np.array([50.3, 40.6])
     image, mask = _tube_scene(true)
     start = np.array([true + np.array([1.0, 0.3]), [150.0, 40.0]])
-    one = Detector(net, device="cpu")
-    moved = Detector(net, device="cpu")
-    moved.config = dataclasses.replace(cfg, refine_shifts_px=(-4.0, 0.0, 4.0))
+    one = oracle_detector()
+    moved = oracle_detector(with_settings(ORACLE_CFG, refine={"sampler": {"shifts_px": (-4.0, 0.0, 4.0)}}))
+    assert one.refine is not None and moved.refine is not None
     a, b = one.refine(image, start, mask), moved.refine(image, start, mask)
     # every moved patch still shows the dot where it is: the same point, mapped back from each
     assert np.linalg.norm(b[0] - true) < 0.35 and np.linalg.norm(b[0] - a[0]) < 0.1
@@ -168,27 +165,32 @@ def test_detector_averages_patches_moved_along_the_tube_with_the_prior_at_the_la
     vv, uu = np.mgrid[0 : image.shape[0], 0 : image.shape[1]].astype(np.float64)
     decoy = true + np.array([6.0, 0.0])
     image2 = image + 3.0 * np.exp(-((uu - decoy[0]) ** 2 + (vv - decoy[1]) ** 2) / 2.0).astype(np.float32)
-    moved.config = dataclasses.replace(cfg, refine_shifts_px=(10.0,))
-    c = moved.refine(image2, start, mask)
+    far = oracle_detector(with_settings(ORACLE_CFG, refine={"sampler": {"shifts_px": (10.0,)}}))
+    assert far.refine is not None
+    c = far.refine(image2, start, mask)
     assert np.linalg.norm(c[0] - true) < 0.5
 
 
 def test_refine_settings_are_validated_and_round_trip() -> None:
-    with pytest.raises(ValueError, match="refine_tta"):
-        DetectorConfig(refine_tta=3)
-    with pytest.raises(ValueError, match="refine_shape"):
-        DetectorConfig(refine_channels=(4, 8, 16), refine_shape=(10, 16))
-    with pytest.raises(ValueError, match="refine_prior_px"):
-        DetectorConfig(refine_prior_px=-1.0)
+    with pytest.raises(ValueError, match="tta"):
+        with_settings(ORACLE_CFG, refine={"tta": 3})
+    with pytest.raises(ValueError, match="shape"):
+        with_settings(
+            ORACLE_CFG, refine={"network": {"channels": (4, 8, 16)}, "sampler": {"shape": (10, 16)}}
+        )
+    with pytest.raises(ValueError, match="prior_px"):
+        with_settings(ORACLE_CFG, refine={"decoder": {"prior_px": -1.0}})
     for bad in ((), (0.0, 20.0)):
-        with pytest.raises(ValueError, match="refine_shifts_px"):
-            DetectorConfig(refine_shifts_px=bad)
-    cfg = DetectorConfig(refine_channels=(8, 16), refine_shape=(16, 32), refine_shifts_px=(-2.0, 0.0, 2.0))
+        with pytest.raises(ValueError, match="shifts_px"):
+            with_settings(ORACLE_CFG, refine={"sampler": {"shifts_px": bad}})
+    cfg = with_settings(
+        ORACLE_CFG, refine={"network": {"channels": (8, 16)}, "sampler": {"shifts_px": (-2.0, 0.0, 2.0)}}
+    )
     assert DetectorConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
-    assert DetectorConfig.from_dict({"heatmap": "softmax"}).refine_channels == ()  # older model files
+    assert DetectorConfig.from_dict({"heatmap": "softmax"}).refine is None  # older model files
 
 
-TINY = DetectorConfig(input_size=32, roi_size=32, channels=(4, 8, 16), roi_channels=(4, 8, 16))
+TINY = tiny_config()
 
 
 def test_training_the_refinement_stage_adds_it_and_leaves_the_others(tmp_path: Path) -> None:
@@ -205,7 +207,8 @@ def test_training_the_refinement_stage_adds_it_and_leaves_the_others(tmp_path: P
     )
     assert np.isfinite(m["val_landmark_px"]) and np.isfinite(m["val_start_px"])
     det = Detector.load(out, device="cpu")
-    assert det.net.refine is not None and det.config.refine_channels == (16, 32, 64, 128)
+    assert det.net.refine is not None and det.config.refine is not None
+    assert det.config.refine.network.channels == (16, 32, 64, 128)
     w1 = torch.load(out, weights_only=True)["state_dict"]
     assert all(torch.equal(w0[k], w1[k]) for k in w0)  # coarse and fine untouched
     assert any(k.startswith("refine.") for k in w1)

@@ -8,15 +8,15 @@ from pathlib import Path
 
 import pytest
 import torch
-from det_synthetic import write_dataset
+from det_synthetic import tiny_config, with_settings, write_dataset
 
 from fluoronav.detection.augment import AugmentConfig
+from fluoronav.detection.config import DetectorConfig
 from fluoronav.detection.detector import Detector
-from fluoronav.detection.model import DetectorConfig
 from fluoronav.detection.train import TrainConfig, checkpoint_path, log_path, sidecar_path, train
 from fluoronav.errors import InputError
 
-TINY = DetectorConfig(input_size=32, roi_size=32, channels=(4, 8, 16), roi_channels=(4, 8, 16))
+TINY = tiny_config()
 
 
 def test_two_step_training_writes_checkpoint_and_resumes(tmp_path: Path) -> None:
@@ -28,7 +28,8 @@ def test_two_step_training_writes_checkpoint_and_resumes(tmp_path: Path) -> None
     for path in (out, checkpoint_path(out), sidecar_path(out), log_path(out)):
         assert path.is_file()
     side = json.loads(sidecar_path(out).read_text())
-    assert side["config"]["channels"] == [4, 8, 16] and side["parameters"] > 0
+    assert side["format_version"] == 2 and side["config"]["stages"] == ["coarse", "fine"]
+    assert side["config"]["coarse"]["network"]["channels"] == [4, 8, 16] and side["parameters"] > 0
     assert side["normalization"]["method"] == "percentile"
     w1 = torch.load(out, weights_only=True)["state_dict"]
 
@@ -79,7 +80,7 @@ def test_init_starts_from_a_model_files_weights(tmp_path: Path) -> None:
     learned = [k for k in w0 if not k.endswith(("running_mean", "running_var", "num_batches_tracked"))]
     assert learned and all(torch.equal(w0[k], w1[k]) for k in learned)
     assert json.loads(sidecar_path(tuned).read_text())["train"]["init"] == str(first)
-    assert Detector.load(tuned, device="cpu").config.channels == TINY.channels  # the init's architecture
+    assert Detector.load(tuned, device="cpu").config.coarse.network == TINY.coarse.network  # the init's
     # without init the same run starts from other (random) weights
     fresh = tmp_path / "fresh.pt"
     train(
@@ -95,7 +96,11 @@ def test_init_starts_from_a_model_files_weights(tmp_path: Path) -> None:
 def test_init_keeps_the_init_files_decoding_settings_only_when_asked(tmp_path: Path) -> None:
     data = write_dataset(tmp_path / "data", 4, size=64, seed=9, negative_every=3)
     cfg = TrainConfig(epochs=1, batch_size=2, max_steps_per_epoch=1, device="cpu", val_fraction=0.3, seed=9)
-    tuned_cfg = dataclasses.replace(TINY, mask_join_frac=0.2, fine_scales=(0.9, 1.0), min_mask_px=12)
+    tuned_cfg = with_settings(
+        TINY,
+        fine={"decoder": {"join_frac": 0.2}, "sampler": {"scales": (0.9, 1.0)}},
+        coarse={"decoder": {"min_mask_px": 12}},
+    )
     first = tmp_path / "first.pt"
     train(data, first, config=cfg, model_config=tuned_cfg, progress=False)
     kept, reset = tmp_path / "kept.pt", tmp_path / "reset.pt"
@@ -103,9 +108,16 @@ def test_init_keeps_the_init_files_decoding_settings_only_when_asked(tmp_path: P
     train(data, reset, config=cfg, init=first, progress=False)
     assert Detector.load(kept, device="cpu").config == tuned_cfg
     assert json.loads(sidecar_path(kept).read_text())["train"]["keep_decoding"] is True
-    # by default the architecture is the init's and the decoding settings this version's
-    default = dataclasses.replace(DetectorConfig(), input_size=32, roi_size=32, channels=(4, 8, 16))
-    assert Detector.load(reset, device="cpu").config == dataclasses.replace(default, roi_channels=(4, 8, 16))
+    # by default the networks are the init's and the decoding settings this version's
+    assert Detector.load(reset, device="cpu").config == TINY
+    assert (
+        with_settings(
+            DetectorConfig(),
+            coarse={"network": TINY.coarse.network.model_dump(), "sampler": {"size": 32}},
+            fine={"network": TINY.fine.network.model_dump(), "sampler": {"size": 32}},
+        )
+        == TINY
+    )
 
 
 def test_coarse_size_retrains_the_coarse_stage_at_another_scale(tmp_path: Path) -> None:
@@ -114,7 +126,9 @@ def test_coarse_size_retrains_the_coarse_stage_at_another_scale(tmp_path: Path) 
     wider = tmp_path / "wider.pt"
     train(data, wider, config=coarse_cfg, init=first, keep_decoding=True, coarse_size=64, progress=False)
     det = Detector.load(wider, device="cpu")
-    assert det.config == dataclasses.replace(TINY, input_size=64)  # only the coarse scale changed
+    assert det.config == with_settings(
+        TINY, coarse={"sampler": {"size": 64}}
+    )  # only the coarse scale changed
     w1 = torch.load(wider, weights_only=True)["state_dict"]
     learned = [k for k in w0 if not k.endswith(("running_mean", "running_var", "num_batches_tracked"))]
     assert all(torch.equal(w0[k], w1[k]) for k in learned)  # lr 0: the init's weights, now at 64²

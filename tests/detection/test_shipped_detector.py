@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from fluoronav.anatomy.phantom import hip_phantom
+from fluoronav.detection.config import DetectorConfig
 from fluoronav.detection.detector import Detector, shipped_model_path
 from fluoronav.detection.evaluate import dice_score
 from fluoronav.simulation.scene import SceneSampling, sample_scene
@@ -58,11 +59,28 @@ def test_shipped_detector_on_unseen_simulated_images() -> None:
 
 
 def test_shipped_sidecar_describes_the_shipped_weights() -> None:
-    # detector.json is the model file without its weights: the model card's record of the config
+    # detector.json is the model file without its weights, its configuration in the declared form:
+    # the stages the shipped model runs (the weights file holds the flat configuration of format 1)
     blob = torch.load(shipped_model_path(), map_location="cpu", weights_only=True)
     sidecar = json.loads(shipped_model_path().with_suffix(".json").read_text(encoding="utf-8"))
-    assert sidecar["config"] == json.loads(json.dumps(blob["config"]))
+    declared = DetectorConfig.from_dict(blob["config"])
+    assert sidecar["config"] == declared.to_dict()
+    assert DetectorConfig.from_dict(sidecar["config"]) == declared
+    assert sidecar["config"]["stages"] == [
+        "coarse",
+        "fine",
+        "refine",
+        "tube",
+        "ends",
+        "free_end",
+        "shaft",
+        "edge",
+    ]
     assert sidecar["train"] == json.loads(json.dumps(blob["train"]))
+    for key in ("fluoronav_version", "normalization", "parameters", "metrics"):
+        assert sidecar[key] == json.loads(json.dumps(blob[key]))
+    # every network of the declared stages has its weights, and there are no others
+    assert {k.split(".", 1)[0] for k in blob["state_dict"]} == set(declared.network_stages)
 
 
 @pytest.mark.cuda

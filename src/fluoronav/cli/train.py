@@ -45,15 +45,14 @@ def train_command(
         "--stage",
         help="Stage to train (repeatable: coarse, fine; or one alone: refine, the landmark refinement "
         "stage; ends, the mask-end stage; tube, the tube-mask stage; shaft, the shaft stage (needs "
-        "--tube-shaft-prob); strip, the strip stage (where A lies along a path); each added to an --init "
-        "model without one); the others keep their weights and are not run.",
+        "--tube-shaft-prob); each added to an --init model without one); the others keep their weights "
+        "and are not run.",
     ),
     refine_repeats: int = typer.Option(
         5,
         "--refine-repeats",
         min=1,
-        help="--stage refine, ends, tube, shaft or strip: jittered patches (strips: pairs of paths) per "
-        "landmark and sample per epoch.",
+        help="--stage refine, ends, tube or shaft: jittered patches per landmark and sample per epoch.",
     ),
     collimate_prob: float = typer.Option(
         0.0,

@@ -15,15 +15,10 @@ same path with the second look forced (its wider view and, where that moves a la
 second run of the fine stage): what an unsure detection costs. Both run every network in float32
 (the default precision); on a CPU with native bfloat16, ``detect_bfloat16_ms`` times the same
 pipeline with the model's ``bf16_stages`` in bfloat16 (``--precision bfloat16``).
-``detect_apex_check_ms`` times the strip stage's check of an unsure A on a V-shaped mask
-(:meth:`~fluoronav.detection.detector.Detector.off_apex`: two paths, one batch), where the model
-has that stage; it runs on unsure detections only and is not part of ``detect_ms``.
 """
 
 from __future__ import annotations
 
-import copy
-import dataclasses
 import logging
 from collections.abc import Callable
 
@@ -32,11 +27,13 @@ import torch
 from torch.nn import functional as tnf
 
 from fluoronav.detection.centerline import extract_centerline
-from fluoronav.detection.detector import Detector, load_net, native_bf16, shipped_model_path
+from fluoronav.detection.config import DetectorConfig
+from fluoronav.detection.detector import Detector
 from fluoronav.detection.evidence import end_continuation, mask_edge_ratio
-from fluoronav.detection.model import DetectorConfig, DetectorNet
-from fluoronav.detection.strip import v_apex
-from fluoronav.detection.views import roi_view
+from fluoronav.detection.localize import FineResult
+from fluoronav.detection.model import DetectorNet, load_net, shipped_model_path
+from fluoronav.detection.runtime import native_bf16
+from fluoronav.detection.views import normalize_intensity
 from fluoronav.rendering.bench import time_ms
 
 logger = logging.getLogger(__name__)
@@ -77,39 +74,36 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
     cfg = det.config
     image, mask, ends, spacing_mm = _bench_image(1536)
     vv, uu = np.nonzero(mask)
-    roi = roi_view(
-        np.array([[uu.min(), vv.min()], [uu.max(), vv.max()]], dtype=np.float64),
-        cfg.roi_size,
-        margin_frac=cfg.roi_margin_frac,
-        min_side_px=cfg.roi_min_side_px,
-    )
+    roi = det.fine.roi_around(np.array([[uu.min(), vv.min()], [uu.max(), vv.max()]], dtype=np.float64))
+
+    def has_mask(r: FineResult) -> bool:
+        return bool(r.mask.any())
 
     def pipeline(d: Detector = det) -> None:
         d.coarse(image, pixel_spacing_mm=spacing_mm)
         # every fine pass (the last at each of the configured ROI scales), the second look where the
         # detection is unsure enough, landmark refinement, the centreline, the mask's redrawing
-        # along it and at its ends (the patch-mask stages), the checks of A's end, of the shaft and of
+        # along it and at its ends (the patch stages), the checks of A's end, of the shaft and of
         # the mask's edges, as ``Detector.detect`` runs them
-        res = d.second_look(image, d.fine_stage(image, roi), pixel_spacing_mm=spacing_mm)
-        d.refine(image, res.landmarks_px, res.mask, pixel_spacing_mm=spacing_mm)
+        res = d.fine.second_look(image, d.fine(image, roi), pixel_spacing_mm=spacing_mm, accept=has_mask)
+        if d.refine is not None:
+            d.refine(image, res.landmarks_px, res.mask, pixel_spacing_mm=spacing_mm)
         line = extract_centerline(mask, ends[0], ends[1])
-        final = d.mask_ends(
-            image,
-            ends,
-            d.mask_tube(image, line, mask, pixel_spacing_mm=spacing_mm),
-            pixel_spacing_mm=spacing_mm,
-        )
-        if d.config.free_end_max_continuation > 0.0:
+        final = mask
+        if d.tube is not None:
+            final = d.tube(image, line, final, pixel_spacing_mm=spacing_mm)
+        if d.ends is not None:
+            final = d.ends(image, ends, final, pixel_spacing_mm=spacing_mm)
+        if d.free_end is not None:
             end_continuation(image, final, ends[0], pixel_spacing_mm=spacing_mm)
-        d.shaft_start(image, mask, line, pixel_spacing_mm=spacing_mm)  # None without a shaft stage
-        if d.config.needed_edge_ratio(float(res.confidence.min())) > 0.0:
+        if d.shaft is not None:
+            d.shaft.start(image, mask, line, pixel_spacing_mm=spacing_mm)
+        if d.edge is not None and d.edge.config.needed_ratio(float(res.confidence.min())) > 0.0:
             mask_edge_ratio(image, final, pixel_spacing_mm=spacing_mm)
 
     def baseline() -> None:
-        from fluoronav.detection.views import normalize_intensity
-
         x = torch.from_numpy(normalize_intensity(image))[None, None].to(det.device)
-        k = 2 ** (len(cfg.channels) - 1)
+        k = cfg.coarse.network.divisor
         pad = (-x.shape[-1]) % k
         with torch.no_grad():
             det.net.coarse(tnf.pad(x, (0, pad, 0, pad), mode="replicate"))
@@ -130,31 +124,18 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
             "detect_bfloat16_ms_baseline": ms_baseline,
             "detect_bfloat16_ms_speedup": ms_baseline / ms_fast,
         }
-    if cfg.fine_wide_factors:
+    hyp = cfg.fine.hypotheses
+    if hyp.wide_factors:
         # the same image with the second look forced (as for an unsure detection): its wider view
         # and, where that moves a landmark far enough, a second run of the fine stage
-        forced = copy.copy(det)
-        forced.config = dataclasses.replace(cfg, fine_wide_max_confidence=1.0)
+        forced = Detector(net, device=device, source=source)
+        forced.fine.config = cfg.fine.model_copy(
+            update={"hypotheses": hyp.model_copy(update={"wide_max_confidence": 1.0})}
+        )
         ms_look = _median_ms(lambda: pipeline(forced), repeats)
         out |= {
             "detect_second_look_ms": ms_look,
             "detect_second_look_ms_baseline": ms_baseline,
             "detect_second_look_ms_speedup": ms_baseline / ms_look,
-        }
-    if det.net.strip is not None:
-        # the V-apex check of an unsure A (``Detector.off_apex``): the strip stage on the final
-        # centreline and on a path through the mask's apex, one batch (a move then runs the timed
-        # pipeline's tail again)
-        line = extract_centerline(mask, ends[0], ends[1])
-        apex = v_apex(mask, ends[0], ends[1])
-        corner = apex[0] if apex is not None else 0.5 * (ends[0] + ends[1])
-        paths = [np.asarray(line), np.stack([ends[0], corner, ends[1]])]
-        ms_apex = _median_ms(
-            lambda: det.strip_probabilities(image, paths, pixel_spacing_mm=spacing_mm), repeats
-        )
-        out |= {
-            "detect_apex_check_ms": ms_apex,
-            "detect_apex_check_ms_baseline": ms_baseline,
-            "detect_apex_check_ms_speedup": ms_baseline / ms_apex,
         }
     return out

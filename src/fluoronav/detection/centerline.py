@@ -1,4 +1,5 @@
-"""2D centreline of the CM from its segmentation mask and two landmarks (Gao et al. 2022, sec. II-C).
+"""2D centreline of the CM from its segmentation mask and two landmarks (Gao et al., IEEE TBME 69(1),
+2022, sec. II-C).
 
 The mask is dilated (closing small gaps and making landmarks on its border reachable), the distance of
 every pixel from the region's edge is computed, and the cheapest 8-connected path from landmark A to

@@ -2,7 +2,7 @@
 
 Each item holds the two training views of one sample: the whole image at the coarse working
 resolution and a region of interest around the CM at the fine resolution (see
-:mod:`fluoronav.detection.model`), each with its soft mask target and landmarks in view pixels
+:mod:`fluoronav.detection.localize`), each with its soft mask target and landmarks in view pixels
 (``u' = (u − x0 + 0.5)/s − 0.5``). Negatives (no CM: empty mask or no landmarks) have NaN landmarks,
 which give all-zero heatmap targets, and a random ROI. The train/val split is a deterministic function
 of each sample's id (SHA-1), so it does not depend on the order or size of the manifest.
@@ -30,10 +30,14 @@ from fluoronav.detection.augment import (
     lower_dose,
 )
 from fluoronav.detection.centerline import extract_centerline
-from fluoronav.detection.ends import EndJitter, inside_length_px, training_end_patch, training_tube_patch
-from fluoronav.detection.model import DetectorConfig
-from fluoronav.detection.refine import RefineJitter, training_patch
-from fluoronav.detection.strip import StripJitter, training_strip
+from fluoronav.detection.config import DetectorConfig, RoiSampler, WholeViewSampler
+from fluoronav.detection.training_patches import (
+    EndJitter,
+    RefineJitter,
+    training_end_patch,
+    training_patch,
+    training_tube_patch,
+)
 from fluoronav.detection.views import View, full_view, normalize_intensity, resample, roi_view
 from fluoronav.errors import InputError
 from fluoronav.geometry.camera import Camera
@@ -205,21 +209,20 @@ def fine_view_for(
     probability ``augment.p_partial_roi`` around a part of the CM, :func:`partial_cm_points`); a
     random window for negatives (with probability ``augment.p_edge_negative_roi`` centred on a strong
     edge, :func:`~fluoronav.detection.augment.edge_point`)."""
+    sampler = config.fine.sampler
     rows, cols = sample.image.shape
     if sample.landmarks_px is None:
         r = rng if rng is not None else np.random.default_rng(0)
         side = float(r.uniform(0.1, 0.5)) * max(rows, cols)
         centre = r.uniform([0, 0], [cols, rows])
-        # no extra draw when off (short-circuit), so that earlier training runs reproduce
+        # no extra draw when off (short-circuit): the draws are those of a run without the option
         p_edge = augment.p_edge_negative_roi if augment is not None and rng is not None else 0.0
         if augment is not None and p_edge > 0.0 and r.random() < p_edge:
             centre = edge_point(sample.image, r, quantile=augment.edge_quantile)
-        return roi_view(centre[None], config.roi_size, margin_frac=0.0, min_side_px=max(side, 2.0))
+        return roi_view(centre[None], sampler.size, margin_frac=0.0, min_side_px=max(side, 2.0))
     pts = _cm_extent_points(sample.mask, sample.landmarks_px)
     if rng is None:
-        return roi_view(
-            pts, config.roi_size, margin_frac=config.roi_margin_frac, min_side_px=config.roi_min_side_px
-        )
+        return roi_view(pts, sampler.size, margin_frac=sampler.margin_frac, min_side_px=sampler.min_side_px)
     # log-uniform ×0.8–2: the first fine pass at inference may get a loose ROI from the coarse stage
     max_scale = 2.0
     if augment is not None and augment.p_partial_roi > 0.0 and rng.random() < augment.p_partial_roi:
@@ -227,9 +230,9 @@ def fine_view_for(
         max_scale = 1.5  # a coarse stage that found part of a CM fits its ROI to that part
     return roi_view(
         pts,
-        config.roi_size,
-        margin_frac=config.roi_margin_frac,
-        min_side_px=config.roi_min_side_px,
+        sampler.size,
+        margin_frac=sampler.margin_frac,
+        min_side_px=sampler.min_side_px,
         scale_factor=float(np.exp(rng.uniform(np.log(0.8), np.log(max_scale)))),
         shift_frac=tuple(rng.uniform(-0.1, 0.1, size=2)),
     )
@@ -264,7 +267,7 @@ def collimate(
 def make_view(
     sample: Sample,
     view: View,
-    config: DetectorConfig,
+    sampler: WholeViewSampler | RoiSampler,
     *,
     rng: np.random.Generator | None = None,
     augment: AugmentConfig | None = None,
@@ -272,8 +275,9 @@ def make_view(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normalised image (S, S), soft mask (S, S) and landmarks (2, 2) (NaN if absent) in view pixels.
 
-    ``photons_per_pixel`` (the data set's flat-field photons per stored pixel) enables the low-dose
-    augmentation, applied to the window at the stored pixels before it is resampled.
+    ``sampler``: the stage's view settings (its intensity normalisation). ``photons_per_pixel`` (the
+    data set's flat-field photons per stored pixel) enables the low-dose augmentation, applied to
+    the window at the stored pixels before it is resampled.
     """
     if (
         augment is not None
@@ -287,7 +291,7 @@ def make_view(
         raw = resample(window, View(0, 0, view.side, view.size))
     else:
         raw = resample(sample.image, view)
-    image = normalize_intensity(raw, low_pct=config.low_pct, high_pct=config.high_pct)
+    image = normalize_intensity(raw, low_pct=sampler.low_pct, high_pct=sampler.high_pct)
     mask = resample(sample.mask.astype(np.float32), view)
     lm = None if sample.landmarks_px is None else view.from_input(sample.landmarks_px)
     if augment is not None and rng is not None:
@@ -356,11 +360,12 @@ class CMDetectionDataset(Dataset):
         rng = np.random.default_rng([self.seed, self.epoch, index]) if self.augment is not None else None
         if rng is not None and self.augment is not None and rng.random() < self.augment.p_collimate:
             s = collimate(s, rng, min_field_frac=self.augment.min_field_frac)
-        cv = full_view(s.image.shape, self.config.input_size)
+        coarse, fine = self.config.coarse.sampler, self.config.fine.sampler
+        cv = full_view(s.image.shape, coarse.size)
         fv = fine_view_for(s, self.config, rng, augment=self.augment)
         n0 = self.photons_per_pixel
-        ci, cm, cl = make_view(s, cv, self.config, rng=rng, augment=self.augment, photons_per_pixel=n0)
-        fi, fm, fl = make_view(s, fv, self.config, rng=rng, augment=self.augment, photons_per_pixel=n0)
+        ci, cm, cl = make_view(s, cv, coarse, rng=rng, augment=self.augment, photons_per_pixel=n0)
+        fi, fm, fl = make_view(s, fv, fine, rng=rng, augment=self.augment, photons_per_pixel=n0)
         return {
             "coarse_image": torch.from_numpy(ci)[None],
             "coarse_mask": torch.from_numpy(cm)[None],
@@ -397,7 +402,7 @@ class _PatchDataset(CMDetectionDataset):
 class RefineDataset(_PatchDataset):
     """Training/validation items of the landmark refinement stage: each sample ``repeats`` times per
     epoch, each time with a patch around A and one around B, placed as the fine stage would miss them
-    (:func:`~fluoronav.detection.refine.training_patch`). Validation items have the same jitter
+    (:func:`~fluoronav.detection.training_patches.training_patch`). Validation items have the same jitter
     every epoch and no photometric augmentation.
 
     Items: ``refine_image`` (2, 1, rows, cols), ``refine_landmarks`` (2, 2) (col, row) patch pixels,
@@ -408,17 +413,18 @@ class RefineDataset(_PatchDataset):
         self, root: str | Path, *, repeats: int = 1, jitter: RefineJitter | None = None, **kw: object
     ) -> None:
         super().__init__(root, repeats=repeats, **kw)
-        if not self.config.refine_channels:
-            raise ValueError("the model configuration has no refinement stage (refine_channels)")
+        if self.config.refine is None:
+            raise ValueError("the model configuration has no refinement stage (refine)")
+        self.refine = self.config.refine
         self.jitter = jitter or RefineJitter()
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         s, train, rng = self._draw(index)
-        cfg = self.config
-        images = np.zeros((2, 1, *cfg.refine_shape), np.float32)
+        sampler = self.refine.sampler
+        images = np.zeros((2, 1, *sampler.shape), np.float32)
         targets = np.full((2, 2), np.nan, np.float32)
         if s.landmarks_px is not None:
-            step = cfg.refine_step_px(s.pixel_spacing_mm)
+            step = sampler.step_px(s.pixel_spacing_mm, self.config.assumed_spacing_mm)
             for k in (0, 1):
                 got = training_patch(
                     s.image,
@@ -426,7 +432,7 @@ class RefineDataset(_PatchDataset):
                     s.landmarks_px[k],
                     rng,
                     step_px=step,
-                    shape=cfg.refine_shape,
+                    shape=sampler.shape,
                     jitter=self.jitter,
                     photometric=train,
                 )
@@ -436,12 +442,15 @@ class RefineDataset(_PatchDataset):
 
 
 class EndsDataset(_PatchDataset):
-    """Training/validation items of the mask-end stage (``tube=False``): each sample ``repeats`` times
-    per epoch, each time with a patch around A and one around B, placed as the refined landmarks
-    would miss them (:func:`~fluoronav.detection.ends.training_end_patch`); or of the tube-mask stage
-    (``tube=True``): two patches centred at random points of the true centreline
-    (:func:`~fluoronav.detection.ends.training_tube_patch`). Validation items have the same jitter
-    every epoch and no photometric augmentation.
+    """Training/validation items of a patch-mask stage: for the mask-end stage (``stage="ends"``)
+    each sample ``repeats`` times per epoch, each time with a patch around A and one around B,
+    placed as the refined landmarks would miss them
+    (:func:`~fluoronav.detection.training_patches.training_end_patch`); for the tube-mask and shaft
+    stages (``"tube"``, ``"shaft"``) two patches centred at random points of the true centreline, or
+    with probability ``shaft_prob`` of the projected mounting shaft
+    (:func:`~fluoronav.detection.training_patches.training_tube_patch`). The patches are the
+    stage's (its sampler's shape and scale). Validation items have the same jitter every epoch and
+    no photometric augmentation.
 
     Items: ``ends_image`` (2, 1, rows, cols), ``ends_mask`` (2, 1, rows, cols) the true mask on the
     patch, ``ends_valid`` (2,) 1 where the patch exists (0: negatives; a mask without a direction).
@@ -453,29 +462,30 @@ class EndsDataset(_PatchDataset):
         *,
         repeats: int = 1,
         jitter: EndJitter | None = None,
-        tube: bool = False,
+        stage: str = "ends",
         shaft_prob: float = 0.0,
         **kw: object,
     ) -> None:
         super().__init__(root, repeats=repeats, **kw)
-        if not (self.config.tube_channels if tube else self.config.ends_channels):
-            raise ValueError(
-                "the model configuration has no "
-                + ("tube-mask stage (tube_channels)" if tube else "mask-end stage (ends_channels)")
-            )
+        if stage not in ("ends", "tube", "shaft"):
+            raise ValueError(f"stage must be 'ends', 'tube' or 'shaft', got {stage!r}")
+        settings = getattr(self.config, stage)
+        if settings is None:
+            raise ValueError(f"the model configuration has no {stage} stage")
+        self.sampler = settings.sampler
         self.jitter = jitter or EndJitter()
-        self.tube = tube
-        self.shaft_prob = float(shaft_prob) if tube else 0.0
+        self.tube = stage != "ends"
+        self.shaft_prob = float(shaft_prob) if self.tube else 0.0
         self.shaft_length_mm = shaft_length_of(self.root)
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         s, train, rng = self._draw(index)
-        cfg = self.config
-        images = np.zeros((2, 1, *cfg.ends_shape), np.float32)
-        masks = np.zeros((2, 1, *cfg.ends_shape), np.float32)
+        shape = self.sampler.shape
+        images = np.zeros((2, 1, *shape), np.float32)
+        masks = np.zeros((2, 1, *shape), np.float32)
         valid = np.zeros(2, np.float32)
         if s.landmarks_px is not None:
-            step = cfg.refine_step_px(s.pixel_spacing_mm)
+            step = self.sampler.step_px(s.pixel_spacing_mm, self.config.assumed_spacing_mm)
             line = extract_centerline(s.mask > 0, s.landmarks_px[0], s.landmarks_px[1]) if self.tube else None
             shaft = (
                 shaft_segment_px(self.records[index % len(self.records)], self.shaft_length_mm)
@@ -492,7 +502,7 @@ class EndsDataset(_PatchDataset):
                         line,
                         rng,
                         step_px=step,
-                        shape=cfg.ends_shape,
+                        shape=shape,
                         jitter=self.jitter,
                         photometric=train,
                         shaft_px=shaft,
@@ -505,7 +515,7 @@ class EndsDataset(_PatchDataset):
                         s.landmarks_px[k],
                         rng,
                         step_px=step,
-                        shape=cfg.ends_shape,
+                        shape=shape,
                         jitter=self.jitter,
                         photometric=train,
                     )
@@ -516,76 +526,4 @@ class EndsDataset(_PatchDataset):
             "ends_image": torch.from_numpy(images),
             "ends_mask": torch.from_numpy(masks),
             "ends_valid": torch.from_numpy(valid),
-        }
-
-
-class StripDataset(_PatchDataset):
-    """Training/validation items of the strip stage: each sample ``repeats`` times per epoch, each
-    time with two strips along paths drawn from its true geometry
-    (:func:`~fluoronav.detection.strip.training_path`: the true centreline from the sample's mask and
-    landmarks, the projected mounting shaft from the manifest's camera and pose). Validation items
-    have the same paths every epoch and no photometric augmentation.
-
-    Items: ``strip_image`` (2, 1, rows, cols), ``strip_valid`` (2, cols) bool (the path's columns),
-    ``strip_a`` (2,) A's column (−1: not on the path), ``strip_ok`` (2,) 1 where the strip exists
-    (0: negatives; a path without length).
-    """
-
-    def __init__(
-        self, root: str | Path, *, repeats: int = 1, jitter: StripJitter | None = None, **kw: object
-    ) -> None:
-        super().__init__(root, repeats=repeats, **kw)
-        if not self.config.strip_channels:
-            raise ValueError("the model configuration has no strip stage (strip_channels)")
-        self.jitter = jitter or StripJitter()
-        self.shaft_length_mm = shaft_length_of(self.root)
-        self._lines: dict[int, np.ndarray] = {}
-
-    def _centerline(self, i: int, s: Sample) -> np.ndarray:
-        """The true centreline (N, 2) from A to B (cached: it is the same every epoch)."""
-        if i not in self._lines:
-            assert s.landmarks_px is not None
-            a, b = s.landmarks_px
-            line = np.asarray(extract_centerline(s.mask > 0, a, b), dtype=np.float64)
-            self._lines[i] = np.concatenate([a[None], line, b[None]]) if len(line) else np.stack([a, b])
-        return self._lines[i]
-
-    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        s, train, rng = self._draw(index)
-        cfg = self.config
-        rows, cols = cfg.strip_shape
-        images = np.zeros((2, 1, rows, cols), np.float32)
-        valid = np.zeros((2, cols), bool)
-        a_col = np.full(2, -1.0, np.float32)
-        ok = np.zeros(2, np.float32)
-        if s.landmarks_px is not None:
-            i = index % len(self.records)
-            spacing = s.pixel_spacing_mm or cfg.refine_assumed_spacing_mm
-            shaft = shaft_segment_px(self.records[i], self.shaft_length_mm)
-            direction, inside = None, 0.0
-            if shaft is not None and float(np.linalg.norm(shaft[1] - shaft[0])) > 0.0:
-                direction = (shaft[1] - shaft[0]) / np.linalg.norm(shaft[1] - shaft[0])
-                inside = inside_length_px(np.stack([s.landmarks_px[0], shaft[1]]), s.image.shape)
-            line = self._centerline(i, s)
-            for k in (0, 1):
-                got = training_strip(
-                    s.image,
-                    line,
-                    rng,
-                    step_px=cfg.refine_step_px(s.pixel_spacing_mm),
-                    px_per_mm=1.0 / spacing,
-                    shape=cfg.strip_shape,
-                    shaft_inside_px=inside,
-                    shaft_direction=direction,
-                    jitter=self.jitter,
-                    photometric=train,
-                )
-                if got is not None:
-                    images[k, 0], valid[k], a_col[k] = got
-                    ok[k] = 1.0
-        return {
-            "strip_image": torch.from_numpy(images),
-            "strip_valid": torch.from_numpy(valid),
-            "strip_a": torch.from_numpy(a_col),
-            "strip_ok": torch.from_numpy(ok),
         }

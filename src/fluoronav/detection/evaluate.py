@@ -71,8 +71,8 @@ GROSS_ERROR_MM = 3.0
 
 
 #: upper edges (mm, projected length of the CM's mounting shaft on the detector) of the shaft classes
-#: of the summary: a stub seen nearly along its axis (the failure kind of docs/detector.md's stop-35
-#: survey), short, and the rest (the 50 mm shaft across the view projects ~110 mm)
+#: of the summary: a stub seen nearly along its axis (where the detector can take the stub for part of
+#: the CM), short, and the rest (the 50 mm shaft across the view projects ~110 mm)
 SHAFT_CLASS_EDGES_MM = (30.0, 60.0, math.inf)
 
 

@@ -18,10 +18,22 @@ from __future__ import annotations
 import numpy as np
 import torch
 from scipy import ndimage as ndi
+from torch.nn import functional as tnf
 
-from fluoronav.registration.roi import area_downsample
+__all__ = ["area_downsample", "end_continuation", "local_tube_width_px", "mask_edge_ratio"]
 
-__all__ = ["end_continuation", "local_tube_width_px", "mask_edge_ratio"]
+
+def area_downsample(images: torch.Tensor, factor: int) -> torch.Tensor:
+    """Bin images (..., H, W) by area averaging over ``factor`` × ``factor`` blocks → (..., H // factor,
+    W // factor); trailing rows and columns that do not fill a block are dropped."""
+    if factor < 1 or int(factor) != factor:
+        raise ValueError(f"downsampling factor must be a positive integer, got {factor}")
+    if factor == 1:
+        return images
+    shape = images.shape
+    x = images.reshape(-1, 1, shape[-2], shape[-1])
+    out = tnf.avg_pool2d(x, kernel_size=int(factor), stride=int(factor))
+    return out.reshape(*shape[:-2], out.shape[-2], out.shape[-1])
 
 
 def mask_edge_ratio(

@@ -1,29 +1,25 @@
-"""Training of the CM detector (both stages jointly) on a ``fluoronav simulate`` data set.
+"""Training of the CM detector on ``fluoronav simulate`` data sets.
 
-Loss (per stage, summed over the coarse and fine stage): MONAI ``DiceLoss`` (sigmoid, batch-wise, so
-that negatives' false positives count) on the segmentation logit — plus, by default, a binary
-cross-entropy term (``bce_weight``; the paper uses Dice alone, which converges much more slowly from
-random weights) — plus the L2 error of the two
-heatmaps, ``heatmap_weight · Σ (1 + fg·t)(h − t)² / (B · 2 · π σ²)`` — a sum of squares scaled by
-the Gaussian's energy πσ² so that it stays comparable to the Dice term, with pixels near the landmark
-weighted up (fg = ``heatmap_fg_weight``) so the peaks are learned before the network settles on
-predicting zeros everywhere. Adam, lr 1e-3 × 0.1 every 10 epochs
-(Gao et al. 2022). A checkpoint (``MODEL.ckpt``: weights, optimiser, scheduler, epoch) is written after
-every epoch and ``--resume`` continues from it; the model file is rewritten after every epoch and
-per-epoch metrics are appended to ``MODEL.log.jsonl``.
+The view stages (coarse, fine) train jointly or one of them alone on whole views and regions of
+interest (:class:`~fluoronav.detection.dataset.CMDetectionDataset`); a patch stage (refine, ends,
+tube, shaft) trains alone on its tube-aligned patches, added to a model without it. The losses are
+:mod:`fluoronav.detection.loss`'s. Adam, lr 1e-3 × 0.1 every 10 epochs (Gao et al., IEEE TBME 69(1),
+2022). A checkpoint (``MODEL.ckpt``: weights, optimiser, scheduler, epoch) is written after every
+epoch and ``--resume`` continues from it; the model file is rewritten after every epoch
+(:func:`~fluoronav.detection.model.save_model`) and per-epoch metrics are appended to
+``MODEL.log.jsonl``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import logging
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -33,26 +29,31 @@ from torch.nn import functional as tnf
 from torch.utils.data import ConcatDataset, DataLoader
 from tqdm import tqdm
 
-from fluoronav import __version__
 from fluoronav.detection.augment import AugmentConfig
-from fluoronav.detection.dataset import CMDetectionDataset, EndsDataset, RefineDataset, StripDataset
-from fluoronav.detection.ends import EndJitter
-from fluoronav.detection.heatmaps import decode_landmarks, gaussian_heatmaps, heatmap_cross_entropy
-from fluoronav.detection.model import (
-    DEFAULT_ENDS_CHANNELS,
-    DEFAULT_REFINE_CHANNELS,
-    DEFAULT_STRIP_CHANNELS,
-    DEFAULT_TUBE_CHANNELS,
-    MODEL_FORMAT_VERSION,
-    STAGES,
-    DetectorConfig,
-    DetectorNet,
-    count_parameters,
-)
-from fluoronav.detection.refine import RefineJitter, decode_refine_logits
-from fluoronav.detection.strip import StripJitter, strip_log_probs, strip_targets
+from fluoronav.detection.config import NETWORK_STAGES, STAGE_ORDER, DetectorConfig, EndsConfig, TubeConfig
+from fluoronav.detection.dataset import CMDetectionDataset, EndsDataset, RefineDataset
+from fluoronav.detection.decoder import decode_refine_logits
+from fluoronav.detection.heatmaps import decode_landmarks, heatmap_cross_entropy
+from fluoronav.detection.loss import detector_loss, ends_loss, ends_outputs, refine_loss, refine_outputs
+from fluoronav.detection.model import DetectorNet, count_parameters, load_net, save_model, sidecar_path
+from fluoronav.detection.training_patches import EndJitter, RefineJitter
 from fluoronav.device import resolve_device
 from fluoronav.errors import InputError
+
+__all__ = [
+    "ARCHITECTURE",
+    "TrainConfig",
+    "check_coarse_size",
+    "checkpoint_path",
+    "init_config",
+    "log_path",
+    "save_model",
+    "sidecar_path",
+    "train",
+    "validate",
+    "validate_ends",
+    "validate_refine",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -83,9 +84,7 @@ class TrainConfig:
             ``("ends",)`` the mask-end stage alone (:class:`~fluoronav.detection.dataset.EndsDataset`,
             BCE + Dice on the patch masks), likewise; ``("tube",)`` the tube-mask stage alone, likewise;
             ``("shaft",)`` the shaft stage alone (tube-mask patches, some on the mounting shaft:
-            ``tube_shaft_prob``), added to a model without one with the tube-mask stage's weights;
-            ``("strip",)`` the strip stage alone (:class:`~fluoronav.detection.dataset.StripDataset`,
-            cross-entropy of A's place along paths), added to a model without one.
+            ``tube_shaft_prob``), added to a model without one with the tube-mask stage's weights.
         edge_negative_prob: probability that a CM-free sample's fine ROI is centred on a strong edge
             of its image (``AugmentConfig.p_edge_negative_roi``) rather than anywhere.
         refine_repeats: patches per landmark and sample in an epoch of the refinement or the mask-end
@@ -121,11 +120,10 @@ class TrainConfig:
     tube_shaft_prob: float = 0.0
 
     def __post_init__(self) -> None:
-        alone = self.stages in (("refine",), ("ends",), ("tube",), ("shaft",), ("strip",))
+        alone = self.stages in (("refine",), ("ends",), ("tube",), ("shaft",))
         if not alone and (not self.stages or not set(self.stages) <= {"coarse", "fine"}):
             raise ValueError(
-                "stages must be 'coarse' and/or 'fine', or one of 'refine', 'ends', 'tube', 'shaft', "
-                "'strip' alone, "
+                "stages must be 'coarse' and/or 'fine', or one of 'refine', 'ends', 'tube', 'shaft' alone, "
                 f"got {self.stages}"
             )
         if self.refine_repeats < 1:
@@ -144,28 +142,44 @@ class TrainConfig:
             raise ValueError("the shaft stage learns from patches on the shaft: give tube_shaft_prob > 0")
 
 
-#: the architecture fields of the refinement stage
-REFINE_FIELDS = ("refine_channels", "refine_shape", "refine_step_mm", "refine_sigma_px")
+#: per network stage, the settings fixed by its trained weights (the rest only steer decoding)
+ARCHITECTURE: dict[str, tuple[str, ...]] = {
+    "coarse": ("network", "sampler.size", "decoder.heatmap", "decoder.sigma_px"),
+    "fine": ("network", "sampler.size", "decoder.heatmap", "decoder.sigma_px"),
+    "refine": ("network", "sampler.shape", "sampler.step_mm", "decoder.sigma_px"),
+    "ends": ("network", "sampler.shape", "sampler.step_mm"),
+    "tube": ("network", "sampler.shape", "sampler.step_mm"),
+    "shaft": ("network", "sampler.shape", "sampler.step_mm"),
+}
 
-#: the architecture fields of the patch-mask stages (their patch scale is ``refine_step_mm``)
-ENDS_FIELDS = ("ends_channels", "ends_shape", "tube_channels", "shaft_channels")
 
-#: the architecture fields of the strip stage (its scale is ``refine_step_mm`` too)
-STRIP_FIELDS = ("strip_channels", "strip_shape", "strip_sigma_px")
+def init_config(start: DetectorConfig, base: DetectorConfig) -> DetectorConfig:
+    """``base``'s settings with ``start``'s networks: each network stage of ``start`` listed, with
+    the settings its weights fix (:data:`ARCHITECTURE`) from ``start`` and the others from ``base``
+    (the stage's defaults where ``base`` does not list it)."""
+    data = base.to_dict()
+    stages = set(base.stages)
+    for name in start.network_stages:
+        stages.add(name)
+        ours = data.get(name) or DetectorConfig(stages=("coarse", "fine", name)).to_dict()[name]
+        theirs = getattr(start, name).model_dump(mode="json")
+        for path in ARCHITECTURE[name]:
+            *head, last = path.split(".")
+            dst, src = ours, theirs
+            for key in head:
+                dst, src = dst[key], src[key]
+            dst[last] = src[last]
+        data[name] = ours
+    data["stages"] = [s for s in STAGE_ORDER if s in stages]
+    return DetectorConfig.model_validate(data)
 
-#: the model configuration fields fixed by trained weights (the rest only steer decoding)
-ARCHITECTURE_FIELDS = (
-    "input_size",
-    "roi_size",
-    "channels",
-    "roi_channels",
-    "num_res_units",
-    "sigma_px",
-    "heatmap",
-    *REFINE_FIELDS,
-    *ENDS_FIELDS,
-    *STRIP_FIELDS,
-)
+
+def with_stage(config: DetectorConfig, name: str, settings: dict[str, Any] | None = None) -> DetectorConfig:
+    """``config`` with stage ``name`` listed, with ``settings`` (None: its defaults)."""
+    data = config.to_dict()
+    data[name] = {} if settings is None else settings
+    data["stages"] = [s for s in STAGE_ORDER if s in config.stages or s == name]
+    return DetectorConfig.model_validate(data)
 
 
 def check_coarse_size(coarse_size: int | None, stages: Sequence[str]) -> None:
@@ -187,84 +201,6 @@ def log_path(model_path: Path) -> Path:
     return model_path.with_name(model_path.stem + ".log.jsonl")
 
 
-def sidecar_path(model_path: Path) -> Path:
-    return model_path.with_suffix(".json")
-
-
-def stage_loss(
-    out: torch.Tensor,
-    mask: torch.Tensor,
-    landmarks: torch.Tensor,
-    *,
-    sigma_px: float,
-    heatmap_weight: float,
-    dice: DiceLoss,
-    fg_weight: float = 0.0,
-    bce_weight: float = 0.0,
-    heatmap_mode: str = "softmax",
-) -> tuple[torch.Tensor, dict[str, float]]:
-    """Segmentation + heatmap loss of one stage. out (B, 3, S, S), mask (B, 1, S, S), landmarks (B, 2, 2).
-
-    Heatmaps: cross-entropy of the spatial softmax (``heatmap_mode="softmax"``) or the weighted L2 of
-    peak-1 Gaussians (``"gaussian"``, the paper's).
-    """
-    seg = dice(out[:, :1], mask)
-    if bce_weight > 0:
-        seg = seg + bce_weight * tnf.binary_cross_entropy_with_logits(out[:, :1], mask)
-    if heatmap_mode == "softmax":
-        hm = heatmap_cross_entropy(out[:, 1:], landmarks, sigma_px=sigma_px)
-    else:
-        target = gaussian_heatmaps(landmarks, (out.shape[-2], out.shape[-1]), sigma_px=sigma_px)
-        w = 1.0 + fg_weight * target
-        hm = (w * (out[:, 1:] - target) ** 2).sum() / (out.shape[0] * 2 * math.pi * sigma_px**2)
-    return seg + heatmap_weight * hm, {"dice_loss": float(seg.detach()), "heatmap_loss": float(hm.detach())}
-
-
-def detector_loss(
-    outputs: dict[str, torch.Tensor],
-    batch: dict[str, torch.Tensor],
-    device: torch.device,
-    cfg: DetectorConfig,
-    tcfg: TrainConfig,
-    dice: DiceLoss,
-) -> torch.Tensor:
-    """Sum of the :func:`stage_loss` of each stage in ``outputs`` (stage name → (B, 3, S, S)) on a batch."""
-    total = next(iter(outputs.values())).new_zeros(())
-    for stage, out in outputs.items():
-        loss, _ = stage_loss(
-            out,
-            batch[f"{stage}_mask"].to(device),
-            batch[f"{stage}_landmarks"].to(device),
-            sigma_px=cfg.sigma_px,
-            heatmap_weight=tcfg.heatmap_weight,
-            dice=dice,
-            fg_weight=tcfg.heatmap_fg_weight,
-            bce_weight=tcfg.bce_weight,
-            heatmap_mode=cfg.heatmap,
-        )
-        total = total + loss
-    return total
-
-
-def save_model(path: Path, net: DetectorNet, *, extra: dict) -> None:
-    """Write the model file (state_dict + config + normalisation + version) and its JSON sidecar."""
-    cfg = net.config
-    meta = {
-        "format_version": MODEL_FORMAT_VERSION,
-        "fluoronav_version": __version__,
-        "config": cfg.to_dict(),
-        "normalization": {"method": "percentile", "low_pct": cfg.low_pct, "high_pct": cfg.high_pct},
-        # the whole model's size, also when one stage was frozen for this run
-        "parameters": count_parameters(net, trainable_only=False),
-        **extra,
-    }
-    state = {k: v.detach().cpu() for k, v in net.state_dict().items()}
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save({**meta, "state_dict": state}, tmp)
-    tmp.replace(path)
-    sidecar_path(path).write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
-
-
 def run_stages(
     net: DetectorNet, batch: dict[str, torch.Tensor], stages: tuple[str, ...], device: torch.device
 ) -> dict[str, torch.Tensor]:
@@ -277,43 +213,25 @@ def _mean_or_nan(values: Sequence[float]) -> float:
     return float(np.mean(values)) if len(values) else float("nan")
 
 
-def refine_outputs(
-    net: DetectorNet, batch: dict[str, torch.Tensor], device: torch.device
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Refinement logits of each patch's own landmark (N, 1, rows, cols) and targets (N, 1, 2) (col, row;
-    NaN: no patch), N = 2 × the batch (A and B of each sample)."""
-    assert net.refine is not None
-    x = batch["refine_image"].to(device)  # (B, 2, 1, rows, cols)
-    b = x.shape[0]
-    out = net.refine(x.reshape(b * 2, *x.shape[2:]))
-    k = torch.arange(2, device=device).repeat(b)
-    sel = out[torch.arange(b * 2, device=device), k][:, None]
-    return sel, batch["refine_landmarks"].to(device).reshape(b * 2, 1, 2)
-
-
-def refine_loss(
-    net: DetectorNet, batch: dict[str, torch.Tensor], device: torch.device, cfg: DetectorConfig
-) -> torch.Tensor:
-    """Cross-entropy of the refinement heatmaps (:func:`heatmap_cross_entropy`) on a batch."""
-    sel, target = refine_outputs(net, batch, device)
-    return heatmap_cross_entropy(sel, target, sigma_px=cfg.refine_sigma_px)
-
-
 @torch.no_grad()
 def validate_refine(
     net: DetectorNet, loader: DataLoader, device: torch.device, cfg: DetectorConfig
 ) -> dict[str, float]:
     """Validation loss and landmark error (input pixels) of the refinement stage from jittered starts:
-    ``val_landmark_px`` with the inference prior (``refine_prior_px``), ``val_start_px`` where the
+    ``val_landmark_px`` with the inference prior (``decoder.prior_px``), ``val_start_px`` where the
     patches started."""
+    assert cfg.refine is not None
+    sampler, decoder = cfg.refine.sampler, cfg.refine.decoder
     net.eval()
     losses, errs, starts = [], [], []
-    centre = torch.tensor([(cfg.refine_shape[1] - 1) / 2.0, (cfg.refine_shape[0] - 1) / 2.0])
-    scale = cfg.refine_step_px(None)  # input pixels per patch pixel at the training spacing
+    centre = torch.tensor([(sampler.shape[1] - 1) / 2.0, (sampler.shape[0] - 1) / 2.0])
+    scale = sampler.step_px(
+        None, cfg.assumed_spacing_mm
+    )  # input pixels per patch pixel at the training spacing
     for batch in loader:
         sel, target = refine_outputs(net, batch, device)
-        losses.append(float(heatmap_cross_entropy(sel, target, sigma_px=cfg.refine_sigma_px)))
-        pts, _ = decode_refine_logits(sel.cpu(), sigma_px=cfg.refine_sigma_px, prior_px=cfg.refine_prior_px)
+        losses.append(float(heatmap_cross_entropy(sel, target, sigma_px=decoder.sigma_px)))
+        pts, _ = decode_refine_logits(sel.cpu(), sigma_px=decoder.sigma_px, prior_px=decoder.prior_px)
         t = target[:, 0].cpu()
         ok = torch.isfinite(t).all(dim=1)
         errs.extend((torch.linalg.norm(pts[ok] - t[ok], dim=1) * scale).tolist())
@@ -326,46 +244,22 @@ def validate_refine(
     }
 
 
-def ends_outputs(
-    stage: nn.Module, batch: dict[str, torch.Tensor], device: torch.device
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Patch mask logits (N, 1, rows, cols) of the mask-end or tube-mask ``stage`` and true patch
-    masks (N, 1, rows, cols) of the patches that exist (N ≤ 2 × the batch)."""
-    x = batch["ends_image"].to(device)  # (B, 2, 1, rows, cols)
-    ok = batch["ends_valid"].to(device).reshape(-1) > 0
-    out = stage(x.reshape(-1, *x.shape[2:])[ok])
-    return out, batch["ends_mask"].to(device).reshape(-1, *x.shape[2:])[ok]
-
-
-def ends_loss(
-    stage: nn.Module, batch: dict[str, torch.Tensor], device: torch.device, dice: DiceLoss
-) -> torch.Tensor:
-    """Binary cross-entropy + Dice of a patch-mask stage's masks on a batch (0 without patches)."""
-    out, target = ends_outputs(stage, batch, device)
-    if out.shape[0] == 0:
-        return out.sum()
-    return tnf.binary_cross_entropy_with_logits(out, target) + dice(out, target)
-
-
 @torch.no_grad()
 def validate_ends(
-    stage: nn.Module,
-    loader: DataLoader,
-    device: torch.device,
-    cfg: DetectorConfig,
-    dice: DiceLoss,
-    *,
-    tube: bool = False,
+    stage: nn.Module, loader: DataLoader, device: torch.device, cfg: EndsConfig | TubeConfig, dice: DiceLoss
 ) -> dict[str, float]:
-    """Validation loss and the pixel error of a patch-mask stage on the part of the patches that it
-    decides at inference (``ends_inner_px`` for the mask-end stage, ``tube_band_px`` for the tube-mask
-    one, ``tube``): ``val_end_error`` the fraction of those pixels labelled wrongly, ``val_end_dice``
-    the Dice there."""
+    """Validation loss and the pixel error of a patch-mask stage's network on the part of the patches
+    that it decides at inference (``inner_px`` inside the landmark outwards for the mask-end stage,
+    ``band_px`` around the centre for the tube-mask and shaft stages): ``val_end_error`` the
+    fraction of those pixels labelled wrongly, ``val_end_dice`` the Dice there."""
     stage.eval()
     losses, wrong, total, inter, sizes = [], 0.0, 0.0, 0.0, 0.0
-    centre = (cfg.ends_shape[1] - 1) / 2.0
-    cols = torch.arange(cfg.ends_shape[1], dtype=torch.float32)
-    keep = (cols - centre).abs() <= cfg.tube_band_px if tube else cols <= centre + cfg.ends_inner_px
+    cols_n = cfg.sampler.shape[1]
+    centre = (cols_n - 1) / 2.0
+    cols = torch.arange(cols_n, dtype=torch.float32)
+    keep = (
+        cols <= centre + cfg.inner_px if isinstance(cfg, EndsConfig) else (cols - centre).abs() <= cfg.band_px
+    )
     for batch in loader:
         out, target = ends_outputs(stage, batch, device)
         if out.shape[0] == 0:
@@ -385,68 +279,25 @@ def validate_ends(
     }
 
 
-def strip_outputs(
-    stage: nn.Module, batch: dict[str, torch.Tensor], device: torch.device
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Log-probabilities (N, cols + 1) of the strip ``stage`` (:func:`strip_log_probs`), the paths'
-    columns (N, cols) and A's columns (N,) (−1: none) of the strips that exist (N ≤ 2 × the batch)."""
-    x = batch["strip_image"].to(device)  # (B, 2, 1, rows, cols)
-    ok = batch["strip_ok"].to(device).reshape(-1) > 0
-    valid = batch["strip_valid"].to(device).reshape(-1, x.shape[-1])[ok]
-    logp = strip_log_probs(stage(x.reshape(-1, *x.shape[2:])[ok]), valid)
-    return logp, valid, batch["strip_a"].to(device).reshape(-1)[ok]
-
-
-def _strip_cross_entropy(
-    logp: torch.Tensor, valid: torch.Tensor, a_col: torch.Tensor, cfg: DetectorConfig
+def _view_loss(
+    outputs: dict[str, torch.Tensor],
+    batch: dict[str, torch.Tensor],
+    device: torch.device,
+    cfg: DetectorConfig,
+    tcfg: TrainConfig,
+    dice: DiceLoss,
 ) -> torch.Tensor:
-    """Mean cross-entropy of strip log-probabilities (N, cols + 1) against :func:`strip_targets`."""
-    target = strip_targets(valid, a_col, sigma_px=cfg.strip_sigma_px)
-    return -(target * logp).sum(dim=1).mean()
-
-
-def strip_loss(
-    stage: nn.Module, batch: dict[str, torch.Tensor], device: torch.device, cfg: DetectorConfig
-) -> torch.Tensor:
-    """Cross-entropy of the strip stage's distributions against :func:`strip_targets` (0 without
-    strips)."""
-    logp, valid, a_col = strip_outputs(stage, batch, device)
-    if logp.shape[0] == 0:
-        return logp.sum()
-    return _strip_cross_entropy(logp, valid, a_col, cfg)
-
-
-@torch.no_grad()
-def validate_strip(
-    stage: nn.Module, loader: DataLoader, device: torch.device, cfg: DetectorConfig
-) -> dict[str, float]:
-    """Validation loss of the strip stage; on paths without A the fraction told so
-    (``val_none_right``), on paths through A the fraction said to have none (``val_a_missed``), the
-    median error of the most likely column (``val_a_median_mm``, mm at the detector) and the fraction
-    of those more than 3 mm off (``val_a_gross``)."""
-    stage.eval()
-    losses, none_right, missed, errs = [], [], [], []
-    for batch in loader:
-        logp, valid, a_col = strip_outputs(stage, batch, device)
-        if logp.shape[0] == 0:
-            continue
-        losses.append(float(_strip_cross_entropy(logp, valid, a_col, cfg)))
-        best = logp.argmax(dim=1).cpu().numpy()
-        a = a_col.cpu().numpy()
-        none = logp.shape[1] - 1
-        none_right.extend((best[a < 0] == none).tolist())
-        has = a >= 0
-        missed.extend((best[has] == none).tolist())
-        found = has & (best != none)
-        errs.extend((np.abs(best[found] - a[found]) * cfg.refine_step_mm).tolist())
-    stage.train()
-    return {
-        "val_loss": _mean_or_nan(losses),
-        "val_none_right": _mean_or_nan(none_right),
-        "val_a_missed": _mean_or_nan(missed),
-        "val_a_median_mm": float(np.median(errs)) if errs else float("nan"),
-        "val_a_gross": _mean_or_nan([e > 3.0 for e in errs]),
-    }
+    """:func:`~fluoronav.detection.loss.detector_loss` with the training settings' weights."""
+    return detector_loss(
+        outputs,
+        batch,
+        device,
+        cfg,
+        dice=dice,
+        heatmap_weight=tcfg.heatmap_weight,
+        fg_weight=tcfg.heatmap_fg_weight,
+        bce_weight=tcfg.bce_weight,
+    )
 
 
 @torch.no_grad()
@@ -466,12 +317,13 @@ def validate(
         outputs = run_stages(net, batch, ("coarse", "fine"), device)
         co, fo = outputs["coarse"], outputs["fine"]
         trained = {k: v for k, v in outputs.items() if k in tcfg.stages}
-        losses.append(float(detector_loss(trained, batch, device, cfg, tcfg, dice)))
+        losses.append(float(_view_loss(trained, batch, device, cfg, tcfg, dice)))
         pos = batch["positive"].numpy()
-        pred = (torch.sigmoid(fo[:, 0]) > cfg.mask_threshold).cpu().numpy()
+        fd, cd = cfg.fine.decoder, cfg.coarse.decoder
+        pred = (torch.sigmoid(fo[:, 0]) > fd.mask_threshold).cpu().numpy()
         true = batch["fine_mask"][:, 0].numpy() > 0.5
-        fpts, _ = decode_landmarks(fo[:, 1:].cpu(), mode=cfg.heatmap, sigma_px=cfg.sigma_px)
-        cpts, _ = decode_landmarks(co[:, 1:].cpu(), mode=cfg.heatmap, sigma_px=cfg.sigma_px)
+        fpts, _ = decode_landmarks(fo[:, 1:].cpu(), mode=fd.heatmap, sigma_px=fd.sigma_px)
+        cpts, _ = decode_landmarks(co[:, 1:].cpu(), mode=cd.heatmap, sigma_px=cd.sigma_px)
         view = batch["fine_view"].numpy()
         for i in np.nonzero(pos)[0]:
             inter = np.logical_and(pred[i], true[i]).sum()
@@ -510,12 +362,12 @@ def train(
 
     Returns the last epoch's metrics. With ``resume`` the checkpoint next to ``out_path`` is
     continued (its model configuration wins over ``model_config``). ``init`` starts from the weights
-    of a model file (fine-tuning, e.g. on a new data set) and takes its architecture
-    (:data:`ARCHITECTURE_FIELDS`); the decoding settings come from ``model_config`` (default: this
+    of a model file (fine-tuning, e.g. on a new data set) and takes its networks and the settings
+    they fix (:func:`init_config`); the other settings come from ``model_config`` (default: this
     version's), or with ``keep_decoding`` from the ``init`` file, ``model_config`` aside
     (fine-tuning a tuned model: the result decodes as it did); the optimiser and the learning-rate
     schedule start afresh. ``resume`` wins over ``init``. ``coarse_size`` sets the coarse stage's
-    working resolution (``input_size``, pixels; a multiple of 16), also against the ``init`` file's:
+    working resolution (``coarse.sampler.size``, pixels; a multiple of 16), also against the ``init`` file's:
     the U-Net is convolutional, so its weights carry over to the new scale and are trained there
     (``coarse`` must be among the stages trained).
     """
@@ -536,65 +388,49 @@ def train(
         model_config = DetectorConfig.from_dict(ckpt["config"])
     init_state = None
     if init is not None and ckpt is None:
-        from fluoronav.detection.detector import load_net
-
         start = load_net(init)  # validated: one-line error on a bad file
-        keep: tuple[str, ...] = ARCHITECTURE_FIELDS
-        if not start.config.refine_channels:  # no refinement stage yet: this version's settings
-            keep = tuple(f for f in keep if f not in REFINE_FIELDS)
-        # likewise the patch-mask stages, which share their patch shape
-        c = start.config
-        absent = {"ends_channels"} if not c.ends_channels else set()
-        absent |= {"tube_channels"} if not c.tube_channels else set()
-        absent |= {"shaft_channels"} if not c.shaft_channels else set()
-        absent |= set(STRIP_FIELDS) if not c.strip_channels else set()
-        if not (c.ends_channels or c.tube_channels):
-            absent.add("ends_shape")
-        keep = tuple(f for f in keep if f not in absent)
-        arch = {f: getattr(start.config, f) for f in keep}
         base = start.config if keep_decoding else model_config or DetectorConfig()
-        model_config = dataclasses.replace(base, **arch)
+        model_config = init_config(start.config, base)
         init_state = start.state_dict()
         logger.info("starting from the weights of %s", init)
     mcfg = model_config or DetectorConfig()
     if coarse_size is not None and ckpt is None:  # a resumed run keeps its checkpoint's configuration
-        mcfg = dataclasses.replace(mcfg, input_size=coarse_size)
+        data = mcfg.to_dict()
+        data["coarse"]["sampler"]["size"] = coarse_size
+        mcfg = DetectorConfig.model_validate(data)
     refining = tcfg.stages == ("refine",)
-    stripping = tcfg.stages == ("strip",)
     shafting = tcfg.stages == ("shaft",)
     tubing = shafting or tcfg.stages == ("tube",)  # patches along the centreline
     ending = tubing or tcfg.stages == ("ends",)  # a patch-mask stage
-    if refining and not mcfg.refine_channels:
-        mcfg = dataclasses.replace(mcfg, refine_channels=DEFAULT_REFINE_CHANNELS)
-    if tubing and not shafting and not mcfg.tube_channels:
-        mcfg = dataclasses.replace(mcfg, tube_channels=DEFAULT_TUBE_CHANNELS)
-    if shafting and not mcfg.shaft_channels:
+    if refining and mcfg.refine is None:
+        mcfg = with_stage(mcfg, "refine")
+    if tubing and not shafting and mcfg.tube is None:
+        mcfg = with_stage(mcfg, "tube")
+    if shafting and mcfg.shaft is None:
         # a new shaft stage starts as a copy of the tube-mask stage: it learns one thing more
-        mcfg = dataclasses.replace(mcfg, shaft_channels=mcfg.tube_channels or DEFAULT_TUBE_CHANNELS)
-        if init_state is not None and mcfg.shaft_channels == mcfg.tube_channels:
+        tube = mcfg.tube.model_dump(mode="json") if mcfg.tube is not None else None
+        mcfg = with_stage(mcfg, "shaft", tube)
+        if init_state is not None and tube is not None:
             init_state = {
                 **init_state,
                 **{"shaft." + k[len("tube.") :]: v for k, v in init_state.items() if k.startswith("tube.")},
             }
-    if ending and not tubing and not mcfg.ends_channels:
-        mcfg = dataclasses.replace(mcfg, ends_channels=DEFAULT_ENDS_CHANNELS)
-    if stripping and not mcfg.strip_channels:
-        mcfg = dataclasses.replace(mcfg, strip_channels=DEFAULT_STRIP_CHANNELS)
+    if ending and not tubing and mcfg.ends is None:
+        mcfg = with_stage(mcfg, "ends")
 
     torch.manual_seed(tcfg.seed)
     net = DetectorNet(mcfg).to(device)
     if init_state is not None:
         missing, unexpected = net.load_state_dict(init_state, strict=False)
-        if unexpected or any(
-            not k.startswith(("refine.", "ends.", "tube.", "shaft.", "strip.")) for k in missing
-        ):
+        if unexpected or any(not k.startswith(("refine.", "ends.", "tube.", "shaft.")) for k in missing):
             raise InputError(str(init), "weights do not match the model configuration")
-    for name in STAGES:
+    for name in NETWORK_STAGES:
         module = getattr(net, name)
         if module is not None:
             module.requires_grad_(name in tcfg.stages)
     # the patch-mask stage that trains; None for the others (a model may carry one all the same)
-    patch_stage = (net.shaft if shafting else net.tube if tubing else net.ends) if ending else None
+    patch_name = ("shaft" if shafting else "tube" if tubing else "ends") if ending else None
+    patch_stage = getattr(net, patch_name) if patch_name is not None else None
     opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=tcfg.lr)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=tcfg.lr_step_epochs, gamma=tcfg.lr_gamma)
     start_epoch = 0
@@ -616,14 +452,12 @@ def train(
         else None
     )
     dirs = [data_dir] if isinstance(data_dir, (str, Path)) else list(data_dir)
-    # the refinement and mask-end stages read patches around the landmarks; the others whole views
+    # the patch stages read tube-aligned patches; the view stages whole views and ROIs
     make_ds = (
         functools.partial(RefineDataset, repeats=tcfg.refine_repeats)
         if refining
-        else functools.partial(StripDataset, repeats=tcfg.refine_repeats)
-        if stripping
         else functools.partial(
-            EndsDataset, repeats=tcfg.refine_repeats, tube=tubing, shaft_prob=tcfg.tube_shaft_prob
+            EndsDataset, repeats=tcfg.refine_repeats, stage=str(patch_name), shaft_prob=tcfg.tube_shaft_prob
         )
         if ending
         else CMDetectionDataset
@@ -683,13 +517,10 @@ def train(
                 break
             if refining:
                 loss = refine_loss(net, batch, device, mcfg)
-            elif stripping:
-                assert net.strip is not None
-                loss = strip_loss(net.strip, batch, device, mcfg)
             elif patch_stage is not None:
                 loss = ends_loss(patch_stage, batch, device, dice)
             else:
-                loss = detector_loss(
+                loss = _view_loss(
                     run_stages(net, batch, tcfg.stages, device), batch, device, mcfg, tcfg, dice
                 )
             opt.zero_grad(set_to_none=True)
@@ -708,11 +539,9 @@ def train(
         if len(val_ds):
             if refining:
                 val = validate_refine(net, val_loader, device, mcfg)
-            elif stripping:
-                assert net.strip is not None
-                val = validate_strip(net.strip, val_loader, device, mcfg)
             elif patch_stage is not None:
-                val = validate_ends(patch_stage, val_loader, device, mcfg, dice, tube=tubing)
+                stage_cfg = getattr(mcfg, str(patch_name))
+                val = validate_ends(patch_stage, val_loader, device, stage_cfg, dice)
             else:
                 val = validate(net, val_loader, device, mcfg, tcfg, dice)
         metrics = {
@@ -737,15 +566,7 @@ def train(
                 # the augmentation ranges (None: off), so that a model file says how it was trained
                 "augmentation": None
                 if aug is None
-                else asdict(
-                    RefineJitter()
-                    if refining
-                    else StripJitter()
-                    if stripping
-                    else EndJitter()
-                    if ending
-                    else aug
-                ),
+                else asdict(RefineJitter() if refining else EndJitter() if ending else aug),
             },
             "metrics": metrics,
         }

@@ -1,4 +1,5 @@
-"""Square resampled windows ("views") of a detector image and robust per-view intensity normalisation.
+"""The view sampler of the coarse and fine stages: square resampled windows ("views") of a detector
+image and robust per-view intensity normalisation.
 
 A :class:`View` maps its own pixel grid (``size`` × ``size``) onto a square window of ``side`` input
 pixels whose top-left pixel *edge* is at ``(x0, y0)``. With the pixel-centre convention (origin at the
@@ -142,3 +143,17 @@ def normalize_intensity(image: np.ndarray, *, low_pct: float = 1.0, high_pct: fl
     if not np.isfinite(span) or span <= 1e-12:
         return np.zeros_like(img)
     return (img - np.float32(lo)) / np.float32(span)
+
+
+def scaled_view(view: View, factor: float) -> View:
+    """The view with its side × ``factor`` about the same centre (same output size)."""
+    side = max(round(view.side * factor), 2)
+    return View(
+        round(view.x0 + (view.side - side) / 2.0), round(view.y0 + (view.side - side) / 2.0), side, view.size
+    )
+
+
+def view_input(image: np.ndarray, view: View, *, low_pct: float, high_pct: float) -> np.ndarray:
+    """The network input (size, size) float32 of ``view`` on an image (rows, cols):
+    :func:`resample`, then :func:`normalize_intensity`."""
+    return normalize_intensity(resample(image, view), low_pct=low_pct, high_pct=high_pct)
