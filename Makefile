@@ -22,6 +22,7 @@ demo: install
 	$(VENV)/bin/fluoronav demo --out $(OUT) --seed $(SEED)
 
 test: install
+	$(VENV)/bin/lint-imports
 	$(PY) -m pytest -q -m "not slow" -p no:cacheprovider
 
 test-slow: install
@@ -31,6 +32,7 @@ lint: install
 	$(VENV)/bin/ruff check src tests
 	$(VENV)/bin/ruff format --check src tests
 	$(VENV)/bin/mypy
+	$(VENV)/bin/lint-imports
 
 bench: install
 	$(VENV)/bin/fluoronav bench

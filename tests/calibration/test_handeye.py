@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fluoronav.calibration import _se3
 from fluoronav.calibration.handeye import (
     AX_XB_METHODS,
     AX_YB_METHODS,
@@ -21,15 +20,16 @@ from fluoronav.calibration.handeye import (
     transform_error,
 )
 from fluoronav.calibration.results import HandEyeFailure, HandEyeResult
-from fluoronav.calibration.robot import UR10, random_configurations_deg
 from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker
+from fluoronav.geometry import se3
+from fluoronav.manipulator.robot import UR10, random_configurations_deg
 
 # OpenCV's solvers reach ~1e-11 on noise-free data (LI's Y ~1e-9 mm); the stated tolerance is 1e-6.
 TOL_DEG = 1e-6
 TOL_MM = 1e-6
 HOME = np.array([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
-X_TRUE = _se3.make(Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix(), [20.0, -35.0, 110.0])
-Y_TRUE = _se3.make(Rotation.from_rotvec([0.1, 2.0, -0.4]).as_matrix(), [-300.0, 1500.0, 400.0])
+X_TRUE = se3.make(Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix(), [20.0, -35.0, 110.0])
+Y_TRUE = se3.make(Rotation.from_rotvec([0.1, 2.0, -0.4]).as_matrix(), [-300.0, 1500.0, 400.0])
 ALL = [(m, calibrate_hand_eye) for m in AX_XB_METHODS] + [
     (m, calibrate_robot_world_hand_eye) for m in AX_YB_METHODS
 ]
@@ -105,7 +105,7 @@ def test_single_axis_rotation_is_degenerate(method, solve):
     q = np.tile(HOME, (10, 1))
     q[:, 5] += np.linspace(-60, 60, 10)
     A = UR10.rbase_from_ee(q)
-    B = _se3.inv(Y_TRUE) @ A @ X_TRUE
+    B = se3.inv(Y_TRUE) @ A @ X_TRUE
     res = solve(A, B, method=method)
     assert isinstance(res, HandEyeFailure) and "degenerate" in res.reason
 
@@ -125,7 +125,7 @@ def test_wrong_adapter_would_not_close_the_loop():
     R, t = cv2.calibrateHandEye(
         [a[:3, :3] for a in A], [a[:3, 3:4] for a in A], [b[:3, :3] for b in B], [b[:3, 3:4] for b in B]
     )
-    assert transform_error(_se3.make(R, t.reshape(3)), X_TRUE)[1] > 1.0
+    assert transform_error(se3.make(R, t.reshape(3)), X_TRUE)[1] > 1.0
 
 
 def test_tip_chains_eq9_eq10_agree_on_truth():
@@ -133,18 +133,18 @@ def test_tip_chains_eq9_eq10_agree_on_truth():
     n = 12
     q = random_configurations_deg(n, rng=rng, center_deg=HOME, spread_deg=15.0)
     rbase_from_ee = UR10.rbase_from_ee(q)
-    ee_from_cm = _se3.make(Rotation.from_rotvec([0.0, 0.2, 0.1]).as_matrix(), [5.0, -3.0, 180.0])
-    ee_from_os = _se3.make(Rotation.from_rotvec([0.5, 0.0, 0.0]).as_matrix(), [40.0, 0.0, 120.0])
+    ee_from_cm = se3.make(Rotation.from_rotvec([0.0, 0.2, 0.1]).as_matrix(), [5.0, -3.0, 180.0])
+    ee_from_os = se3.make(Rotation.from_rotvec([0.5, 0.0, 0.0]).as_matrix(), [40.0, 0.0, 120.0])
     # The tip segment moves relative to the CM base with the bending (one pose per configuration).
-    cm_from_cmt = _se3.make(Rotation.from_rotvec(rng.normal(0, 0.1, (n, 3))).as_matrix(), [0.0, 2.0, 25.0])
-    cmt_from_ot = _se3.make(Rotation.from_rotvec([0.0, 0.0, 1.0]).as_matrix(), [10.0, 10.0, 0.0])
+    cm_from_cmt = se3.make(Rotation.from_rotvec(rng.normal(0, 0.1, (n, 3))).as_matrix(), [0.0, 2.0, 25.0])
+    cmt_from_ot = se3.make(Rotation.from_rotvec([0.0, 0.0, 1.0]).as_matrix(), [10.0, 10.0, 0.0])
     tip_cmt = np.array([0.0, 0.0, 6.0])
-    tip_ot = (_se3.inv(cmt_from_ot) @ np.append(tip_cmt, 1.0))[:3]
+    tip_ot = (se3.inv(cmt_from_ot) @ np.append(tip_cmt, 1.0))[:3]
     rbase_from_tracker = Y_TRUE
-    rbase_from_carm = _se3.make(Rotation.from_rotvec([1.2, 0.0, 0.3]).as_matrix(), [-800.0, 0.0, 300.0])
-    tracker_from_os = _se3.inv(rbase_from_tracker) @ rbase_from_ee @ ee_from_os
-    tracker_from_ot = _se3.inv(rbase_from_tracker) @ rbase_from_ee @ ee_from_cm @ cm_from_cmt @ cmt_from_ot
-    carm_from_cm = _se3.inv(rbase_from_carm) @ rbase_from_ee @ ee_from_cm
+    rbase_from_carm = se3.make(Rotation.from_rotvec([1.2, 0.0, 0.3]).as_matrix(), [-800.0, 0.0, 300.0])
+    tracker_from_os = se3.inv(rbase_from_tracker) @ rbase_from_ee @ ee_from_os
+    tracker_from_ot = se3.inv(rbase_from_tracker) @ rbase_from_ee @ ee_from_cm @ cm_from_cmt @ cmt_from_ot
+    carm_from_cm = se3.inv(rbase_from_carm) @ rbase_from_ee @ ee_from_cm
     tip_carm = (
         np.einsum("nij,j->ni", (carm_from_cm @ cm_from_cmt)[:, :3, :3], tip_cmt)
         + (carm_from_cm @ cm_from_cmt)[:, :3, 3]

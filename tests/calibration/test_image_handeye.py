@@ -7,7 +7,6 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from fluoronav.calibration import _se3
 from fluoronav.calibration.image_handeye import (
     ImageHandEyeConfig,
     ImageHandEyeProblem,
@@ -16,9 +15,10 @@ from fluoronav.calibration.image_handeye import (
     initial_world_from_rbase_pnp,
 )
 from fluoronav.calibration.results import HandEyeFailure
-from fluoronav.calibration.robot import UR10
+from fluoronav.geometry import se3
 from fluoronav.geometry.carm import carm_camera
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.manipulator.robot import UR10
 from fluoronav.registration.cm import CMView
 from fluoronav.registration.priors import GaussianParameterPrior
 
@@ -27,7 +27,7 @@ HOME = np.array([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
 
 def _synthetic(m: int, rng: np.random.Generator, *, rotate: bool = True):
     """Exact landmark geometry: robot FK, hand-eye, a camera looking at the CM working pose."""
-    X = _se3.make(Rotation.from_rotvec([0.05, -0.1, 0.08]).as_matrix(), [3.0, -2.0, 200.0])
+    X = se3.make(Rotation.from_rotvec([0.05, -0.1, 0.08]).as_matrix(), [3.0, -2.0, 200.0])
     q = HOME + (rng.uniform(-15, 15, (m, 6)) if rotate else np.zeros((m, 6)))
     if not rotate:
         q[:, 0] += np.linspace(0.0, 0.0, m)
@@ -67,7 +67,7 @@ def test_pnp_initialisation_recovers_the_robot_base_from_exact_landmarks() -> No
     W = initial_world_from_rbase_pnp(views, A, X, cp)
     assert W is not None
     # the camera's world frame is the robot base frame in this synthetic setup
-    rot, trans = _se3.rotation_angle_deg(W[:3, :3]), np.linalg.norm(W[:3, 3])
+    rot, trans = se3.rotation_angle_deg(W[:3, :3]), np.linalg.norm(W[:3, 3])
     assert rot < 1e-3 and trans < 1e-2
 
 
@@ -104,7 +104,7 @@ def test_recovers_a_known_hand_eye_from_physics_images() -> None:
     translation 0.05-0.38 mm, rotation 2.0-2.1°, residual 0.5-0.7 px at 384²): tip < 1 mm,
     translation < 1 mm, rotation and axis tilt < 3° (better than the initial 5°), residual < 2 px."""
     from fluoronav.calibration.handeye import transform_error
-    from fluoronav.calibration.robot import RobotErrorModel
+    from fluoronav.manipulator.robot import RobotErrorModel
     from fluoronav.simulation.articulated import anatomy_and_simulator as _anatomy
     from fluoronav.simulation.robot_scene import (
         perturb_transform,
@@ -139,13 +139,13 @@ def test_recovers_a_known_hand_eye_from_physics_images() -> None:
         seed=0,
     )
     assert res.ok
-    from fluoronav.studies.handeye_study import _axis_and_roll_deg, _tip_rbase
+    from fluoronav.studies.handeye_trials import axis_and_roll_deg, tip_rbase
 
     rot, trans = transform_error(res.ee_from_cm, sc.ee_from_cm)
     A = UR10.rbase_from_ee(sc.q_deg)
-    tip_est = _tip_rbase(A, res.ee_from_cm, res.control_points_deg, kin)
-    tip_true = _tip_rbase(A, sc.ee_from_cm, sc.control_points_deg, kin)
+    tip_est = tip_rbase(A, res.ee_from_cm, res.control_points_deg, kin)
+    tip_true = tip_rbase(A, sc.ee_from_cm, sc.control_points_deg, kin)
     assert np.linalg.norm(tip_est - tip_true, axis=1).mean() < 1.0
     assert trans < 1.0 and rot < 3.0
-    assert _axis_and_roll_deg(res.ee_from_cm, sc.ee_from_cm)["handeye_axis_deg"] < 3.0
+    assert axis_and_roll_deg(res.ee_from_cm, sc.ee_from_cm)["handeye_axis_deg"] < 3.0
     assert np.all(res.residuals_px < 2.0)

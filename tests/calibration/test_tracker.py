@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fluoronav.calibration import _se3
 from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker, RigidBody, kabsch
+from fluoronav.geometry import se3
 
 
 def _random_poses(n: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     R = Rotation.random(n, random_state=seed).as_matrix()
-    return _se3.make(R, rng.uniform(-500, 500, (n, 3)) + np.array([0.0, 0.0, -1500.0]))
+    return se3.make(R, rng.uniform(-500, 500, (n, 3)) + np.array([0.0, 0.0, -1500.0]))
 
 
 def test_kabsch_recovers_pose_exactly_and_batched():

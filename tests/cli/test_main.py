@@ -17,7 +17,7 @@ from fluoronav.cli.main import main
         (["simulate", "--n", "zero", "--out", "x"], "Invalid value"),
         (
             ["train", "--data", "x", "--out", "m.pt", "--stage", "refine", "--stage", "fine"],
-            "'refine', 'ends', 'tube', 'shaft', 'strip' alone",
+            "'refine', 'ends', 'tube', 'shaft' alone",
         ),
         (["train", "--data", "x", "--out", "m.pt", "--stage", "middle"], "stages must be"),
         (["train", "--data", "x", "--out", "m.pt", "--stage", "shaft"], "give tube_shaft_prob > 0"),

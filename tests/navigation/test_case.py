@@ -14,12 +14,12 @@ import SimpleITK as sitk  # noqa: N813
 
 from fluoronav.anatomy.landmarks import write_landmarks_json
 from fluoronav.anatomy.volume import Volume
-from fluoronav.calibration.robot import UR10, DHRow, SerialRobot, load_robot, robot_to_dict
 from fluoronav.errors import InputError
 from fluoronav.geometry.camera import Camera, DetectorSpec
 from fluoronav.geometry.carm import carm_camera_from_world
 from fluoronav.geometry.dicom import camera_from_dicom
 from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.robot import UR10, DHRow, SerialRobot, load_robot, robot_to_dict
 from fluoronav.navigation.case import (
     CaseView,
     NavigationCase,

@@ -22,12 +22,12 @@ import pyigtl
 import pytest
 
 from fluoronav.anatomy.volume import Volume
-from fluoronav.calibration.robot import UR10
 from fluoronav.cli.main import main
 from fluoronav.errors import InputError
 from fluoronav.geometry.camera import Camera, DetectorSpec
 from fluoronav.geometry.carm import carm_camera_from_world
 from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.robot import UR10
 from fluoronav.navigation.case import CaseView, NavigationCase, write_navigation_case
 from fluoronav.navigation.igtl import (
     DEVICE_NAME_MAX,

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fluoronav.calibration import _se3
-from fluoronav.calibration.robot import UR10, RobotErrorModel
+from fluoronav.geometry import se3
+from fluoronav.manipulator.robot import UR10, RobotErrorModel
 from fluoronav.navigation.navigate import (
     UnreachableTarget,
     femur_from_cm_registered,
@@ -17,8 +17,8 @@ from fluoronav.navigation.navigate import (
 )
 from fluoronav.navigation.planning import plan_from_dict, planned_femur_from_cm
 
-EE_FROM_CM = _se3.make(Rotation.from_rotvec([0.0, 0.15, -0.1]).as_matrix(), [4.0, -2.0, 210.0])
-RBASE_FROM_CARM = _se3.make(Rotation.from_rotvec([1.3, -0.2, 0.4]).as_matrix(), [-700.0, 150.0, 450.0])
+EE_FROM_CM = se3.make(Rotation.from_rotvec([0.0, 0.15, -0.1]).as_matrix(), [4.0, -2.0, 210.0])
+RBASE_FROM_CARM = se3.make(Rotation.from_rotvec([1.3, -0.2, 0.4]).as_matrix(), [-700.0, 150.0, 450.0])
 Q_TARGET_TRUE = np.array([15.0, -100.0, 95.0, -80.0, -85.0, 10.0])
 PLAN = plan_from_dict(
     {"target_name": "entry_left", "entry_point_mm": [-60.0, 20.0, 35.0], "direction": [0.3, -0.2, 0.9]}
@@ -26,24 +26,24 @@ PLAN = plan_from_dict(
 
 
 def _pose_err(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
-    E = _se3.inv(B) @ A
-    return float(np.linalg.norm(E[:3, 3])), float(_se3.rotation_angle_deg(E[:3, :3]))
+    E = se3.inv(B) @ A
+    return float(np.linalg.norm(E[:3, 3])), float(se3.rotation_angle_deg(E[:3, :3]))
 
 
 def _scene(q_regi_offset_deg: np.ndarray):
     """Femur placed so that the plan is reached at Q_TARGET_TRUE; registration at a nearby pose."""
     femur_from_cm_tar = planned_femur_from_cm(PLAN)
-    rbase_from_femur = UR10.rbase_from_ee(Q_TARGET_TRUE) @ EE_FROM_CM @ _se3.inv(femur_from_cm_tar)
+    rbase_from_femur = UR10.rbase_from_ee(Q_TARGET_TRUE) @ EE_FROM_CM @ se3.inv(femur_from_cm_tar)
     q_regi = Q_TARGET_TRUE + q_regi_offset_deg
-    carm_from_cm = _se3.inv(RBASE_FROM_CARM) @ UR10.rbase_from_ee(q_regi) @ EE_FROM_CM
-    carm_from_femur = _se3.inv(RBASE_FROM_CARM) @ rbase_from_femur
+    carm_from_cm = se3.inv(RBASE_FROM_CARM) @ UR10.rbase_from_ee(q_regi) @ EE_FROM_CM
+    carm_from_femur = se3.inv(RBASE_FROM_CARM) @ rbase_from_femur
     return femur_from_cm_tar, rbase_from_femur, q_regi, carm_from_cm, carm_from_femur
 
 
 def test_eq7_maps_cm_points_into_the_femur_frame():
     rng = np.random.default_rng(0)
-    carm_from_femur = _se3.make(Rotation.random(random_state=1).as_matrix(), rng.normal(0, 100, 3))
-    carm_from_cm = _se3.make(Rotation.random(random_state=2).as_matrix(), rng.normal(0, 100, 3))
+    carm_from_femur = se3.make(Rotation.random(random_state=1).as_matrix(), rng.normal(0, 100, 3))
+    carm_from_cm = se3.make(Rotation.random(random_state=2).as_matrix(), rng.normal(0, 100, 3))
     p_cm = np.append(rng.normal(0, 20, 3), 1.0)
     p_femur_via_carm = np.linalg.solve(carm_from_femur, carm_from_cm @ p_cm)
     np.testing.assert_allclose(
@@ -64,7 +64,7 @@ def test_perfect_registration_reproduces_the_plan(seed):
         femur_from_cm_target=femur_from_cm_tar,
     )
     # Move the (perfect) robot there and look at the CM relative to the femur.
-    femur_from_cm_after = _se3.inv(rbase_from_femur) @ UR10.rbase_from_ee(q) @ EE_FROM_CM
+    femur_from_cm_after = se3.inv(rbase_from_femur) @ UR10.rbase_from_ee(q) @ EE_FROM_CM
     ep, er = _pose_err(femur_from_cm_after, femur_from_cm_tar)
     assert ep < 1e-9 and er < 1e-9
     ep, er = _pose_err(UR10.rbase_from_ee(q), target)
@@ -79,8 +79,8 @@ def test_eq8_equals_inverse_of_the_paper_form():
     femur_from_cm_tar, _, q_regi, carm_from_cm, carm_from_femur = _scene(np.full(6, 5.0))
     femur_from_cm_regi = femur_from_cm_registered(carm_from_femur, carm_from_cm)
     ours = rbase_from_ee_target(UR10.rbase_from_ee(q_regi), EE_FROM_CM, femur_from_cm_regi, femur_from_cm_tar)
-    T_ee_rbase_regi = _se3.inv(UR10.rbase_from_ee(q_regi))
-    T_cm_ee = _se3.inv(EE_FROM_CM)
+    T_ee_rbase_regi = se3.inv(UR10.rbase_from_ee(q_regi))
+    T_cm_ee = se3.inv(EE_FROM_CM)
     paper = (
         np.linalg.inv(T_cm_ee)
         @ np.linalg.inv(femur_from_cm_tar)
@@ -88,16 +88,16 @@ def test_eq8_equals_inverse_of_the_paper_form():
         @ T_cm_ee
         @ T_ee_rbase_regi
     )
-    np.testing.assert_allclose(_se3.inv(paper), ours, atol=1e-9)
+    np.testing.assert_allclose(se3.inv(paper), ours, atol=1e-9)
     # Eq. 7 as printed in that reading: T_Femur^CM = T_Femur^Carm · inv(T_CM^Carm).
-    paper7 = _se3.inv(carm_from_femur) @ np.linalg.inv(_se3.inv(carm_from_cm))
+    paper7 = se3.inv(carm_from_femur) @ np.linalg.inv(se3.inv(carm_from_cm))
     np.testing.assert_allclose(paper7, femur_from_cm_regi, atol=1e-9)
 
 
 def test_cm_registration_error_propagates_as_predicted():
     # carm_from_cm estimated with an error E in the CM frame: the CM ends at F_r · E⁻¹ · F_r⁻¹ · F_t.
     femur_from_cm_tar, rbase_from_femur, q_regi, carm_from_cm, carm_from_femur = _scene(np.full(6, -6.0))
-    E = _se3.make(Rotation.from_rotvec([0.0, 0.01, 0.005]).as_matrix(), [0.5, -0.3, 1.0])
+    E = se3.make(Rotation.from_rotvec([0.0, 0.01, 0.005]).as_matrix(), [0.5, -0.3, 1.0])
     _, q = robot_target(
         UR10,
         q_regi,
@@ -107,8 +107,8 @@ def test_cm_registration_error_propagates_as_predicted():
         femur_from_cm_target=femur_from_cm_tar,
     )
     F_r = femur_from_cm_registered(carm_from_femur, carm_from_cm)
-    predicted = F_r @ _se3.inv(E) @ _se3.inv(F_r) @ femur_from_cm_tar
-    after = _se3.inv(rbase_from_femur) @ UR10.rbase_from_ee(q) @ EE_FROM_CM
+    predicted = F_r @ se3.inv(E) @ se3.inv(F_r) @ femur_from_cm_tar
+    after = se3.inv(rbase_from_femur) @ UR10.rbase_from_ee(q) @ EE_FROM_CM
     ep, er = _pose_err(after, predicted)
     assert ep < 1e-8 and er < 1e-8
     assert _pose_err(after, femur_from_cm_tar)[0] > 0.5
@@ -118,10 +118,10 @@ def test_robot_calibration_errors_give_submillimetre_repositioning():
     # The controller uses the nominal UR10; the physical arm has the default errors.
     true = RobotErrorModel(seed=1).true_robot(UR10)
     femur_from_cm_tar = planned_femur_from_cm(PLAN)
-    rbase_from_femur = true.rbase_from_ee(Q_TARGET_TRUE) @ EE_FROM_CM @ _se3.inv(femur_from_cm_tar)
+    rbase_from_femur = true.rbase_from_ee(Q_TARGET_TRUE) @ EE_FROM_CM @ se3.inv(femur_from_cm_tar)
     q_regi = Q_TARGET_TRUE + np.array([8.0, -6.0, 5.0, 7.0, -9.0, 10.0])
-    carm_from_cm = _se3.inv(RBASE_FROM_CARM) @ true.rbase_from_ee(q_regi) @ EE_FROM_CM  # true registration
-    carm_from_femur = _se3.inv(RBASE_FROM_CARM) @ rbase_from_femur
+    carm_from_cm = se3.inv(RBASE_FROM_CARM) @ true.rbase_from_ee(q_regi) @ EE_FROM_CM  # true registration
+    carm_from_femur = se3.inv(RBASE_FROM_CARM) @ rbase_from_femur
     _, q = robot_target(
         UR10,
         q_regi,
@@ -130,7 +130,7 @@ def test_robot_calibration_errors_give_submillimetre_repositioning():
         carm_from_cm=carm_from_cm,
         femur_from_cm_target=femur_from_cm_tar,
     )
-    after = _se3.inv(rbase_from_femur) @ true.rbase_from_ee(q) @ EE_FROM_CM
+    after = se3.inv(rbase_from_femur) @ true.rbase_from_ee(q) @ EE_FROM_CM
     ep, er = _pose_err(after, femur_from_cm_tar)
     assert 1e-4 < ep < 1.0 and er < 0.1
 
@@ -153,7 +153,7 @@ def test_unreachable_target_raises():
 def test_tip_correction_slides_the_registered_cm_onto_the_planned_tip_without_rotating() -> None:
     rng = np.random.default_rng(4)
     R = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
-    femur_from_cm = _se3.make(R, rng.uniform(-50, 50, 3))
+    femur_from_cm = se3.make(R, rng.uniform(-50, 50, 3))
     tip_cm = np.array([2.0, -1.0, 38.0])
     target_tip = rng.uniform(-50, 50, 3)
     T = tip_correction_target(femur_from_cm, tip_cm, target_tip)

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from fluoronav.anatomy.volume import Volume
-from fluoronav.calibration.robot import UR10
 from fluoronav.geometry.camera import Camera, DetectorSpec
 from fluoronav.geometry.carm import carm_camera_from_world
 from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.robot import UR10
 from fluoronav.navigation.case import CaseView, NavigationCase, write_navigation_case
 from fluoronav.navigation.pipeline import NavigationConfig, _band_mask, navigate
 from fluoronav.navigation.planning import Plan

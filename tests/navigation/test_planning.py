@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from fluoronav.calibration import _se3
 from fluoronav.errors import InputError
+from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.planning import Plan, load_plan, plan_from_dict, planned_femur_from_cm, save_plan
 
@@ -107,7 +107,7 @@ def test_straight_cm_origin_sits_tip_length_before_target():
 
 def test_femur_from_world_is_applied():
     plan = plan_from_dict(GOOD)
-    F = _se3.make(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), [10.0, 20.0, 30.0])
+    F = se3.make(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), [10.0, 20.0, 30.0])
     np.testing.assert_allclose(
         planned_femur_from_cm(plan, femur_from_world=F), F @ planned_femur_from_cm(plan)
     )

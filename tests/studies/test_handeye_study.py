@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from fluoronav.calibration import _se3
-from fluoronav.calibration.robot import UR10
+from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.manipulator.robot import UR10
 from fluoronav.simulation.robot_scene import sample_handeye_scenario
 from fluoronav.studies.handeye_study import (
     HANDEYE_METRICS,
@@ -63,7 +63,7 @@ def test_scenario_has_robot_errors_diverse_in_view_poses_and_a_plausible_mount()
     assert 150.0 <= sc.ee_from_cm[2, 3] <= 250.0
     # orientation spread of the CM poses (max pairwise angle) is at least 20°
     R = sc.world_from_cm[:, :3, :3]
-    ang = [float(_se3.rotation_angle_deg(R[i].T @ R[j])) for i in range(8) for j in range(i + 1, 8)]
+    ang = [float(se3.rotation_angle_deg(R[i].T @ R[j])) for i in range(8) for j in range(i + 1, 8)]
     assert max(ang) >= 20.0
     # every landmark is inside the detector (100 px margin)
     lm = sc.landmarks_px
@@ -114,12 +114,12 @@ def test_handeye_study_writes_rows_summary_and_figures(tmp_path) -> None:
 def test_rotation_error_splits_into_axis_tilt_and_roll() -> None:
     from scipy.spatial.transform import Rotation
 
-    from fluoronav.studies.handeye_study import _axis_and_roll_deg
+    from fluoronav.studies.handeye_trials import axis_and_roll_deg
 
-    T = _se3.make(Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix(), [1.0, 2.0, 200.0])
+    T = se3.make(Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix(), [1.0, 2.0, 200.0])
     for order, angles in (("zx", [7.0, 2.0]), ("xz", [2.0, 7.0])):
-        E = _se3.make(Rotation.from_euler(order, angles, degrees=True).as_matrix(), np.zeros(3))
-        d = _axis_and_roll_deg(T @ E, T)
+        E = se3.make(Rotation.from_euler(order, angles, degrees=True).as_matrix(), np.zeros(3))
+        d = axis_and_roll_deg(T @ E, T)
         assert d["handeye_axis_deg"] == pytest.approx(2.0, abs=1e-9)
         assert d["handeye_roll_deg"] == pytest.approx(7.0, abs=1e-9)
 

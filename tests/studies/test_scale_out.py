@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fluoronav.studies.runner import CsvLog, run_tasks, task_seeds
+from fluoronav.runner import CsvLog, run_tasks, task_seeds
 
 COLUMNS = ["trial", "seed", "value"]
 
@@ -45,7 +45,7 @@ _SCRIPT = textwrap.dedent(
     """
     import sys, time
     import numpy as np
-    from fluoronav.studies.runner import CsvLog, run_tasks, task_seeds
+    from fluoronav.runner import CsvLog, run_tasks, task_seeds
 
     def task(tid, seed):
         time.sleep(0.15)

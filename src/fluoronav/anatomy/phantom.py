@@ -19,12 +19,28 @@ from __future__ import annotations
 
 import itertools
 import logging
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
+from fluoronav.anatomy.sdf import (
+    FAR,
+    Bone,
+    Coords,
+    axis_angle,
+    cone,
+    cup,
+    dot,
+    ellipsoid,
+    exit_point,
+    rotate_bone,
+    slab,
+    smooth_union,
+    sphere,
+    sub,
+    tube,
+)
 from fluoronav.anatomy.volume import Volume
 
 __all__ = ["DEFAULT_FOV_MM", "LABEL_NAMES", "hip_phantom"]
@@ -37,162 +53,6 @@ DEFAULT_FOV_MM = (344.0, 240.0, 240.0)
 LABEL_NAMES = {1: "pelvis", 2: "femur_left", 3: "femur_right"}
 
 AIR_HU = -1000.0
-_FAR = 1.0e3  # "far outside" value of a signed distance field, mm
-
-Coords = tuple[np.ndarray, np.ndarray, np.ndarray]  # broadcastable X, Y, Z (mm)
-SdfFn = Callable[[Coords], np.ndarray]
-Vec = Sequence[float] | np.ndarray  # a 3-vector, mm
-
-
-# ---------------------------------------------------------------------------------------------
-# Primitive signed-distance functions (mm). Each takes broadcastable coordinate arrays.
-# ---------------------------------------------------------------------------------------------
-
-
-def _sub(P: Coords, c: np.ndarray) -> Coords:
-    return P[0] - np.float32(c[0]), P[1] - np.float32(c[1]), P[2] - np.float32(c[2])
-
-
-def _dot(P: Coords, v: np.ndarray) -> np.ndarray:
-    return P[0] * np.float32(v[0]) + P[1] * np.float32(v[1]) + P[2] * np.float32(v[2])
-
-
-def _norm(P: Coords) -> np.ndarray:
-    return np.sqrt(P[0] * P[0] + P[1] * P[1] + P[2] * P[2])
-
-
-@dataclass(frozen=True)
-class _Primitive:
-    """One implicit shape: ``sdf(coords)`` and its axis-aligned bounding box (lo, hi) in mm."""
-
-    sdf: SdfFn
-    lo: np.ndarray
-    hi: np.ndarray
-    blend_mm: float = 0.0  # smooth-union radius with what came before
-
-
-def _sphere(c: Vec, r: float, blend_mm: float = 0.0) -> _Primitive:
-    c_ = np.asarray(c, dtype=np.float64)
-    return _Primitive(lambda P: _norm(_sub(P, c_)) - np.float32(r), c_ - r, c_ + r, blend_mm)
-
-
-def _ellipsoid(c: Vec, axes: np.ndarray, radii: Sequence[float], blend_mm: float = 0.0) -> _Primitive:
-    """Ellipsoid with orthonormal axes (columns of ``axes``); approximate (bound-preserving) distance."""
-    c_ = np.asarray(c, dtype=np.float64)
-    R = np.asarray(axes, dtype=np.float64)
-    r = np.asarray(radii, dtype=np.float64)
-
-    def sdf(P: Coords) -> np.ndarray:
-        d = _sub(P, c_)
-        q = [_dot(d, R[:, i]) for i in range(3)]
-        k0 = np.sqrt(sum((q[i] / np.float32(r[i])) ** 2 for i in range(3)))
-        k1 = np.sqrt(sum((q[i] / np.float32(r[i] ** 2)) ** 2 for i in range(3)))
-        return k0 * (k0 - 1.0) / np.maximum(k1, np.float32(1e-6))
-
-    ext = np.sqrt(((R * r[None, :]) ** 2).sum(axis=1))
-    return _Primitive(sdf, c_ - ext, c_ + ext, blend_mm)
-
-
-def _cone(a: Vec, b: Vec, ra: float, rb: float, blend_mm: float = 0.0) -> _Primitive:
-    """Tapered capsule from ``a`` (radius ``ra``) to ``b`` (radius ``rb``)."""
-    a_, b_ = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    ba = b_ - a_
-    inv = 1.0 / float(ba @ ba)
-
-    def sdf(P: Coords) -> np.ndarray:
-        pa = _sub(P, a_)
-        h = np.clip(_dot(pa, ba) * np.float32(inv), 0.0, 1.0)
-        q = (pa[0] - h * np.float32(ba[0]), pa[1] - h * np.float32(ba[1]), pa[2] - h * np.float32(ba[2]))
-        return _norm(q) - (np.float32(ra) + h * np.float32(rb - ra))
-
-    r = max(ra, rb)
-    return _Primitive(sdf, np.minimum(a_, b_) - r, np.maximum(a_, b_) + r, blend_mm)
-
-
-def _slab(a: Vec, b: Vec, c: Vec, half_mm: float, blend_mm: float = 0.0) -> _Primitive:
-    """A triangle thickened by ``half_mm`` (distance to the triangle minus half the thickness)."""
-    A, B, C = (np.asarray(v, dtype=np.float64) for v in (a, b, c))
-    ba, cb, ac = B - A, C - B, A - C
-    nor = np.cross(ba, ac)
-    edges = [(A, ba, np.cross(ba, nor)), (B, cb, np.cross(cb, nor)), (C, ac, np.cross(ac, nor))]
-
-    def sdf(P: Coords) -> np.ndarray:
-        outside = None
-        edge_d2 = None
-        for origin, e, en in edges:
-            p = _sub(P, origin)
-            s = np.sign(_dot(p, en))
-            outside = s if outside is None else outside + s
-            h = np.clip(_dot(p, e) * np.float32(1.0 / (e @ e)), 0.0, 1.0)
-            d2 = (float(e[0]) * h - p[0]) ** 2 + (float(e[1]) * h - p[1]) ** 2 + (float(e[2]) * h - p[2]) ** 2
-            edge_d2 = d2 if edge_d2 is None else np.minimum(edge_d2, d2)
-        plane = _dot(_sub(P, A), nor) ** 2 * np.float32(1.0 / (nor @ nor))
-        assert outside is not None and edge_d2 is not None
-        return np.sqrt(np.where(outside < 2.0, edge_d2, plane)) - np.float32(half_mm)
-
-    pts = np.stack([A, B, C])
-    return _Primitive(sdf, pts.min(0) - half_mm, pts.max(0) + half_mm, blend_mm)
-
-
-def _cup(c: Vec, r: float, axis: np.ndarray, offset_mm: float, blend_mm: float = 0.0) -> _Primitive:
-    """A ball cut by the plane ``axis · (p − c) = offset`` (kept on the side opposite to ``axis``)."""
-    c_ = np.asarray(c, dtype=np.float64)
-    n = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-
-    def sdf(P: Coords) -> np.ndarray:
-        d = _sub(P, c_)
-        return np.maximum(_norm(d) - np.float32(r), _dot(d, n) - np.float32(offset_mm))
-
-    return _Primitive(sdf, c_ - r, c_ + r, blend_mm)
-
-
-def _tube(points: Sequence[Vec], radii: Sequence[float] | float, blend_mm: float = 0.0) -> list[_Primitive]:
-    """A polyline of tapered capsules."""
-    pts = [np.asarray(p, dtype=np.float64) for p in points]
-    rs = [float(radii)] * len(pts) if isinstance(radii, int | float) else [float(r) for r in radii]
-    return [_cone(pts[i], pts[i + 1], rs[i], rs[i + 1], blend_mm) for i in range(len(pts) - 1)]
-
-
-def _smooth_union(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
-    if k <= 0:
-        return np.minimum(a, b)
-    h = np.clip(0.5 + 0.5 * (b - a) / np.float32(k), 0.0, 1.0)
-    return b + (a - b) * h - np.float32(k) * h * (1.0 - h)
-
-
-@dataclass
-class _Bone:
-    """A bone: an ordered list of primitives, smooth-unioned, then minus the ``carve`` primitives."""
-
-    primitives: list[_Primitive] = field(default_factory=list)
-    carve: list[_Primitive] = field(default_factory=list)  # shapes removed after the union
-    thickness: SdfFn | None = None  # cortical thickness field (mm); None = the default thickness
-
-    def add(self, *items: _Primitive | list[_Primitive]) -> None:
-        for item in items:
-            self.primitives.extend(item if isinstance(item, list) else [item])
-
-    def bounds(self, margin: float) -> tuple[np.ndarray, np.ndarray]:
-        lo = np.min([p.lo for p in self.primitives], axis=0) - margin
-        hi = np.max([p.hi for p in self.primitives], axis=0) + margin
-        return lo, hi
-
-    def sdf_points(self, points: np.ndarray) -> np.ndarray:
-        """The bone's field at (N, 3) world points (the same combination as on the grid), mm."""
-        P = (
-            points[:, 0].astype(np.float32),
-            points[:, 1].astype(np.float32),
-            points[:, 2].astype(np.float32),
-        )
-        d = np.full(points.shape[0], _FAR, dtype=np.float32)
-        for prim in self.primitives:
-            d = _smooth_union(d, prim.sdf(P).astype(np.float32), prim.blend_mm)
-        return self._finish(P, d)
-
-    def _finish(self, P: Coords, d: np.ndarray) -> np.ndarray:
-        for prim in self.carve:
-            d = np.maximum(d, -prim.sdf(P))
-        return d
 
 
 # ---------------------------------------------------------------------------------------------
@@ -250,7 +110,7 @@ _HIP_Y = -10.0
 _HIP_X = 84.0
 
 
-def _pelvis(p: _Params) -> tuple[_Bone, _Bone, dict[str, np.ndarray]]:
+def _pelvis(p: _Params) -> tuple[Bone, Bone, dict[str, np.ndarray]]:
     """Pelvis (ilium, ischium, pubis, sacrum) and L5; returns (pelvis, spine, landmarks)."""
     g = p.scale
 
@@ -258,7 +118,7 @@ def _pelvis(p: _Params) -> tuple[_Bone, _Bone, dict[str, np.ndarray]]:
         # side-relative point (x ≥ 0 for the left side) → world, scaled about the hip-level centre
         return np.array([s * x * g * p.pelvis_width, _HIP_Y + y * g, _HIP_Z + z * g])
 
-    pelvis, spine = _Bone(), _Bone()
+    pelvis, spine = Bone(), Bone()
     marks: dict[str, np.ndarray] = {}
     R_socket = p.head_radius_mm + 2.0
     for s, side in ((1.0, "left"), (-1.0, "right")):
@@ -268,9 +128,9 @@ def _pelvis(p: _Params) -> tuple[_Bone, _Bone, dict[str, np.ndarray]]:
         axis /= np.linalg.norm(axis)
         cup_r = R_socket + 9.0 * g
         cup_c = A - axis * 3.0
-        pelvis.add(_cup(cup_c, cup_r, axis, 1.0))
+        pelvis.add(cup(cup_c, cup_r, axis, 1.0))
         # ilium body rising from the acetabulum to the wing
-        pelvis.add(_cone(P(_HIP_X - 6, 4, 8, s), P(76, 14, 46, s), 17 * g, 12 * g, blend_mm=6))
+        pelvis.add(cone(P(_HIP_X - 6, 4, 8, s), P(76, 14, 46, s), 17 * g, 12 * g, blend_mm=6))
         # iliac wing: a fan of thick triangles from the ilium body to the crest
         apex = P(76, 14, 44, s)
         rim = [
@@ -284,54 +144,54 @@ def _pelvis(p: _Params) -> tuple[_Bone, _Bone, dict[str, np.ndarray]]:
             P(44, 58, 42, s),  # posterior inferior, at the sacro-iliac joint
         ]
         for a, b in itertools.pairwise(rim):
-            pelvis.add(_slab(apex, a, b, 4.0 * g, blend_mm=3))
-        pelvis.add(_tube(rim[1:7], 6.0 * g, blend_mm=3))  # iliac crest
-        pelvis.add(_sphere(rim[1], 8.0 * g, blend_mm=4))  # ASIS
-        pelvis.add(_sphere(rim[0], 7.0 * g, blend_mm=4))  # AIIS
+            pelvis.add(slab(apex, a, b, 4.0 * g, blend_mm=3))
+        pelvis.add(tube(rim[1:7], 6.0 * g, blend_mm=3))  # iliac crest
+        pelvis.add(sphere(rim[1], 8.0 * g, blend_mm=4))  # ASIS
+        pelvis.add(sphere(rim[0], 7.0 * g, blend_mm=4))  # AIIS
         # arcuate line / pelvic brim from the sacro-iliac joint to the iliopubic eminence
-        pelvis.add(_tube([P(42, 50, 50, s), P(58, 30, 30, s), P(68, 6, 12, s), P(62, -20, -2, s)], 7 * g, 4))
+        pelvis.add(tube([P(42, 50, 50, s), P(58, 30, 30, s), P(68, 6, 12, s), P(62, -20, -2, s)], 7 * g, 4))
         # superior pubic ramus to the symphysis; pubic body; inferior pubic and ischial rami
         pelvis.add(
-            _tube(
+            tube(
                 [P(_HIP_X - 8, -14, -4, s), P(60, -24, -6, s), P(34, -44, -16, s), P(11, -52, -24, s)],
                 [13 * g, 10 * g, 8.5 * g, 9 * g],
                 4,
             )
         )
-        pelvis.add(_cone(P(11, -52, -24, s), P(15, -46, -54, s), 10 * g, 8 * g, 4))
+        pelvis.add(cone(P(11, -52, -24, s), P(15, -46, -54, s), 10 * g, 8 * g, 4))
         pelvis.add(
-            _tube([P(15, -46, -54, s), P(30, -30, -64, s), P(48, -6, -70, s)], [8 * g, 7 * g, 8 * g], 4)
+            tube([P(15, -46, -54, s), P(30, -30, -64, s), P(48, -6, -70, s)], [8 * g, 7 * g, 8 * g], 4)
         )
         # ischial tuberosity and ischium body back up to the acetabulum
-        pelvis.add(_cone(P(48, -6, -70, s), P(62, 14, -56, s), 10 * g, 13 * g, 5))
-        pelvis.add(_cone(P(62, 14, -56, s), P(_HIP_X - 4, 8, -10, s), 13 * g, 16 * g, 6))
-        pelvis.add(_cone(P(66, 30, -22, s), P(58, 40, -34, s), 6 * g, 3 * g, 3))  # ischial spine
-        pelvis.carve.append(_sphere(A, R_socket))
+        pelvis.add(cone(P(48, -6, -70, s), P(62, 14, -56, s), 10 * g, 13 * g, 5))
+        pelvis.add(cone(P(62, 14, -56, s), P(_HIP_X - 4, 8, -10, s), 13 * g, 16 * g, 6))
+        pelvis.add(cone(P(66, 30, -22, s), P(58, 40, -34, s), 6 * g, 3 * g, 3))  # ischial spine
+        pelvis.carve.append(sphere(A, R_socket))
         marks[f"asis_{side}"] = rim[1] + np.array([0.0, -8.0 * g, 0.0])
         marks[f"ischial_tuberosity_{side}"] = P(55, 4, -63, s) + np.array([0.0, 0.0, -13.0 * g])
         marks[f"acetabulum_{side}"] = A
     # sacrum: central column, alae towards the sacro-iliac joints, a tapered wedge between them
     pelvis.add(
-        _tube([P(0, 44, 56), P(0, 64, 24), P(0, 82, -8), P(0, 80, -36)], [18 * g, 15 * g, 9 * g, 5 * g], 5)
+        tube([P(0, 44, 56), P(0, 64, 24), P(0, 82, -8), P(0, 80, -36)], [18 * g, 15 * g, 9 * g, 5 * g], 5)
     )
     for s in (1.0, -1.0):
-        pelvis.add(_cone(P(0, 46, 54), P(44, 54, 52, s), 16 * g, 15 * g, 5))
-    pelvis.add(_slab(P(44, 52, 54), P(-44, 52, 54), P(0, 80, -4), 10 * g, 5))
+        pelvis.add(cone(P(0, 46, 54), P(44, 54, 52, s), 16 * g, 15 * g, 5))
+    pelvis.add(slab(P(44, 52, 54), P(-44, 52, 54), P(0, 80, -4), 10 * g, 5))
     # anterior sacral foramina: four pairs of antero-posterior channels
     for x, z, r in ((22, 40, 3.5), (20, 24, 3.2), (17, 9, 2.8), (14, -4, 2.5)):
         y0 = 44 + (56 - z) * 0.6
         for s in (1.0, -1.0):
-            pelvis.carve.append(_cone(P(x, y0 - 22, z, s), P(x, y0 + 22, z - 6, s), r * g, r * g))
+            pelvis.carve.append(cone(P(x, y0 - 22, z, s), P(x, y0 + 22, z - 6, s), r * g, r * g))
     marks["sacral_promontory"] = P(0, 44, 56) + np.array([0.0, -18.0 * g, 0.0])
     marks["pubic_symphysis"] = np.array([0.0, _HIP_Y - 52 * g - 9 * g, _HIP_Z - 30 * g])
     # L5 vertebra: body, transverse processes, spinous process (bone without a label)
-    spine.add(_cone(P(0, 34, 102), P(0, 34, 134), 22 * g, 22 * g))
-    spine.add(_tube([P(-52, 48, 104), P(52, 48, 104)], 7 * g, 4))
-    spine.add(_cone(P(0, 50, 110), P(0, 84, 104), 8 * g, 6 * g, 4))
+    spine.add(cone(P(0, 34, 102), P(0, 34, 134), 22 * g, 22 * g))
+    spine.add(tube([P(-52, 48, 104), P(52, 48, 104)], 7 * g, 4))
+    spine.add(cone(P(0, 50, 110), P(0, 84, 104), 8 * g, 6 * g, 4))
     return pelvis, spine, marks
 
 
-def _femur(p: _Params, side: str) -> tuple[_Bone, dict[str, np.ndarray]]:
+def _femur(p: _Params, side: str) -> tuple[Bone, dict[str, np.ndarray]]:
     """Proximal femur for one side; returns the bone and its landmarks (head centre, entry...)."""
     s = 1.0 if side == "left" else -1.0
     i = 0 if side == "left" else 1
@@ -354,27 +214,25 @@ def _femur(p: _Params, side: str) -> tuple[_Bone, dict[str, np.ndarray]]:
     lat_t = np.cross(post, u) * s  # lateral unit normal to the shaft, in the coronal plane
     lat_t /= np.linalg.norm(lat_t)
 
-    bone = _Bone()
-    bone.add(_sphere(c, R))
-    bone.add(_cone(c - 0.35 * R * n, b + 6 * g * u, 0.66 * R, 19 * g, blend_mm=8))  # neck
-    bone.add(
-        _tube([b + 22 * g * u, b - 40 * g * u, b - 320 * g * u], [18 * g, 15 * g, 13.5 * g], 10)
-    )  # shaft
+    bone = Bone()
+    bone.add(sphere(c, R))
+    bone.add(cone(c - 0.35 * R * n, b + 6 * g * u, 0.66 * R, 19 * g, blend_mm=8))  # neck
+    bone.add(tube([b + 22 * g * u, b - 40 * g * u, b - 320 * g * u], [18 * g, 15 * g, 13.5 * g], 10))  # shaft
     G = b + 16 * g * u + 20 * g * lat_t + 5 * g * post
-    bone.add(_ellipsoid(G, np.stack([lat_t, post, u], axis=1), [13 * g, 17 * g, 22 * g], blend_mm=8))
+    bone.add(ellipsoid(G, np.stack([lat_t, post, u], axis=1), [13 * g, 17 * g, 22 * g], blend_mm=8))
     LT = b - 30 * g * u - 11 * g * lat_t + 10 * g * post
-    bone.add(_ellipsoid(LT, np.stack([lat_t, post, u], axis=1), [8 * g, 8 * g, 12 * g], blend_mm=5))
+    bone.add(ellipsoid(LT, np.stack([lat_t, post, u], axis=1), [8 * g, 8 * g, 12 * g], blend_mm=5))
     # intertrochanteric crest (posterior ridge from greater to lesser trochanter)
-    bone.add(_cone(G - 4 * g * lat_t + 6 * g * post, LT + 2 * g * post, 8 * g, 6 * g, 6))
+    bone.add(cone(G - 4 * g * lat_t + 6 * g * post, LT + 2 * g * post, 8 * g, 6 * g, 6))
 
     # pose: abduction (about y), flexion (about x), rotation (about the shaft axis) around the head
     Rp = (
-        _axis_angle(np.array([0.0, 1.0, 0.0]), -s * p.abduction_deg[i])  # + moves the knee laterally
-        @ _axis_angle(np.array([1.0, 0.0, 0.0]), -p.flexion_deg[i])  # + moves the knee anteriorly
-        @ _axis_angle(u, s * p.rotation_deg[i])
+        axis_angle(np.array([0.0, 1.0, 0.0]), -s * p.abduction_deg[i])  # + moves the knee laterally
+        @ axis_angle(np.array([1.0, 0.0, 0.0]), -p.flexion_deg[i])  # + moves the knee anteriorly
+        @ axis_angle(u, s * p.rotation_deg[i])
     )
     if not np.allclose(Rp, np.eye(3)):
-        bone = _rotate_bone(bone, Rp, c)
+        bone = rotate_bone(bone, Rp, c)
         G, LT = Rp @ (G - c) + c, Rp @ (LT - c) + c
 
     b_w, u_w = Rp @ (b - c) + c, Rp @ u
@@ -382,7 +240,7 @@ def _femur(p: _Params, side: str) -> tuple[_Bone, dict[str, np.ndarray]]:
 
     def thickness(P: Coords) -> np.ndarray:
         # the diaphyseal cortex thickens to ~5 mm below the lesser trochanter
-        below = -_dot(_sub(P, b_w), u_w)
+        below = -dot(sub(P, b_w), u_w)
         return np.float32(t0) + np.float32(2.5) * np.clip(
             (below - np.float32(35.0 * g)) / np.float32(40.0), 0, 1
         )
@@ -395,67 +253,10 @@ def _femur(p: _Params, side: str) -> tuple[_Bone, dict[str, np.ndarray]]:
     }
     # entry point: where the drilling line from the head centre through the greater trochanter's
     # centre leaves the femur, i.e. on its lateral surface
-    marks[f"entry_{side}"] = _exit_point(bone, c, G - c)
+    marks[f"entry_{side}"] = exit_point(bone, c, G - c)
     return bone, marks
 
 
-def _axis_angle(axis: np.ndarray, angle_deg: float) -> np.ndarray:
-    k = axis / np.linalg.norm(axis)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    t = np.deg2rad(angle_deg)
-    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
-
-
-def _rotate_primitive(prim: _Primitive, R: np.ndarray, centre: np.ndarray) -> _Primitive:
-    """The primitive rotated by ``R`` about ``centre`` (evaluated in back-rotated coordinates)."""
-    Rt = R.T.astype(np.float32)
-    c = centre.astype(np.float32)
-    corners = np.array(
-        [
-            [x, y, z]
-            for x in (prim.lo[0], prim.hi[0])
-            for y in (prim.lo[1], prim.hi[1])
-            for z in (prim.lo[2], prim.hi[2])
-        ]
-    )
-    rc = (corners - centre) @ R.T + centre
-
-    def sdf(P: Coords, f: SdfFn = prim.sdf) -> np.ndarray:
-        d = (P[0] - c[0], P[1] - c[1], P[2] - c[2])
-        q = tuple(Rt[k, 0] * d[0] + Rt[k, 1] * d[1] + Rt[k, 2] * d[2] + c[k] for k in range(3))
-        return f(q)
-
-    return _Primitive(sdf, rc.min(0), rc.max(0), prim.blend_mm)
-
-
-def _rotate_bone(bone: _Bone, R: np.ndarray, centre: np.ndarray) -> _Bone:
-    """The same bone rotated by ``R`` about ``centre``."""
-    return _Bone(
-        primitives=[_rotate_primitive(p, R, centre) for p in bone.primitives],
-        carve=[_rotate_primitive(p, R, centre) for p in bone.carve],
-        thickness=bone.thickness,
-    )
-
-
-def _exit_point(bone: _Bone, start: np.ndarray, direction: np.ndarray, step_mm: float = 0.25) -> np.ndarray:
-    """Last inside→outside crossing of the bone surface along a ray from ``start``, refined by bisection."""
-    d = direction / np.linalg.norm(direction)
-    t = np.arange(0.0, 150.0, step_mm)
-    f = bone.sdf_points(start[None, :] + t[:, None] * d[None, :])
-    inside = np.nonzero(f < 0)[0]
-    if inside.size == 0 or inside[-1] + 1 >= t.size:
-        raise RuntimeError("phantom construction error: the ray does not leave the bone")
-    lo, hi = float(t[inside[-1]]), float(t[inside[-1] + 1])
-    for _ in range(30):
-        mid = 0.5 * (lo + hi)
-        if bone.sdf_points((start + mid * d)[None, :])[0] < 0:
-            lo = mid
-        else:
-            hi = mid
-    return start + 0.5 * (lo + hi) * d
-
-
-# ---------------------------------------------------------------------------------------------
 # Rasterisation
 # ---------------------------------------------------------------------------------------------
 
@@ -482,7 +283,7 @@ def _coords(box: tuple[slice, slice, slice], axes: list[np.ndarray]) -> Coords:
 
 
 def _rasterise(
-    bone: _Bone, axes: list[np.ndarray], margin: float
+    bone: Bone, axes: list[np.ndarray], margin: float
 ) -> tuple[tuple[slice, slice, slice], np.ndarray] | None:
     """The bone's field on the grid inside its bounding box: (box, sdf array)."""
     lo, hi = bone.bounds(margin)
@@ -490,7 +291,7 @@ def _rasterise(
     if box is None:
         return None
     shape = tuple(s.stop - s.start for s in box)
-    d = np.full(shape, _FAR, dtype=np.float32)
+    d = np.full(shape, FAR, dtype=np.float32)
     for prim, carve in [(q, False) for q in bone.primitives] + [(q, True) for q in bone.carve]:
         pb = _box(prim.lo - margin - prim.blend_mm, prim.hi + margin + prim.blend_mm, axes)
         if pb is None:
@@ -504,7 +305,7 @@ def _rasterise(
             continue
         absolute = tuple(slice(r.start + box[k].start, r.stop + box[k].start) for k, r in enumerate(rel))
         f = prim.sdf(_coords(absolute, axes)).astype(np.float32, copy=False)  # type: ignore[arg-type]
-        d[rel] = np.maximum(d[rel], -f) if carve else _smooth_union(d[rel], f, prim.blend_mm)
+        d[rel] = np.maximum(d[rel], -f) if carve else smooth_union(d[rel], f, prim.blend_mm)
     return box, d
 
 

@@ -11,7 +11,6 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fluoronav.calibration import _se3
 from fluoronav.calibration.handeye import (
     AX_XB_METHODS,
     AX_YB_METHODS,
@@ -21,15 +20,16 @@ from fluoronav.calibration.handeye import (
     transform_error,
 )
 from fluoronav.calibration.results import HandEyeResult
-from fluoronav.calibration.robot import UR10, RobotErrorModel, random_configurations_deg
 from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker
+from fluoronav.geometry import se3
+from fluoronav.manipulator.robot import UR10, RobotErrorModel, random_configurations_deg
 
 __all__ = ["HOME_DEG", "tracker_baseline_accuracy"]
 
 # A comfortable UR-10 configuration with the flange pointing down, away from singularities.
 HOME_DEG = np.array([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
-_EE_FROM_MARKER = _se3.make(Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix(), [20.0, -35.0, 110.0])
-_RBASE_FROM_TRACKER = _se3.make(Rotation.from_rotvec([0.1, 2.0, -0.4]).as_matrix(), [-300.0, 1500.0, 400.0])
+_EE_FROM_MARKER = se3.make(Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix(), [20.0, -35.0, 110.0])
+_RBASE_FROM_TRACKER = se3.make(Rotation.from_rotvec([0.1, 2.0, -0.4]).as_matrix(), [-300.0, 1500.0, 400.0])
 
 
 def tracker_baseline_accuracy(

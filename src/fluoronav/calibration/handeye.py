@@ -29,10 +29,10 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from fluoronav.calibration import _se3
 from fluoronav.calibration.results import HandEyeFailure, HandEyeResult, TipErrors
-from fluoronav.calibration.robot import RobotErrorModel, SerialRobot
 from fluoronav.calibration.tracker import OpticalTracker, RigidBody
+from fluoronav.geometry import se3
+from fluoronav.manipulator.robot import RobotErrorModel, SerialRobot
 
 __all__ = [
     "AX_XB_METHODS",
@@ -70,8 +70,8 @@ def _split(T: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
 
 
 def _inputs(rbase_from_ee: np.ndarray, tracker_from_marker: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    A = _se3.as_transform_array(rbase_from_ee, "rbase_from_ee")
-    B = _se3.as_transform_array(tracker_from_marker, "tracker_from_marker")
+    A = se3.as_transform_array(rbase_from_ee, "rbase_from_ee")
+    B = se3.as_transform_array(tracker_from_marker, "tracker_from_marker")
     if A.ndim != 3 or A.shape != B.shape:
         raise ValueError(f"expected two (N, 4, 4) stacks of equal N, got {A.shape} and {B.shape}")
     return A, B
@@ -94,13 +94,13 @@ def check_motion(
     Returns:
         ``None`` if the motion is usable, else a :class:`HandEyeFailure` saying why.
     """
-    A = _se3.as_transform_array(rbase_from_ee, "rbase_from_ee")
+    A = se3.as_transform_array(rbase_from_ee, "rbase_from_ee")
     n = A.shape[0] if A.ndim == 3 else 0
     if n < min_poses:
         return HandEyeFailure(f"too few poses: {n} < {min_poses}", n_poses=n)
     i, j = np.triu_indices(n, k=1)
     rel = np.swapaxes(A[i, :3, :3], -1, -2) @ A[j, :3, :3]
-    rv = _se3.rotvec(rel)
+    rv = se3.rotvec(rel)
     ang = np.linalg.norm(rv, axis=-1)
     keep = ang >= np.deg2rad(min_rotation_deg)
     if np.count_nonzero(keep) < 2:
@@ -123,8 +123,8 @@ def estimate_rbase_from_tracker(
 ) -> np.ndarray:
     """Y given X: chordal mean of ``rbase_from_ee_i · X · inv(tracker_from_marker_i)`` → (4, 4)."""
     A, B = _inputs(rbase_from_ee, tracker_from_marker)
-    Ys = A @ ee_from_marker @ _se3.inv(B)
-    return _se3.make(_se3.mean_rotation(Ys[:, :3, :3]), Ys[:, :3, 3].mean(axis=0))
+    Ys = A @ ee_from_marker @ se3.inv(B)
+    return se3.make(se3.mean_rotation(Ys[:, :3, :3]), Ys[:, :3, 3].mean(axis=0))
 
 
 def handeye_residuals(
@@ -139,14 +139,14 @@ def handeye_residuals(
         (rotation_deg (N,), translation_mm (N,)); both zero for consistent data.
     """
     A, B = _inputs(rbase_from_ee, tracker_from_marker)
-    E = _se3.inv(rbase_from_tracker @ B) @ A @ ee_from_marker
-    return _se3.rotation_angle_deg(E[:, :3, :3]), np.linalg.norm(E[:, :3, 3], axis=-1)
+    E = se3.inv(rbase_from_tracker @ B) @ A @ ee_from_marker
+    return se3.rotation_angle_deg(E[:, :3, :3]), np.linalg.norm(E[:, :3, 3], axis=-1)
 
 
 def transform_error(estimated: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
     """(rotation_deg, translation_mm) of ``inv(reference) · estimated``."""
-    E = _se3.inv(np.asarray(reference, dtype=np.float64)) @ np.asarray(estimated, dtype=np.float64)
-    return float(_se3.rotation_angle_deg(E[:3, :3])), float(np.linalg.norm(E[:3, 3]))
+    E = se3.inv(np.asarray(reference, dtype=np.float64)) @ np.asarray(estimated, dtype=np.float64)
+    return float(se3.rotation_angle_deg(E[:3, :3])), float(np.linalg.norm(E[:3, 3]))
 
 
 def _finish(
@@ -192,12 +192,12 @@ def calibrate_hand_eye(
     if bad is not None:
         return HandEyeFailure(bad.reason, method=key, n_poses=bad.n_poses)
     Rg, tg = _split(A)
-    Rt, tt = _split(_se3.inv(B))
+    Rt, tt = _split(se3.inv(B))
     try:
         R, t = cv2.calibrateHandEye(Rg, tg, Rt, tt, method=AX_XB_METHODS[key])
     except cv2.error as exc:
         return HandEyeFailure(f"OpenCV error: {exc}", method=key, n_poses=len(A))
-    X = _se3.make(np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).reshape(3))
+    X = se3.make(np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).reshape(3))
     Y = estimate_rbase_from_tracker(A, B, X) if np.all(np.isfinite(X)) else np.full((4, 4), np.nan)
     return _finish(A, B, X, Y, key, "AX=XB")
 
@@ -220,15 +220,15 @@ def calibrate_robot_world_hand_eye(
     bad = check_motion(A, min_axis_spread_deg=min_axis_spread_deg)
     if bad is not None:
         return HandEyeFailure(bad.reason, method=key, n_poses=bad.n_poses)
-    Rw, tw = _split(_se3.inv(B))  # world2cam = marker_from_tracker
-    Rb, tb = _split(_se3.inv(A))  # base2gripper = ee_from_rbase
+    Rw, tw = _split(se3.inv(B))  # world2cam = marker_from_tracker
+    Rb, tb = _split(se3.inv(A))  # base2gripper = ee_from_rbase
     try:
         R_b2w, t_b2w, R_g2c, t_g2c = cv2.calibrateRobotWorldHandEye(Rw, tw, Rb, tb, method=AX_YB_METHODS[key])
     except cv2.error as exc:
         return HandEyeFailure(f"OpenCV error: {exc}", method=key, n_poses=len(A))
-    tracker_from_rbase = _se3.make(np.asarray(R_b2w, float), np.asarray(t_b2w, float).reshape(3))
-    marker_from_ee = _se3.make(np.asarray(R_g2c, float), np.asarray(t_g2c, float).reshape(3))
-    return _finish(A, B, _se3.inv(marker_from_ee), _se3.inv(tracker_from_rbase), key, "AX=YB")
+    tracker_from_rbase = se3.make(np.asarray(R_b2w, float), np.asarray(t_b2w, float).reshape(3))
+    marker_from_ee = se3.make(np.asarray(R_g2c, float), np.asarray(t_g2c, float).reshape(3))
+    return _finish(A, B, se3.inv(marker_from_ee), se3.inv(tracker_from_rbase), key, "AX=YB")
 
 
 def simulate_tracker_calibration(
@@ -254,7 +254,7 @@ def simulate_tracker_calibration(
     """
     q_rep = np.asarray(q_reported_deg, dtype=np.float64)
     q_act = q_rep if error_model is None else error_model.actual_joints_deg(q_rep, rng=rng)
-    tracker_from_marker_true = _se3.inv(rbase_from_tracker) @ true_robot.rbase_from_ee(q_act) @ ee_from_marker
+    tracker_from_marker_true = se3.inv(rbase_from_tracker) @ true_robot.rbase_from_ee(q_act) @ ee_from_marker
     measured = tracker.track(tracker_from_marker_true, body, rng=rng).tracker_from_body
     return nominal_robot.rbase_from_ee(q_rep), measured
 
@@ -278,7 +278,7 @@ def tip_rbase_tracker_chain(
     Returns:
         (N, 3) tip positions in the robot base frame, mm.
     """
-    T = rbase_from_ee @ ee_from_os @ _se3.inv(tracker_from_os) @ tracker_from_ot
+    T = rbase_from_ee @ ee_from_os @ se3.inv(tracker_from_os) @ tracker_from_ot
     p = np.broadcast_to(np.asarray(tip_ot_mm, dtype=np.float64), (*T.shape[:-2], 3))
     return np.einsum("...ij,...j->...i", T[..., :3, :3], p) + T[..., :3, 3]
 
@@ -301,7 +301,7 @@ def tip_rbase_image_chain(
     Returns:
         (N, 3) tip positions in the robot base frame, mm.
     """
-    T = rbase_from_ee @ ee_from_cm @ _se3.inv(carm_from_cm)
+    T = rbase_from_ee @ ee_from_cm @ se3.inv(carm_from_cm)
     p = np.asarray(tip_carm_mm, dtype=np.float64)
     return np.einsum("...ij,...j->...i", T[..., :3, :3], p) + T[..., :3, 3]
 

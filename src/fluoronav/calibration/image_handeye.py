@@ -40,9 +40,9 @@ import cv2
 import numpy as np
 import torch
 
-from fluoronav.calibration import _se3
 from fluoronav.calibration.handeye import check_motion
 from fluoronav.calibration.results import HandEyeFailure
+from fluoronav.geometry import se3
 from fluoronav.manipulator.config import CMConfig, with_shaft
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.cm import DEFAULT_CM_MU_PER_MM, CMView, ViewROI, view_roi
@@ -263,7 +263,7 @@ def initial_world_from_rbase_pnp(
     ok, rvec, tvec = cv2.solvePnP(np.asarray(obj), np.asarray(img), cam.K, None, flags=cv2.SOLVEPNP_SQPNP)
     if not ok:
         return None
-    camera_from_rbase = _se3.make(cv2.Rodrigues(rvec)[0], np.asarray(tvec).reshape(3))
+    camera_from_rbase = se3.make(cv2.Rodrigues(rvec)[0], np.asarray(tvec).reshape(3))
     return cam.world_from_camera @ camera_from_rbase
 
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fluoronav.calibration import _se3
+from fluoronav.geometry import se3
 
 __all__ = [
     "DEFAULT_BODY",
@@ -78,7 +78,7 @@ def kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     D[..., 2, 2] = d
     R = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
     t = ct[..., 0, :] - np.einsum("...ij,...j->...i", R, cs[..., 0, :])
-    return _se3.make(R, t)
+    return se3.make(R, t)
 
 
 @dataclass(frozen=True)
@@ -110,7 +110,7 @@ class OpticalTracker:
         self, tracker_from_body: np.ndarray, body: RigidBody, *, rng: np.random.Generator
     ) -> np.ndarray:
         """Noisy marker positions: (..., 4, 4) true poses → (..., N, 3) in the tracker frame, mm."""
-        T = _se3.as_transform_array(tracker_from_body, "tracker_from_body")
+        T = se3.as_transform_array(tracker_from_body, "tracker_from_body")
         exact = np.einsum("...ij,nj->...ni", T[..., :3, :3], body.markers) + T[..., None, :3, 3]
         return exact + rng.normal(0.0, self.marker_sigma_mm, exact.shape)
 

@@ -2,50 +2,15 @@
 
 from __future__ import annotations
 
-import importlib
 import json
-import logging
-import platform
-from typing import Any
 
-import torch
 import typer
 
 from fluoronav import __version__
-from fluoronav.device import resolve_device
+from fluoronav.bench import BENCH_STAGES, collect
 from fluoronav.errors import InputError
 
-log = logging.getLogger(__name__)
-
-#: stages that provide ``fluoronav.<stage>.bench.run(quick: bool, device: str) -> dict[str, float]``
-BENCH_STAGES = ("rendering", "simulation", "detection", "registration")
-
-
-def collect(*, quick: bool = False, only: list[str] | None = None, device: str = "cpu") -> dict[str, Any]:
-    """Run every stage's benchmarks on ``device`` (``cpu``, ``cuda`` or ``auto``) and merge their
-    figures into one dict; each figure's baseline runs on the same device."""
-    dev = str(resolve_device(device))
-    figures: dict[str, Any] = {}
-    for stage in BENCH_STAGES:
-        if only and stage not in only:
-            continue
-        try:
-            module = importlib.import_module(f"fluoronav.{stage}.bench")
-        except ModuleNotFoundError as exc:
-            if exc.name == f"fluoronav.{stage}.bench":
-                continue
-            raise
-        log.info("benchmarking %s on %s", stage, dev)
-        figures.update(module.run(quick=quick, device=dev))
-    figures["machine"] = {
-        "cpu_threads": torch.get_num_threads(),
-        "platform": platform.platform(),
-        "torch": torch.__version__,
-        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
-        "device": dev,
-    }
-    figures["version"] = __version__
-    return figures
+__all__ = ["collect", "register"]  # collect: re-exported for callers of the CLI module
 
 
 def register(app: typer.Typer) -> None:

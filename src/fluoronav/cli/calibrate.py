@@ -83,7 +83,7 @@ def _array(value: Any, shape: tuple[int, ...], what: str, src: str) -> np.ndarra
 
 
 def _robot(name: Any, src: str) -> Any:
-    from fluoronav.calibration.robot import UR10
+    from fluoronav.manipulator.robot import UR10
 
     if name not in _ROBOTS:
         raise InputError(
@@ -134,7 +134,7 @@ def load_calibration_case(path: str | Path) -> CalibrationCase:
     """
     from fluoronav.detection.detector import load_image
     from fluoronav.geometry.camera import Camera
-    from fluoronav.registration.case import _detect_landmarks
+    from fluoronav.registration.case import detect_landmarks
     from fluoronav.registration.cm import CMView
 
     p = Path(path)
@@ -171,7 +171,7 @@ def load_calibration_case(path: str | Path) -> CalibrationCase:
         lm = (
             _array(v["landmarks_px"], (2, 2), f"views[{k}].landmarks_px", src)
             if v.get("landmarks_px") is not None
-            else _detect_landmarks(img, src)
+            else detect_landmarks(img, src)
         )
         views.append(
             CMView(
@@ -335,11 +335,11 @@ def run_calibration(
 def _overlays(res: Any, out: Path) -> None:
     import cv2
 
-    from fluoronav.registration.cm import _edges, _to_uint8
+    from fluoronav.registration.cm_overlays import edge_mask, to_uint8
 
     for name, img, drr in zip(res.view_names, res.roi_images, res.roi_drrs, strict=True):
-        rgb = np.repeat(_to_uint8(img)[..., None], 3, axis=-1)
-        rgb[_edges(drr)] = (0, 255, 0)
+        rgb = np.repeat(to_uint8(img)[..., None], 3, axis=-1)
+        rgb[edge_mask(drr)] = (0, 255, 0)
         cv2.imwrite(str(out / f"overlay_{name}.png"), np.kron(rgb, np.ones((4, 4, 1), np.uint8))[..., ::-1])
 
 
@@ -352,8 +352,8 @@ def write_example_calibration_case(
     The initial hand-eye is the truth perturbed by 5° / 5 mm; ``ground_truth`` holds the truth."""
     import torch
 
-    from fluoronav.calibration import _se3
     from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker
+    from fluoronav.geometry import se3
     from fluoronav.manipulator.kinematics import CMKinematics
     from fluoronav.simulation.articulated import anatomy_and_simulator
     from fluoronav.simulation.robot_scene import (
@@ -397,11 +397,11 @@ def write_example_calibration_case(
     if with_tracker:
         kin = CMKinematics()
         tracker = OpticalTracker()
-        cm_from_os = _se3.make(np.eye(3), [30.0, 0.0, -60.0])
+        cm_from_os = se3.make(np.eye(3), [30.0, 0.0, -60.0])
         link = kin.link_transforms(torch.as_tensor(sc.control_points_deg, dtype=torch.float64))[-1].numpy()
-        cm_from_ot = link @ _se3.make(np.eye(3), [15.0, 0.0, 0.0])
+        cm_from_ot = link @ se3.make(np.eye(3), [15.0, 0.0, 0.0])
         tip_cm = kin.tip_cm(torch.as_tensor(sc.control_points_deg, dtype=torch.float64)).numpy()
-        tracker_from_rbase = np.linalg.inv(_se3.make(np.eye(3), [1500.0, 0.0, 500.0]))
+        tracker_from_rbase = np.linalg.inv(se3.make(np.eye(3), [1500.0, 0.0, 500.0]))
         true_ee = sc.true_robot.rbase_from_ee(sc.q_actual_deg)
         t_os = tracker.track(tracker_from_rbase @ true_ee @ sc.ee_from_cm @ cm_from_os, DEFAULT_BODY, rng=rng)
         t_ot = tracker.track(tracker_from_rbase @ true_ee @ sc.ee_from_cm @ cm_from_ot, DEFAULT_BODY, rng=rng)

@@ -1,4 +1,4 @@
-"""The continuum manipulator: parametric geometry, kinematics, meshes and voxelisation."""
+"""The continuum manipulator (geometry, kinematics, meshes, voxelisation) and the serial robot carrying it."""
 
 from fluoronav.manipulator.config import CMConfig, load_cm_config
 from fluoronav.manipulator.geometry import VoxelizedCM, inside_cm, inside_cm_straight, voxelize_cm

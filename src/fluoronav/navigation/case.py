@@ -27,10 +27,10 @@ from typing import Any
 import numpy as np
 
 from fluoronav.anatomy.volume import Volume
-from fluoronav.calibration.robot import SerialRobot
 from fluoronav.errors import InputError, read_json_object
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.robot import SerialRobot
 from fluoronav.navigation.planning import Plan
 
 __all__ = [
@@ -350,7 +350,7 @@ def write_navigation_case(
         FileNotFoundError: ``ct_path`` does not exist.
     """
     from fluoronav.anatomy.io import save_volume
-    from fluoronav.calibration.robot import UR10, robot_to_dict
+    from fluoronav.manipulator.robot import UR10, robot_to_dict
     from fluoronav.navigation.case_io import write_views
     from fluoronav.navigation.planning import save_plan
 

@@ -24,10 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from fluoronav.calibration.robot import SerialRobot
 from fluoronav.errors import InputError, read_json_object
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.robot import SerialRobot
 from fluoronav.navigation.case import CaseView
 
 __all__ = [
@@ -359,7 +359,7 @@ def _ee_from_cm(value: Any, src: str, root: Path) -> np.ndarray:
 
 def parse_robot(d: dict[str, Any], src: str, root: Path) -> tuple[SerialRobot, np.ndarray, np.ndarray]:
     """``robot`` → (model, joints_deg (n,), ee_from_cm (4, 4))."""
-    from fluoronav.calibration.robot import load_robot
+    from fluoronav.manipulator.robot import load_robot
 
     r = d.get("robot")
     if r is None:

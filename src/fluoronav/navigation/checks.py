@@ -10,10 +10,11 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.case import NavigationCase
 from fluoronav.navigation.navigate import femur_from_cm_registered
-from fluoronav.navigation.result import NavigationRefused, Registration, StageRecord, _h
+from fluoronav.navigation.result import NavigationRefused, Registration, StageRecord
 from fluoronav.navigation.safety import SafetyConfig, ViewVerdict, judge_cm_views, judge_motion
 from fluoronav.registration.cm import (
     CMRegistrationConfig,
@@ -137,6 +138,6 @@ def motion_consistency(
     d = np.linalg.inv(pred) @ reg
     c = (np.trace(d[:3, :3]) - 1.0) / 2.0
     return {
-        "motion_tip_mm": float(np.linalg.norm(_h(reg, tip) - _h(pred, tip))),
+        "motion_tip_mm": float(np.linalg.norm(se3.apply(reg, tip) - se3.apply(pred, tip))),
         "motion_rotation_deg": float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))),
     }

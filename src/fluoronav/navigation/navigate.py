@@ -24,9 +24,9 @@ import logging
 
 import numpy as np
 
-from fluoronav.calibration import _se3
-from fluoronav.calibration.robot import IKFailure, SerialRobot
 from fluoronav.errors import FluoronavError
+from fluoronav.geometry import se3
+from fluoronav.manipulator.robot import IKFailure, SerialRobot
 
 __all__ = [
     "UnreachableTarget",
@@ -53,9 +53,9 @@ def femur_from_cm_registered(carm_from_femur: np.ndarray, carm_from_cm: np.ndarr
     Returns:
         (..., 4, 4) ``femur_from_cm = inv(carm_from_femur) · carm_from_cm``.
     """
-    F = _se3.as_transform_array(carm_from_femur, "carm_from_femur")
-    C = _se3.as_transform_array(carm_from_cm, "carm_from_cm")
-    return _se3.inv(F) @ C
+    F = se3.as_transform_array(carm_from_femur, "carm_from_femur")
+    C = se3.as_transform_array(carm_from_cm, "carm_from_cm")
+    return se3.inv(F) @ C
 
 
 def tip_correction_target(
@@ -78,7 +78,7 @@ def tip_correction_target(
     Returns:
         (4, 4) ``femur_from_cm_target`` for :func:`robot_target`.
     """
-    T = _se3.as_transform_array(femur_from_cm_regi, "femur_from_cm_regi").copy()
+    T = se3.as_transform_array(femur_from_cm_regi, "femur_from_cm_regi").copy()
     tip = T[:3, :3] @ np.asarray(tip_cm_mm, dtype=np.float64) + T[:3, 3]
     T[:3, 3] += np.asarray(tip_target_femur_mm, dtype=np.float64) - tip
     return T
@@ -101,13 +101,13 @@ def rbase_from_ee_target(
     Returns:
         (..., 4, 4) ``rbase_from_ee`` target.
     """
-    X = _se3.as_transform_array(ee_from_cm, "ee_from_cm")
+    X = se3.as_transform_array(ee_from_cm, "ee_from_cm")
     return (
-        _se3.as_transform_array(rbase_from_ee_regi, "rbase_from_ee_regi")
+        se3.as_transform_array(rbase_from_ee_regi, "rbase_from_ee_regi")
         @ X
-        @ _se3.inv(_se3.as_transform_array(femur_from_cm_regi, "femur_from_cm_regi"))
-        @ _se3.as_transform_array(femur_from_cm_target, "femur_from_cm_target")
-        @ _se3.inv(X)
+        @ se3.inv(se3.as_transform_array(femur_from_cm_regi, "femur_from_cm_regi"))
+        @ se3.as_transform_array(femur_from_cm_target, "femur_from_cm_target")
+        @ se3.inv(X)
     )
 
 

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.case import NavigationCase
 from fluoronav.navigation.pipeline import NavigationResult
@@ -25,10 +26,6 @@ from fluoronav.navigation.pipeline import NavigationResult
 log = logging.getLogger(__name__)
 
 __all__ = ["write_navigation_json", "write_outputs", "write_slicer"]
-
-
-def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return np.asarray(p, np.float64) @ T[:3, :3].T + T[:3, 3]
 
 
 def write_navigation_json(
@@ -58,22 +55,22 @@ def write_slicer(result: NavigationResult, case: NavigationCase, out: Path) -> l
     cp = np.asarray(reg.cm.control_points_deg, np.float64)
     cm_v, cm_f = cm_surface(case.cm_config, cp)
     fem_v, fem_f = femur_surface(case.volume, f"femur_{case.side}")
-    fem_v = _h(reg.ct_from_femur, fem_v)
+    fem_v = se3.apply(reg.ct_from_femur, fem_v)
     plan_points: dict[str, np.ndarray] = {}
     if result.plan is not None:
         # the plan moves with the femur: drawn in the CT's femur, shown on the registered one
         plan = result.plan
         # a line from the entry point along the insertion direction, 10 mm past the tip target
         plan_points = {
-            "entry": _h(reg.ct_from_femur, plan.entry_point_world_mm),
-            "target": _h(reg.ct_from_femur, plan.tip_target_world_mm + 10.0 * plan.direction_world),
+            "entry": se3.apply(reg.ct_from_femur, plan.entry_point_world_mm),
+            "target": se3.apply(reg.ct_from_femur, plan.tip_target_world_mm + 10.0 * plan.direction_world),
         }
     ab = kin.landmarks_cm(torch.as_tensor(cp, dtype=torch.float64)).numpy()
     landmarks = {name: np.asarray(p, np.float64) for name, p in case.volume.landmarks_world.items()}
     landmarks.update(
         {
-            "CM_A": _h(reg.ct_from_cm, ab[0]),
-            "CM_B": _h(reg.ct_from_cm, ab[1]),
+            "CM_A": se3.apply(reg.ct_from_cm, ab[0]),
+            "CM_B": se3.apply(reg.ct_from_cm, ab[1]),
             "CM_tip": np.asarray(reg.tip_ct_mm, np.float64),
         }
     )

@@ -43,11 +43,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from fluoronav.calibration.robot import wrap_deg
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.instrument import instrument_masks
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.manipulator.robot import wrap_deg
 from fluoronav.navigation.case import CaseView, NavigationCase
 from fluoronav.navigation.checks import motion_consistency, predicted_femur_from_cm, register_cm_checked
 from fluoronav.navigation.navigate import (

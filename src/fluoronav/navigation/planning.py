@@ -41,8 +41,8 @@ import numpy as np
 import torch
 
 from fluoronav.anatomy.markups import read_markup_nodes
-from fluoronav.calibration import _se3
 from fluoronav.errors import InputError
+from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
 
 __all__ = ["Plan", "load_plan", "plan_from_dict", "plan_from_markups", "planned_femur_from_cm", "save_plan"]
@@ -285,10 +285,10 @@ def planned_femur_from_cm(
         raise ValueError(f"plan has {cps.shape[0]} control points, the CM model needs {n_cp}")
     tip_cm = kin.tip_cm(torch.as_tensor(cps, dtype=torch.float64)).numpy()
     R = _frame_axes(plan.direction_world, plan.bending_direction_world)
-    world_from_cm = _se3.make(R, plan.tip_target_world_mm - R @ tip_cm)
+    world_from_cm = se3.make(R, plan.tip_target_world_mm - R @ tip_cm)
     F = (
         np.eye(4)
         if femur_from_world is None
-        else _se3.as_transform_array(femur_from_world, "femur_from_world")
+        else se3.as_transform_array(femur_from_world, "femur_from_world")
     )
     return F @ world_from_cm

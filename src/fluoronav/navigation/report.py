@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from fluoronav.geometry import se3
 from fluoronav.htmlpage import Section, figure_png, html_page
 from fluoronav.navigation.case import NavigationCase
 from fluoronav.navigation.pipeline import NavigationResult, Registration
@@ -159,10 +160,6 @@ def _surface_points(volume: Any, label: str, n: int, rng: np.random.Generator) -
     return idx @ W[:3, :3].T + W[:3, 3]
 
 
-def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return np.asarray(p, np.float64) @ T[:3, :3].T + T[:3, 3]
-
-
 def _scene_figure(
     result: NavigationResult, case: NavigationCase, true_ct_from_cm: Mapping[str, np.ndarray] | None
 ) -> bytes:
@@ -179,7 +176,7 @@ def _scene_figure(
     fig = plt.figure(figsize=(10, 8))
     ax = fig.add_subplot(111, projection="3d")
     pel = _surface_points(case.volume, "pelvis", 2500, rng)
-    fem = _h(first.ct_from_femur, _surface_points(case.volume, f"femur_{case.side}", 1500, rng))
+    fem = se3.apply(first.ct_from_femur, _surface_points(case.volume, f"femur_{case.side}", 1500, rng))
     ax.scatter(*pel.T, s=0.6, c="#888888", alpha=0.5, label="pelvis (CT)")
     ax.scatter(*fem.T, s=0.4, c="#d9a066", alpha=0.5, label="femur (registered)")
 
@@ -189,22 +186,22 @@ def _scene_figure(
 
     cp_est = np.asarray(first.cm.control_points_deg)
     curves: list[tuple[np.ndarray, dict[str, Any], str]] = [
-        (_h(first.ct_from_cm, axis_of(cp_est)), dict(color="tab:red", lw=2), "CM (registered)")
+        (se3.apply(first.ct_from_cm, axis_of(cp_est)), dict(color="tab:red", lw=2), "CM (registered)")
     ]
     if result.femur_from_cm_target is not None:
         plan_ct = first.ct_from_femur @ result.femur_from_cm_target
-        curves.append((_h(plan_ct, axis_of(cp_est)), dict(color="tab:green", lw=1.5, ls="--"), "plan"))
+        curves.append((se3.apply(plan_ct, axis_of(cp_est)), dict(color="tab:green", lw=1.5, ls="--"), "plan"))
     if result.verification is not None:
         v = result.verification
         curves.append(
             (
-                _h(v.ct_from_cm, axis_of(v.cm.control_points_deg)),
+                se3.apply(v.ct_from_cm, axis_of(v.cm.control_points_deg)),
                 dict(color="tab:blue", lw=2),
                 "CM after the move (registered)",
             )
         )
     for label, T in (true_ct_from_cm or {}).items():
-        curves.append((_h(np.asarray(T), axis_of(cp_est)), dict(color="k", lw=1, ls=":"), label))
+        curves.append((se3.apply(np.asarray(T), axis_of(cp_est)), dict(color="k", lw=1, ls=":"), label))
     for pts, style, label in curves:
         ax.plot(*pts.T, label=label, **style)
     centre = curves[0][0].mean(axis=0)

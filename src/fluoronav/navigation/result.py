@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from fluoronav.errors import FluoronavError
+from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera
 from fluoronav.navigation.case import CaseView
 from fluoronav.navigation.planning import Plan
@@ -226,7 +227,7 @@ class NavigationResult:
         if self.verification is not None:
             v = self.verification.to_dict()
             if self.plan is not None:
-                planned_tip_ct = _h(self.verification.ct_from_femur, self.plan.tip_target_world_mm)
+                planned_tip_ct = se3.apply(self.verification.ct_from_femur, self.plan.tip_target_world_mm)
                 v["tip_to_plan_mm"] = float(np.linalg.norm(self.verification.tip_ct_mm - planned_tip_ct))
             if self.status == "ok" and self.joints_correction_deg is not None:
                 assert self.rbase_from_ee_correction is not None
@@ -234,8 +235,3 @@ class NavigationResult:
                 v["joints_target_deg"] = self.joints_correction_deg.tolist()
             d["verification"] = v
         return d
-
-
-def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Apply a (4, 4) transform to (..., 3) points."""
-    return np.asarray(p, np.float64) @ T[:3, :3].T + T[:3, 3]

@@ -40,10 +40,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from fluoronav.calibration.robot import UR10
+from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.carm import centre_on, orbit_camera
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.manipulator.robot import UR10
 from fluoronav.navigation import case as case_io
 from fluoronav.navigation.case import CaseView, NavigationCase, VerificationViews
 from fluoronav.navigation.pipeline import EventCallback, NavigationConfig, NavigationResult, navigate, verify
@@ -126,10 +127,6 @@ class SimulatedNavigation:
         return "" if self.result is None else self.result.reason
 
 
-def _h(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return np.asarray(p, np.float64) @ T[:3, :3].T + T[:3, 3]
-
-
 def _rotation_deg(R: np.ndarray) -> float:
     c = (np.trace(R[:3, :3]) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
@@ -188,7 +185,7 @@ def _truth_poses(
     return {
         "ct_from_cm": (ct_from_world @ world_from_cm).tolist(),
         "control_points_deg": np.asarray(control_points_deg).tolist(),
-        "tip_ct_mm": _h(ct_from_world @ world_from_cm, tip_cm).tolist(),
+        "tip_ct_mm": se3.apply(ct_from_world @ world_from_cm, tip_cm).tolist(),
         "ct_from_femur": (ct_from_world @ world_from_femur).tolist(),
         "carm_from_ct": {
             n: (c.camera_from_world @ world_from_ct).tolist() for n, c in zip(names, cameras, strict=True)
@@ -293,9 +290,9 @@ def run_simulated_navigation(
         return run
     with T("move"):
         W_after = sc.execute(res.joints_target_deg, rng=rng)
-        planned_tip_world = _h(tr.world_from_femur, res.plan.tip_target_world_mm)  # type: ignore[union-attr]
+        planned_tip_world = se3.apply(tr.world_from_femur, res.plan.tip_target_world_mm)  # type: ignore[union-attr]
         W_plan_true = tr.world_from_femur @ res.femur_from_cm_target
-        E["reposition_tip_mm"] = float(np.linalg.norm(_h(W_after, tip_cm) - planned_tip_world))
+        E["reposition_tip_mm"] = float(np.linalg.norm(se3.apply(W_after, tip_cm) - planned_tip_world))
         E["reposition_axis_deg"] = axis_error_deg(W_after[:3, 2], W_plan_true[:3, 2])
         E["joint_motion_deg"] = float(res.stages["robot"].diagnostics["joint_motion_deg"])
         E["reposition_robot_mm"] = _robot_only_error(sc, run, q_regi, W_regi, ee_from_cm_used, rng, tip_cm)
@@ -308,9 +305,9 @@ def run_simulated_navigation(
         first, target = res.first, res.femur_from_cm_target
         assert first is not None and target is not None
         carm_est_from_ct = first.cameras_ct[0].camera_from_world
-        centre_ct = _h(first.ct_from_femur, verification_view_centre(target, tr.femoral_head_ct))
+        centre_ct = se3.apply(first.ct_from_femur, verification_view_centre(target, tr.femoral_head_ct))
         # where the person aims the C-arm, in the world (through the estimated AP C-arm frame)
-        centre = _h(np.linalg.inv(cams[0].camera_from_world) @ carm_est_from_ct, centre_ct)
+        centre = se3.apply(np.linalg.inv(cams[0].camera_from_world) @ carm_est_from_ct, centre_ct)
         centre = centre + rng.uniform(-cfg.aim_error_mm, cfg.aim_error_mm, 3)
         ap2 = centre_on(cams[0], centre)
         cams2 = [ap2] + [orbit_camera(ap2, angle_deg=a, isocenter_world=centre) for a in cfg.orbit_deg]
@@ -334,7 +331,7 @@ def run_simulated_navigation(
         return run
     with T("correct_move"):
         W_final = sc.execute(res.joints_correction_deg, rng=rng)
-        E["corrected_tip_mm"] = float(np.linalg.norm(_h(W_final, tip_cm) - planned_tip_world))
+        E["corrected_tip_mm"] = float(np.linalg.norm(se3.apply(W_final, tip_cm) - planned_tip_world))
         E["corrected_axis_deg"] = axis_error_deg(W_final[:3, 2], W_plan_true[:3, 2])
     run.truth["world_from_cm_corrected"] = W_final.tolist()
     A["W_final"] = W_final
@@ -377,12 +374,12 @@ def _first_errors(
     for cam_est, im in zip(first.cameras_ct, images, strict=True):
         delta = np.linalg.inv(im.camera.camera_from_world @ tr.world_from_patient) @ cam_est.camera_from_world
         rot.append(_rotation_deg(delta))
-        cen.append(float(np.linalg.norm(_h(delta, tr.pelvis_center_ct) - tr.pelvis_center_ct)))
+        cen.append(float(np.linalg.norm(se3.apply(delta, tr.pelvis_center_ct) - tr.pelvis_center_ct)))
     E["pelvis_rotation_deg"], E["pelvis_center_mm"] = float(np.mean(rot)), float(np.mean(cen))
     carm = images[0].camera.camera_from_world
     carm_est = first.cameras_ct[0].camera_from_world
-    entry_est = _h(carm_est @ first.ct_from_femur, tr.entry_ct)
-    entry_true = _h(carm @ tr.world_from_femur, tr.entry_ct)
+    entry_est = se3.apply(carm_est @ first.ct_from_femur, tr.entry_ct)
+    entry_true = se3.apply(carm @ tr.world_from_femur, tr.entry_ct)
     E["femur_entry_mm"] = float(np.linalg.norm(entry_est - entry_true))
     E["femur_rotation_deg"] = _rotation_deg(
         np.linalg.inv(carm @ tr.world_from_femur) @ (carm_est @ first.ct_from_femur)
@@ -395,14 +392,14 @@ def _first_errors(
         config=sc.cm_config,
     )
     E.update({f"cm_{k}": float(v) for k, v in errs.items()})
-    tip_true_c = _h(carm @ W_regi, _tip(sc, cp_true))
+    tip_true_c = se3.apply(carm @ W_regi, _tip(sc, cp_true))
     E["cm_relative_mm"] = float(
-        np.linalg.norm((_h(carm_est, first.tip_ct_mm) - entry_est) - (tip_true_c - entry_true))
+        np.linalg.norm((se3.apply(carm_est, first.tip_ct_mm) - entry_est) - (tip_true_c - entry_true))
     )
     E["cm_tip_ct_mm"] = float(np.linalg.norm(first.tip_ct_mm - np.asarray(run.truth["tip_ct_mm"])))
     if first.cm_init is not None:
         E["cm_init_tip_mm"] = float(
-            np.linalg.norm(_h(carm_est @ first.cm_init.world_from_cm, _tip(sc, cp_true)) - tip_true_c)
+            np.linalg.norm(se3.apply(carm_est @ first.cm_init.world_from_cm, _tip(sc, cp_true)) - tip_true_c)
         )
 
 
@@ -419,16 +416,20 @@ def _verification_errors(
     ver = res.verification
     carm2 = images2[0].camera.camera_from_world
     carm2_est = ver.cameras_ct[0].camera_from_world
-    tip_after = _h(W_after, _tip(sc, sc.control_points_deg))
+    tip_after = se3.apply(W_after, _tip(sc, sc.control_points_deg))
     E["verify_tip_to_plan_mm"] = float(
-        np.linalg.norm(ver.tip_ct_mm - _h(ver.ct_from_femur, res.plan.tip_target_world_mm))
+        np.linalg.norm(ver.tip_ct_mm - se3.apply(ver.ct_from_femur, res.plan.tip_target_world_mm))
     )
-    E["verify_tip_error_mm"] = float(np.linalg.norm(_h(carm2_est, ver.tip_ct_mm) - _h(carm2, tip_after)))
-    entry_est = _h(carm2_est @ ver.ct_from_femur, tr.entry_ct)
-    entry_true = _h(carm2 @ tr.world_from_femur, tr.entry_ct)
+    E["verify_tip_error_mm"] = float(
+        np.linalg.norm(se3.apply(carm2_est, ver.tip_ct_mm) - se3.apply(carm2, tip_after))
+    )
+    entry_est = se3.apply(carm2_est @ ver.ct_from_femur, tr.entry_ct)
+    entry_true = se3.apply(carm2 @ tr.world_from_femur, tr.entry_ct)
     E["verify_femur_entry_mm"] = float(np.linalg.norm(entry_est - entry_true))
     E["verify_relative_mm"] = float(
-        np.linalg.norm((_h(carm2_est, ver.tip_ct_mm) - entry_est) - (_h(carm2, tip_after) - entry_true))
+        np.linalg.norm(
+            (se3.apply(carm2_est, ver.tip_ct_mm) - entry_est) - (se3.apply(carm2, tip_after) - entry_true)
+        )
     )
 
 
@@ -457,4 +458,6 @@ def _robot_only_error(
         femur_from_cm_target=target,
     )
     W = sc.execute(q, rng=np.random.default_rng(int(rng.integers(2**31))))
-    return float(np.linalg.norm(_h(W, tip_cm) - _h(tr.world_from_femur, res.plan.tip_target_world_mm)))
+    return float(
+        np.linalg.norm(se3.apply(W, tip_cm) - se3.apply(tr.world_from_femur, res.plan.tip_target_world_mm))
+    )

@@ -40,6 +40,7 @@ __all__ = [
     "WORKFLOWS",
     "CMCase",
     "CMCaseProtocol",
+    "detect_landmarks",
     "load_case",
     "perturb_pose",
     "simulate_cm_case",
@@ -340,7 +341,7 @@ def _config_from(d: Any, source: str) -> CMRegistrationConfig:
         raise InputError(source, f"bad config value ({exc})") from None
 
 
-def _detect_landmarks(image: np.ndarray, source: str, pixel_spacing_mm: float | None = None) -> np.ndarray:
+def detect_landmarks(image: np.ndarray, source: str, pixel_spacing_mm: float | None = None) -> np.ndarray:
     try:  # the detector (a trained network) is heavy and optional
         from fluoronav.detection.detector import Detector
     except ImportError:
@@ -400,7 +401,7 @@ def load_case(path: str | Path) -> CMCase:
         lm = (
             _matrix(v["landmarks_px"], (2, 2), f"landmarks_px of views[{k}]", src)
             if v.get("landmarks_px") is not None
-            else _detect_landmarks(img, src, camera.pixel_spacing_mm)
+            else detect_landmarks(img, src, camera.pixel_spacing_mm)
         )
         binning = v.get("binning")
         if binning is not None and (not isinstance(binning, int) or binning < 1):

@@ -51,8 +51,6 @@ from fluoronav.registration.cm_roll_scan import RollScanResult, roll_scan, roll_
 from fluoronav.registration.cm_views import BackgroundFn, CMView, ViewROI, view_roi
 
 # the former private names of the overlay helpers, still imported by ``fluoronav.cli.calibrate``
-_edges = edge_mask
-_to_uint8 = to_uint8
 
 __all__ = [
     "CM_COARSE_LEVEL",

@@ -24,9 +24,9 @@ import numpy as np
 from fluoronav import __version__
 from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import InputError
+from fluoronav.runner import JsonlLog, run_tasks
 from fluoronav.simulation.scene import SceneSampling, sample_scene
 from fluoronav.simulation.xray import SimulatedImage, SimulationConfig, XraySimulator
-from fluoronav.studies.runner import JsonlLog, run_tasks
 
 log = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@ hand-eye workflows.
 Setting (world = the CT frame of the phantom before the patient moved, LPS mm):
 
 - Robot: a UR-10 whose physical kinematics differ from the controller's nominal model by
-  :class:`~fluoronav.calibration.robot.RobotErrorModel` defaults (seeded per scene), with encoder
+  :class:`~fluoronav.manipulator.robot.RobotErrorModel` defaults (seeded per scene), with encoder
   noise per reading. The controller sees the *nominal* forward kinematics of the commanded joints;
   the truth is the true robot at the actual joints (:meth:`HandEyeScenario.execute`).
 - Mount: true ``ee_from_cm``: the CM base origin 150–250 mm along the flange's tool axis, ±5 mm
@@ -29,11 +29,11 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from fluoronav.calibration import _se3
-from fluoronav.calibration.robot import UR10, IKFailure, RobotErrorModel, SerialRobot, wrap_deg
+from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.manipulator.robot import UR10, IKFailure, RobotErrorModel, SerialRobot, wrap_deg
 
 __all__ = [
     "HOME_DEG",
@@ -109,7 +109,7 @@ def perturb_transform(
     """``T`` · δ with δ a rotation of exactly ``rotation_deg`` about a random axis (about T's origin)
     and a translation of exactly ``translation_mm`` in a random direction (T's frame)."""
     d = rng.normal(size=3)
-    return T @ _se3.make(
+    return T @ se3.make(
         random_rotation(rng, rotation_deg, fixed=True), translation_mm * d / np.linalg.norm(d)
     )
 
@@ -181,7 +181,7 @@ def sample_handeye_scenario(
     model = RobotErrorModel(seed=int(rng.integers(2**31)))
     true_robot = model.true_robot(UR10)
     # mount: CM base ~150-250 mm along the tool axis, small lateral offset and rotation
-    ee_from_cm = _se3.make(
+    ee_from_cm = se3.make(
         random_rotation(rng, 10.0), [rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(150.0, 250.0)]
     )
     q_work = HOME_DEG + rng.uniform(-10.0, 10.0, 6)
@@ -193,7 +193,7 @@ def sample_handeye_scenario(
     for _ in range(max_redraws):
         if len(q) == n_poses:
             break
-        d = _se3.make(
+        d = se3.make(
             random_rotation(rng, rotation_spread_deg),
             rng.uniform(-translation_spread_mm, translation_spread_mm, 3),
         )

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["study_figures"]
+__all__ = ["column", "study_figures"]
 
 _LABELS = {
     "tip_mm": "CM tip error (mm)",
@@ -26,7 +26,7 @@ _LABELS = {
 }
 
 
-def _col(rows: list[dict[str, Any]], key: str) -> np.ndarray:
+def column(rows: list[dict[str, Any]], key: str) -> np.ndarray:
     out = []
     for r in rows:
         try:
@@ -48,7 +48,7 @@ def study_figures(rows: list[dict[str, Any]], out_dir: Path, *, workflow: str) -
     out_dir.mkdir(parents=True, exist_ok=True)
     ok = [r for r in rows if str(r.get("status", "ok")) == "ok"]
     written: list[Path] = []
-    keys = [k for k in _LABELS if len(_col(ok, k))]
+    keys = [k for k in _LABELS if len(column(ok, k))]
     if keys:
         n = len(keys)
         cols = min(3, n)
@@ -57,7 +57,7 @@ def study_figures(rows: list[dict[str, Any]], out_dir: Path, *, workflow: str) -
         for ax in axes.flat:
             ax.axis("off")
         for ax, k in zip(axes.flat, keys, strict=False):
-            v = _col(ok, k)
+            v = column(ok, k)
             ax.axis("on")
             ax.hist(v, bins=min(30, max(5, len(v) // 3)), color="steelblue", edgecolor="white")
             ax.axvline(float(np.mean(v)), color="crimson", linestyle="--", label=f"mean {np.mean(v):.2f}")
@@ -71,10 +71,10 @@ def study_figures(rows: list[dict[str, Any]], out_dir: Path, *, workflow: str) -
         plt.close(fig)
         written.append(p)
     axis_keys = [("base_tx_mm", "base_ty_mm", "base_tz_mm"), ("base_rx_deg", "base_ry_deg", "base_rz_deg")]
-    if all(len(_col(ok, k)) for k in axis_keys[0]):
+    if all(len(column(ok, k)) for k in axis_keys[0]):
         fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
         for ax, ks, unit in zip(axes, axis_keys, ("mm", "°"), strict=True):
-            ax.boxplot([_col(ok, k) for k in ks], showfliers=True)
+            ax.boxplot([column(ok, k) for k in ks], showfliers=True)
             ax.set_xticks([1, 2, 3], ["X", "Y", "Z"])
             ax.axhline(0.0, color="grey", linewidth=0.5)
             ax.set_ylabel(f"CM base {'translation' if unit == 'mm' else 'rotation'} error ({unit})")
@@ -84,7 +84,7 @@ def study_figures(rows: list[dict[str, Any]], out_dir: Path, *, workflow: str) -
         fig.savefig(p, dpi=100)
         plt.close(fig)
         written.append(p)
-    tip, depth = _col(ok, "tip_mm"), _col(ok, "base_depth_mm")
+    tip, depth = column(ok, "tip_mm"), column(ok, "base_depth_mm")
     if len(tip) >= 3 and len(tip) == len(depth):
         r = float(np.corrcoef(tip, depth)[0, 1]) if np.std(tip) > 0 and np.std(depth) > 0 else float("nan")
         fig, ax = plt.subplots(figsize=(4.6, 4))

@@ -30,7 +30,7 @@ from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import FluoronavError, InputError
 from fluoronav.registration.centerline_init import multiview_start_poses
 from fluoronav.registration.metrics import cm_errors, point_error_mm, relative_error_mm
-from fluoronav.studies.runner import CsvLog, finish_row, mark_failed, new_row, run_tasks
+from fluoronav.runner import CsvLog, finish_row, mark_failed, new_row, run_tasks
 
 log = logging.getLogger(__name__)
 

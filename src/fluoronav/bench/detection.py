@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch.nn import functional as tnf
 
+from fluoronav.bench.timing import time_ms
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.config import DetectorConfig
 from fluoronav.detection.detector import Detector
@@ -34,7 +35,6 @@ from fluoronav.detection.localize import FineResult
 from fluoronav.detection.model import DetectorNet, load_net, shipped_model_path
 from fluoronav.detection.runtime import native_bf16
 from fluoronav.detection.views import normalize_intensity
-from fluoronav.rendering.bench import time_ms
 
 logger = logging.getLogger(__name__)
 

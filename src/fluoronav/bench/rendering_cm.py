@@ -1,4 +1,4 @@
-"""Benchmark of the analytic CM DRR (called by :mod:`fluoronav.rendering.bench`)."""
+"""Benchmark of the analytic CM DRR (called by :mod:`fluoronav.bench.rendering`)."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from fluoronav.bench.timing import time_ms
 from fluoronav.geometry.camera import CIOS_FUSION, Camera
 from fluoronav.geometry.rotations import rotvec_to_matrix
 from fluoronav.geometry.transforms import transform_from_params
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
-from fluoronav.rendering.bench import time_ms
 from fluoronav.rendering.cm import CMRenderer
 
 __all__ = ["cm_benchmark_scene", "run_cm"]

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from fluoronav.detection import bench
+from fluoronav.bench import detection as bench
 
 
 @pytest.mark.slow

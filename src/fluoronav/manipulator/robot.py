@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from fluoronav.calibration import _se3
 from fluoronav.errors import InputError, read_json_object
+from fluoronav.geometry import se3
 
 __all__ = [
     "UR10",
@@ -183,7 +183,7 @@ class SerialRobot:
     def _pose_error(self, T: np.ndarray, target: np.ndarray) -> np.ndarray:
         """(6,) [Δp mm, Δrotvec rad] in the base frame, target minus current."""
         dp = target[:3, 3] - T[:3, 3]
-        dw = _se3.rotvec(target[:3, :3] @ T[:3, :3].T)
+        dw = se3.rotvec(target[:3, :3] @ T[:3, :3].T)
         return np.concatenate([dp, dw])
 
     def refine_ik(
@@ -204,7 +204,7 @@ class SerialRobot:
         Returns:
             (q_deg (n,), position_error_mm, rotation_error_deg).
         """
-        target = _se3.as_transform_array(rbase_from_ee_target, "rbase_from_ee_target")
+        target = se3.as_transform_array(rbase_from_ee_target, "rbase_from_ee_target")
         scale = np.array([1.0, 1.0, 1.0, 1000.0, 1000.0, 1000.0])
         q = np.deg2rad(np.asarray(q_seed_deg, dtype=np.float64)).copy()
         lam = damping_mm
@@ -251,7 +251,7 @@ class SerialRobot:
         """
         if not self.is_ur_type():
             raise ValueError(f"{self.name}: closed-form IK needs the UR joint structure")
-        T = _se3.as_transform_array(rbase_from_ee_target, "rbase_from_ee_target")
+        T = se3.as_transform_array(rbase_from_ee_target, "rbase_from_ee_target")
         a, d = self.a_mm, self.d_mm
         a2, a3, d4, d6 = a[1], a[2], d[3], d[5]
         off = self.theta_offset_rad
@@ -269,7 +269,7 @@ class SerialRobot:
             c5 = (p[0] * s1 - p[1] * c1 - d4) / d6
             if abs(c5) > 1.0 + 1e-9:
                 continue
-            T16 = _se3.inv(self._single_dh(0, th1)) @ T
+            T16 = se3.inv(self._single_dh(0, th1)) @ T
             for s_wr in (1, -1):
                 th5 = s_wr * math.acos(min(1.0, max(-1.0, c5)))
                 # R16 = Rz(θ234) Ry(−θ5) Rz(θ6): its z row is (s5 c6, −s5 s6, c5).
@@ -278,7 +278,7 @@ class SerialRobot:
                 th6 = 0.0 if abs(s5) < 1e-12 else math.atan2(-T16[2, 1] / s5, T16[2, 0] / s5)
                 T45 = self._single_dh(4, th5)
                 T56 = self._single_dh(5, th6)
-                T14 = T16 @ _se3.inv(T45 @ T56)
+                T14 = T16 @ se3.inv(T45 @ T56)
                 p13 = (T14 @ np.array([0.0, -d4, 0.0, 1.0]))[:3]
                 c3 = (p13[0] ** 2 + p13[1] ** 2 - a2**2 - a3**2) / (2.0 * a2 * a3)
                 if abs(c3) > 1.0 + 1e-9:
@@ -288,7 +288,7 @@ class SerialRobot:
                     th2 = math.atan2(p13[1], p13[0]) - math.atan2(a3 * math.sin(th3), a2 + a3 * math.cos(th3))
                     T12 = self._single_dh(1, th2)
                     T23 = self._single_dh(2, th3)
-                    T34 = _se3.inv(T12 @ T23) @ T14
+                    T34 = se3.inv(T12 @ T23) @ T14
                     th4 = math.atan2(T34[1, 0], T34[0, 0])
                     theta = np.array([th1, th2, th3, th4, th5, th6])
                     q = wrap_deg(np.rad2deg(theta - off))
@@ -365,7 +365,7 @@ class SerialRobot:
         Returns:
             :class:`IKSolution`, or :class:`IKFailure` where no configuration reaches the pose.
         """
-        target = _se3.as_transform_array(rbase_from_ee_target, "rbase_from_ee_target")
+        target = se3.as_transform_array(rbase_from_ee_target, "rbase_from_ee_target")
         ref = None if q_reference_deg is None else np.asarray(q_reference_deg, dtype=np.float64)
         if self.is_ur_type():
             sols = self.inverse_kinematics_all(target, q_near_deg=ref, tol_mm=tol_mm, tol_deg=tol_deg)

@@ -8,35 +8,19 @@ baseline run on the same device (``fluoronav bench --device``).
 from __future__ import annotations
 
 import logging
-import statistics
-import time
 from collections.abc import Callable
 
 import numpy as np
 
 from fluoronav.anatomy.volume import Volume
-from fluoronav.device import synchronize
+from fluoronav.bench.rendering_cm import run_cm
+from fluoronav.bench.timing import time_ms
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.carm import carm_camera_from_world
 
-__all__ = ["BENCHMARKS", "bench_camera", "bench_volume", "run", "run_ct", "time_ms"]
+__all__ = ["BENCHMARKS", "bench_camera", "bench_volume", "run", "run_ct"]
 
 logger = logging.getLogger(__name__)
-
-
-def time_ms(fn: Callable[[], object], *, repeats: int, warmup: int = 1, device: str = "cpu") -> float:
-    """Median wall time of ``fn()`` in ms over ``repeats`` calls after ``warmup`` untimed calls
-    (each call waits for the work it queued on ``device``)."""
-    for _ in range(warmup):
-        fn()
-    synchronize(device)
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        synchronize(device)
-        times.append((time.perf_counter() - t) * 1e3)
-    return float(statistics.median(times))
 
 
 def bench_volume(
@@ -132,28 +116,13 @@ def run_ct(quick: bool, device: str = "cpu") -> dict[str, float]:
     }
 
 
-#: every rendering benchmark; :func:`run` calls each in turn (plus those of :func:`_optional_benchmarks`)
-BENCHMARKS: list[Callable[[bool, str], dict[str, float]]] = [run_ct]
-
-
-def _optional_benchmarks() -> list[Callable[[bool, str], dict[str, float]]]:
-    """Benchmarks living in sibling modules, when those modules are installed."""
-    try:
-        from fluoronav.rendering.bench_cm import run_cm
-    except ModuleNotFoundError as exc:
-        if exc.name != "fluoronav.rendering.bench_cm":
-            raise
-        return []
-    return [run_cm]
+#: every rendering benchmark; :func:`run` calls each in turn
+BENCHMARKS: list[Callable[[bool, str], dict[str, float]]] = [run_ct, run_cm]
 
 
 def run(quick: bool, device: str = "cpu") -> dict[str, float]:
     """All rendering benchmarks on ``device`` merged into one dict (each benchmark function runs once)."""
     results: dict[str, float] = {}
-    done: set[Callable[[bool, str], dict[str, float]]] = set()
-    for bench in [*BENCHMARKS, *_optional_benchmarks()]:
-        if bench in done:
-            continue
-        done.add(bench)
+    for bench in dict.fromkeys(BENCHMARKS):  # each function once, in order
         results.update(bench(quick, device))
     return results

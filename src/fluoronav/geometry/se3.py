@@ -1,4 +1,4 @@
-"""Small float64 numpy helpers for rigid transforms used by the calibration and navigation code.
+"""Small float64 numpy helpers for rigid transforms (robot, tracker, calibration and navigation code).
 
 The torch versions in :mod:`fluoronav.geometry.transforms` serve the differentiable pipeline; the
 robot, tracker and OpenCV adapters work on float64 numpy arrays, where these avoid round trips.
@@ -13,6 +13,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 __all__ = [
+    "apply",
     "as_transform_array",
     "inv",
     "make",
@@ -76,3 +77,8 @@ def project_to_so3(M: np.ndarray) -> np.ndarray:
 def mean_rotation(R: np.ndarray) -> np.ndarray:
     """Chordal L2 mean of rotations (N, 3, 3) → (3, 3)."""
     return project_to_so3(np.asarray(R, dtype=np.float64).mean(axis=0))
+
+
+def apply(T: np.ndarray, p: ArrayLike) -> np.ndarray:
+    """Apply a (4, 4) transform to (..., 3) points."""
+    return np.asarray(p, np.float64) @ np.asarray(T)[:3, :3].T + np.asarray(T)[:3, 3]

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fluoronav.studies.runner import CsvLog, JsonlLog, run_tasks, task_seeds
+from fluoronav.runner import CsvLog, JsonlLog, run_tasks, task_seeds
 
 
 def _task(tid: int, seed: int) -> dict:
@@ -71,7 +71,7 @@ def test_dask_local_cluster_gives_the_same_results_as_in_process(tmp_path: Path)
 def test_failed_rows_keep_a_one_line_reason_and_empty_non_finite_cells() -> None:
     import time
 
-    from fluoronav.studies.runner import finish_row, mark_failed
+    from fluoronav.runner import finish_row, mark_failed
 
     row = {"trial": 3, "status": "ok", "tip_mm": float("nan"), "n": 2}
     try:

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fluoronav.calibration import _se3
-from fluoronav.calibration.robot import (
+from fluoronav.geometry import se3
+from fluoronav.manipulator.robot import (
     UR10,
     DHRow,
     IKFailure,
@@ -25,8 +25,8 @@ TOL_DEG = 1e-6
 
 
 def _pose_err(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
-    E = _se3.inv(B) @ A
-    return float(np.linalg.norm(E[:3, 3])), float(_se3.rotation_angle_deg(E[:3, :3]))
+    E = se3.inv(B) @ A
+    return float(np.linalg.norm(E[:3, 3])), float(se3.rotation_angle_deg(E[:3, :3]))
 
 
 def test_ur10_dh_matches_published_table():
@@ -70,10 +70,10 @@ def test_dh_row_is_rz_tz_tx_rx():
     q = rng.uniform(-180, 180, 6)
     T = np.eye(4)
     for qi, row in zip(q, UR10.dh, strict=True):
-        Rz = _se3.make(
+        Rz = se3.make(
             Rotation.from_euler("z", qi + row.theta_offset_deg, degrees=True).as_matrix(), [0, 0, row.d_mm]
         )
-        Tx = _se3.make(Rotation.from_euler("x", row.alpha_deg, degrees=True).as_matrix(), [row.a_mm, 0, 0])
+        Tx = se3.make(Rotation.from_euler("x", row.alpha_deg, degrees=True).as_matrix(), [row.a_mm, 0, 0])
         T = T @ Rz @ Tx
     np.testing.assert_allclose(UR10.rbase_from_ee(q), T, atol=1e-9)
 
@@ -97,7 +97,7 @@ def test_jacobian_matches_finite_differences():
         dq[j] = np.rad2deg(h)
         T1 = UR10.rbase_from_ee(q + dq)
         v = (T1[:3, 3] - T0[:3, 3]) / h
-        w = _se3.rotvec(T1[:3, :3] @ T0[:3, :3].T) / h
+        w = se3.rotvec(T1[:3, :3] @ T0[:3, :3].T) / h
         np.testing.assert_allclose(J[:3, j], v, atol=1e-3)
         np.testing.assert_allclose(J[3:, j], w, atol=1e-6)
 
@@ -140,11 +140,11 @@ def test_selector_keeps_joint_values_near_reference_beyond_180():
 
 
 def test_unreachable_poses_fail_explicitly():
-    far = _se3.make(np.eye(3), [3000.0, 0.0, 0.0])
+    far = se3.make(np.eye(3), [3000.0, 0.0, 0.0])
     res = UR10.inverse_kinematics(far)
     assert isinstance(res, IKFailure) and "unreachable" in res.reason
     # Wrist centre on the base axis lies inside the shoulder cylinder of radius d4.
-    inside = _se3.make(np.eye(3), [0.0, 0.0, 500.0 + UR10.d_mm[5]])
+    inside = se3.make(np.eye(3), [0.0, 0.0, 500.0 + UR10.d_mm[5]])
     assert isinstance(UR10.inverse_kinematics(inside), IKFailure)
 
 
