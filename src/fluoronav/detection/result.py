@@ -88,7 +88,7 @@ class Detection:
 
 
 def detection_to_dict(det: Detection, mask_file: str) -> dict[str, Any]:
-    """The contract JSON of a detection (see CONTRACTS.md, "Detection output")."""
+    """The JSON of a detection written by ``fluoronav detect`` (``found``, ``landmarks_px``, …)."""
     return {
         "found": bool(det.found),
         "landmarks_px": None if det.landmarks_px is None else np.asarray(det.landmarks_px).tolist(),
