@@ -21,13 +21,9 @@ import numpy as np
 import pyigtl
 import pytest
 
-from fluoronav.anatomy.volume import Volume
 from fluoronav.cli.main import main
 from fluoronav.errors import InputError
-from fluoronav.geometry.camera import Camera, DetectorSpec
-from fluoronav.geometry.carm import carm_camera_from_world
-from fluoronav.manipulator.config import CMConfig
-from fluoronav.manipulator.robot import UR10
+from fluoronav.geometry.camera import Camera
 from fluoronav.navigation.case import CaseView, NavigationCase, write_navigation_case
 from fluoronav.navigation.igtl import (
     DEVICE_NAME_MAX,
@@ -39,7 +35,6 @@ from fluoronav.navigation.igtl import (
     parse_address,
     ras_from_lps_transform,
 )
-from fluoronav.navigation.planning import Plan
 
 LOGGER = "fluoronav.navigation.igtl"
 D = np.diag([-1.0, -1.0, 1.0])  # ras_from_lps for points
@@ -378,46 +373,9 @@ def test_a_lost_connection_warns_once_and_then_does_nothing(
 HEAD = np.array([14.0, 2.0, -6.0])
 
 
-def _refusing_case(tmp_path: Path, n_views: int = 3, size: int = 256) -> Path:
-    """A case whose images hold no CM (smooth noise): it refuses at the detect stage, quickly."""
-    n, h = 32, 2.0
-    origin = -0.5 * h * (n - 1)
-    ax = origin + h * np.arange(n)
-    Z, Y, X = np.meshgrid(ax, ax, ax, indexing="ij")
-    labels = np.zeros((n, n, n), np.uint8)
-    labels[(np.abs(X) < 10) & (np.abs(Y) < 12) & (Z > 10)] = 1
-    labels[(X - HEAD[0]) ** 2 + (Y - HEAD[1]) ** 2 + (Z - HEAD[2]) ** 2 < 64] = 2
-    volume = Volume(
-        data=np.where(labels > 0, 600.0, -100.0).astype(np.float32),
-        spacing_mm=(h, h, h),
-        origin_mm=(origin, origin, origin),
-        labels=labels,
-        label_names={1: "pelvis", 2: "femur_left"},
-        landmarks_world={"femoral_head_left": HEAD.copy()},
-    )
-    rng = np.random.default_rng(0)
-    views = []
-    for k in range(n_views):
-        T = carm_camera_from_world(
-            lao_rao_deg=20.0 * k, cran_caud_deg=90.0, source_to_isocenter_mm=450.0, isocenter_world=HEAD
-        )
-        cam = Camera.from_detector(
-            DetectorSpec(rows=size, cols=size, pixel_spacing_mm=1.164, sdd_mm=1020.0), T
-        )
-        image = (0.5 + 0.05 * rng.standard_normal((size, size))).astype(np.float32)
-        views.append(CaseView(f"view{k}", image, cam))
-    case = NavigationCase(
-        volume=volume,
-        plan=Plan("entry", HEAD + np.array([20.0, 0.0, -20.0]), np.array([-0.7071, 0.0, 0.7071])),
-        side="left",
-        cm_config=CMConfig(),
-        fbg_control_points_deg=np.zeros(5),
-        robot=UR10,
-        joints_deg=np.array([0.0, -90.0, 90.0, -90.0, -90.0, 0.0]),
-        ee_from_cm=np.eye(4),
-        views=tuple(views),
-    )
-    return write_navigation_case(case, tmp_path / "case")
+def _refusing_case(tmp_path: Path, make_case: Callable[..., NavigationCase]) -> Path:
+    """A case whose images hold no CM: it refuses at the detect stage, quickly."""
+    return write_navigation_case(make_case(), tmp_path / "case")
 
 
 def _navigate(case: Path, out: Path, igtl: str) -> int:
@@ -426,8 +384,10 @@ def _navigate(case: Path, out: Path, igtl: str) -> int:
     return int(exc.value.code or 0)
 
 
-def test_navigate_command_streams_a_refusal_to_the_server(tmp_path: Path, server: _RecordingServer) -> None:
-    case = _refusing_case(tmp_path)
+def test_navigate_command_streams_a_refusal_to_the_server(
+    tmp_path: Path, server: _RecordingServer, make_no_cm_case: Callable[..., NavigationCase]
+) -> None:
+    case = _refusing_case(tmp_path, make_no_cm_case)
     assert _navigate(case, tmp_path / "out", f"127.0.0.1:{server.bound_port}") == 3
     assert _wait_until(lambda: any("refused" in m.string for m in server.messages("STRING", "Status")))
     images = server.messages("IMAGE")
@@ -442,9 +402,9 @@ def test_navigate_command_streams_a_refusal_to_the_server(tmp_path: Path, server
 
 
 def test_navigate_command_without_a_server_runs_as_without_the_option(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, make_no_cm_case: Callable[..., NavigationCase]
 ) -> None:
-    case = _refusing_case(tmp_path)
+    case = _refusing_case(tmp_path, make_no_cm_case)
     with caplog.at_level(logging.WARNING, logger=LOGGER):
         code = _navigate(case, tmp_path / "out", f"127.0.0.1:{_free_port()}")
     assert code == 3

@@ -14,65 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fluoronav.anatomy.volume import Volume
-from fluoronav.geometry.camera import Camera, DetectorSpec
-from fluoronav.geometry.carm import carm_camera_from_world
-from fluoronav.manipulator.config import CMConfig
-from fluoronav.manipulator.robot import UR10
-from fluoronav.navigation.case import CaseView, NavigationCase, write_navigation_case
+from fluoronav.navigation.case import write_navigation_case
 from fluoronav.navigation.pipeline import NavigationConfig, _band_mask, navigate
-from fluoronav.navigation.planning import Plan
-
-HEAD = np.array([14.0, 2.0, -6.0])
 
 
-def _volume() -> Volume:
-    n, h = 32, 2.0
-    origin = -0.5 * h * (n - 1)
-    ax = origin + h * np.arange(n)
-    Z, Y, X = np.meshgrid(ax, ax, ax, indexing="ij")
-    labels = np.zeros((n, n, n), np.uint8)
-    labels[(np.abs(X) < 10) & (np.abs(Y) < 12) & (Z > 10)] = 1
-    labels[(X - HEAD[0]) ** 2 + (Y - HEAD[1]) ** 2 + (Z - HEAD[2]) ** 2 < 64] = 2
-    return Volume(
-        data=np.where(labels > 0, 600.0, -100.0).astype(np.float32),
-        spacing_mm=(h, h, h),
-        origin_mm=(origin, origin, origin),
-        labels=labels,
-        label_names={1: "pelvis", 2: "femur_left"},
-        landmarks_world={"femoral_head_left": HEAD.copy()},
-    )
-
-
-def _case(n_views: int = 3, size: int = 256) -> NavigationCase:
-    """A case whose images hold no CM (smooth noise)."""
-    rng = np.random.default_rng(0)
-    views = []
-    for k in range(n_views):
-        T = carm_camera_from_world(
-            lao_rao_deg=20.0 * k, cran_caud_deg=90.0, source_to_isocenter_mm=450.0, isocenter_world=HEAD
-        )
-        cam = Camera.from_detector(
-            DetectorSpec(rows=size, cols=size, pixel_spacing_mm=1.164, sdd_mm=1020.0), T
-        )
-        image = (0.5 + 0.05 * rng.standard_normal((size, size))).astype(np.float32)
-        views.append(CaseView(f"view{k}", image, cam))
-    return NavigationCase(
-        volume=_volume(),
-        plan=Plan("entry", HEAD + np.array([20.0, 0.0, -20.0]), np.array([-0.7071, 0.0, 0.7071])),
-        side="left",
-        cm_config=CMConfig(),
-        fbg_control_points_deg=np.zeros(5),
-        robot=UR10,
-        joints_deg=np.array([0.0, -90.0, 90.0, -90.0, -90.0, 0.0]),
-        ee_from_cm=np.eye(4),
-        views=tuple(views),
-    )
-
-
-def test_no_cm_in_the_views_refuses_at_detection_without_a_command() -> None:
+def test_no_cm_in_the_views_refuses_at_detection_without_a_command(make_no_cm_case) -> None:
     events: list[tuple[str, str]] = []
-    res = navigate(_case(), NavigationConfig(), on_stage=lambda n, e: events.append((n, e)))
+    res = navigate(make_no_cm_case(), NavigationConfig(), on_stage=lambda n, e: events.append((n, e)))
     assert res.status == "refused"
     assert res.reason.startswith("stage detect, view view0, view1, view2, check views_with_cm:")
     assert res.joints_target_deg is None and res.rbase_from_ee_target is None
@@ -89,8 +37,8 @@ def test_given_landmarks_skip_the_detector_and_make_a_band_mask() -> None:
     assert mask.sum() == pytest.approx(41 * 7 + np.pi * 9, rel=0.1)
 
 
-def test_navigate_command_exits_3_on_a_refusal_and_writes_no_command(tmp_path: Path) -> None:
-    case = write_navigation_case(_case(), tmp_path / "case")
+def test_navigate_command_exits_3_on_a_refusal_and_writes_no_command(tmp_path: Path, make_no_cm_case) -> None:
+    case = write_navigation_case(make_no_cm_case(), tmp_path / "case")
     out = tmp_path / "out"
     proc = subprocess.run(
         [sys.executable, "-m", "fluoronav", "navigate", str(case), "--out", str(out), "--device", "cpu"],
@@ -106,8 +54,8 @@ def test_navigate_command_exits_3_on_a_refusal_and_writes_no_command(tmp_path: P
     assert "REFUSED" in page and "No robot command was given" in page
 
 
-def test_navigate_command_bad_case_is_one_line_and_exit_2(tmp_path: Path) -> None:
-    case = write_navigation_case(_case(n_views=2, size=64), tmp_path / "case")
+def test_navigate_command_bad_case_is_one_line_and_exit_2(tmp_path: Path, make_no_cm_case) -> None:
+    case = write_navigation_case(make_no_cm_case(n_views=2, size=64), tmp_path / "case")
     d = json.loads(case.read_text(encoding="utf-8"))
     d["robot"]["joints_deg"] = d["robot"]["joints_deg"][:5]
     case.write_text(json.dumps(d), encoding="utf-8")

@@ -1,27 +1,7 @@
 """The ``hand-eye`` and ``navigation`` simulation studies (``fluoronav study hand-eye|navigation``):
-running the trials of :mod:`fluoronav.studies.handeye_trials`, their figures and summaries.
-
-Both work in the simulated robot scene of :mod:`fluoronav.simulation.robot_scene` (a UR-10 with
-joint and calibration errors holding the CM over the hip phantom; physics-simulated images).
-
-Hand-eye trial: M CM poses about the working pose, one shape for all (the paper keeps the curvature
-constant during calibration): bent in one plane, control points ±(``calibration_bend_deg`` +
-U(−0.5, 0.5))° (default 2.5°: a ~70° C-bend, tip ~18 mm off the base axis), because the roll of the
-hand-eye about the CM axis is seen only through the bend. The image-based calibration
-(:func:`~fluoronav.calibration.image_handeye.calibrate_hand_eye_from_images`) runs for each M of
-``poses`` (nested: the first M images; errors vs M), initial hand-eye = truth perturbed by the
-authors' 10° / 10 mm, FBG = truth + U(−0.5, 0.5)°. The tracker baseline (AX = XB, Tsai, on the
-simulated shaft marker O_s) and its eq. 9 tip error run on the same poses. Landmarks: the truth +
-U(−3, 3) full-detector px (oracle, as the authors' code) unless the detector is asked for.
-
-Navigation trial: the simulated navigation loop of :mod:`fluoronav.navigation.simulated`, the same
-pipeline as ``fluoronav navigate`` and the demo: three views, detection (or oracle landmarks),
-pelvis per view, femur, multi-view CM registration, plan (the CM tip on the femur entry point, its
-axis along the neck), eqs. 7–8 and IK with the nominal model and a hand-eye of documented error
-(``handeye_error_deg`` / ``handeye_error_mm``), the *true* robot's move; with ``corrections`` (1),
-verification images at the reached pose, their registration and one corrective move.
-``reposition_open_loop_mm`` is the first move's tip error against the plan, ``reposition_tip_mm``
-the final one, ``reposition_registered_mm`` what the verification images say.
+running the trials of :mod:`fluoronav.studies.handeye_trials` (what each trial does is described
+there), resuming, the rows' columns, the figures and ``summary.json`` (with, for navigation, the
+refusals and the unflagged gross failures).
 """
 
 from __future__ import annotations

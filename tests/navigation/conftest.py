@@ -1,0 +1,69 @@
+"""Shared test data of the navigation tests: a small case that refuses at detection, quickly."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from fluoronav.anatomy.volume import Volume
+from fluoronav.geometry.camera import Camera, DetectorSpec
+from fluoronav.geometry.carm import carm_camera_from_world
+from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.robot import UR10
+from fluoronav.navigation.case import CaseView, NavigationCase
+from fluoronav.navigation.planning import Plan
+
+HEAD = np.array([14.0, 2.0, -6.0])
+
+
+def _volume() -> Volume:
+    """32³ voxels at 2 mm: a pelvis block and a left femoral head ball, labelled."""
+    n, h = 32, 2.0
+    origin = -0.5 * h * (n - 1)
+    ax = origin + h * np.arange(n)
+    Z, Y, X = np.meshgrid(ax, ax, ax, indexing="ij")
+    labels = np.zeros((n, n, n), np.uint8)
+    labels[(np.abs(X) < 10) & (np.abs(Y) < 12) & (Z > 10)] = 1
+    labels[(X - HEAD[0]) ** 2 + (Y - HEAD[1]) ** 2 + (Z - HEAD[2]) ** 2 < 64] = 2
+    return Volume(
+        data=np.where(labels > 0, 600.0, -100.0).astype(np.float32),
+        spacing_mm=(h, h, h),
+        origin_mm=(origin, origin, origin),
+        labels=labels,
+        label_names={1: "pelvis", 2: "femur_left"},
+        landmarks_world={"femoral_head_left": HEAD.copy()},
+    )
+
+
+def no_cm_case(n_views: int = 3, size: int = 256) -> NavigationCase:
+    """A case whose images hold no CM (smooth noise): the navigation refuses at its detect stage."""
+    rng = np.random.default_rng(0)
+    views = []
+    for k in range(n_views):
+        T = carm_camera_from_world(
+            lao_rao_deg=20.0 * k, cran_caud_deg=90.0, source_to_isocenter_mm=450.0, isocenter_world=HEAD
+        )
+        cam = Camera.from_detector(
+            DetectorSpec(rows=size, cols=size, pixel_spacing_mm=1.164, sdd_mm=1020.0), T
+        )
+        image = (0.5 + 0.05 * rng.standard_normal((size, size))).astype(np.float32)
+        views.append(CaseView(f"view{k}", image, cam))
+    return NavigationCase(
+        volume=_volume(),
+        plan=Plan("entry", HEAD + np.array([20.0, 0.0, -20.0]), np.array([-0.7071, 0.0, 0.7071])),
+        side="left",
+        cm_config=CMConfig(),
+        fbg_control_points_deg=np.zeros(5),
+        robot=UR10,
+        joints_deg=np.array([0.0, -90.0, 90.0, -90.0, -90.0, 0.0]),
+        ee_from_cm=np.eye(4),
+        views=tuple(views),
+    )
+
+
+@pytest.fixture
+def make_no_cm_case() -> Callable[..., NavigationCase]:
+    """:func:`no_cm_case` as a fixture (test modules do not import each other)."""
+    return no_cm_case
