@@ -54,3 +54,18 @@ def read_json_object(path: str | Path, *, what: str) -> dict[str, Any]:
     if not isinstance(d, dict):
         raise InputError(p, f"a {what} must be a JSON object")
     return d
+
+
+def read_text_file(path: str | Path, *, what: str) -> str:
+    """The text of a user's file (UTF-8, a BOM allowed); a missing, unreadable or empty file is an
+    :class:`InputError` naming it (``what``: e.g. ``"landmark file"``)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, f"{what} not found")
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(p, f"unreadable {what} ({exc.__class__.__name__})") from None
+    if not text.strip():
+        raise InputError(p, f"empty {what}")
+    return text

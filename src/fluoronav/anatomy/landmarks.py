@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from fluoronav.anatomy.markups import markup_file_stem, read_markups, write_markups
-from fluoronav.errors import InputError
+from fluoronav.errors import InputError, read_text_file
 
 __all__ = [
     "read_fcsv",
@@ -59,15 +59,7 @@ def _coordinate_system(value: str, path: Path, where: str) -> str:
 
 
 def _read_text(path: Path) -> str:
-    if not path.is_file():
-        raise InputError(path, "landmark file not found")
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"unreadable landmark file ({exc.__class__.__name__})") from None
-    if not text.strip():
-        raise InputError(path, "empty landmark file")
-    return text
+    return read_text_file(path, what="landmark file")
 
 
 def read_fcsv(path: str | Path) -> dict[str, np.ndarray]:

@@ -38,7 +38,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from fluoronav.errors import InputError
+from fluoronav.errors import InputError, read_text_file
 
 __all__ = [
     "MARKUPS_SCHEMA_ID",
@@ -108,14 +108,7 @@ def _coordinate_units_ok(units: object) -> bool:
 
 
 def _read_document(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise InputError(path, "markups file not found")
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"unreadable markups file ({exc.__class__.__name__})") from None
-    if not text.strip():
-        raise InputError(path, "empty markups file")
+    text = read_text_file(path, what="markups file")
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
