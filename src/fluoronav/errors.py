@@ -6,6 +6,7 @@ problem. The CLI turns it into one line on stderr and a non-zero exit status, wi
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -40,8 +41,6 @@ def read_json_object(path: str | Path, *, what: str) -> dict[str, Any]:
         path: the file.
         what: what the file is, for the messages (e.g. ``"case file"``).
     """
-    import json
-
     p = Path(path)
     try:
         d = json.loads(p.read_text(encoding="utf-8"))

@@ -26,7 +26,7 @@ class Section:
 
 def figure_png(fig: Any, *, dpi: int = 100) -> bytes:
     """PNG bytes of a matplotlib figure (closes it)."""
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: matplotlib, only where a page has figures
 
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")

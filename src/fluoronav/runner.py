@@ -16,12 +16,16 @@ import csv
 import io
 import json
 import logging
+import math
 import os
+import time
+import traceback
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm.auto import tqdm
 
 log = logging.getLogger(__name__)
 
@@ -128,8 +132,6 @@ def new_row(task_id: int, seed: int, workflow: str) -> dict[str, Any]:
 
 def mark_failed(row: dict[str, Any], exc: BaseException, task_id: int) -> None:
     """Record a failed task in its row (status and a one-line reason); the row is still written."""
-    import traceback
-
     row["status"] = "failed"
     row["reason"] = " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
     log.debug("task %d failed:\n%s", task_id, traceback.format_exc())
@@ -137,9 +139,6 @@ def mark_failed(row: dict[str, Any], exc: BaseException, task_id: int) -> None:
 
 def finish_row(row: dict[str, Any], t0: float) -> dict[str, Any]:
     """Add the elapsed ``seconds`` since ``t0`` and replace non-finite floats by None (empty cells)."""
-    import math
-    import time
-
     row["seconds"] = time.perf_counter() - t0
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
 
@@ -153,7 +152,7 @@ def _iter_local(
 
 @contextlib.contextmanager
 def _client(scheduler: str | None, workers: int | None) -> Iterator[Any]:
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import Client, LocalCluster  # heavy: dask, not needed in-process
 
     if scheduler:
         client = Client(scheduler)
@@ -204,8 +203,6 @@ def run_tasks(
     Returns:
         The rows written in this call.
     """
-    from tqdm.auto import tqdm
-
     seeds = task_seeds(seed, n)
     done = result_log.done_ids()
     todo = [(i, seeds[i]) for i in range(n) if i not in done]
@@ -230,7 +227,7 @@ def run_tasks(
             for row in _iter_local(fn, todo):
                 _handle(row)
             return written
-        from dask.distributed import as_completed
+        from dask.distributed import as_completed  # heavy: dask, not needed in-process
 
         with _client(scheduler, workers) as client:
             futures = [

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk  # noqa: N813
 
+from fluoronav.anatomy import phantom
 from fluoronav.anatomy.landmarks import read_landmarks, write_landmarks_json
 from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import InputError
@@ -303,9 +304,7 @@ def load_ct(
 def resolve_ct(spec: str | Path, *, seed: int = 0) -> Volume:
     """``"phantom"`` → :func:`~fluoronav.anatomy.phantom.hip_phantom` (``seed``), else :func:`load_ct`."""
     if str(spec).strip().lower() == "phantom":
-        from fluoronav.anatomy.phantom import hip_phantom
-
-        return hip_phantom(seed=seed)
+        return phantom.hip_phantom(seed=seed)
     return load_ct(spec)
 
 

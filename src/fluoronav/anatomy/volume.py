@@ -8,6 +8,7 @@ as a 4×4 matrix acting on ``(i, j, k, 1)``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -100,6 +101,4 @@ class Volume:
 
     def replace(self, **changes: object) -> Volume:
         """A copy with some fields replaced."""
-        import dataclasses
-
         return dataclasses.replace(self, **changes)  # type: ignore[arg-type]

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 
 import typer
+from rich.console import Console
+from rich.table import Table
 
 from fluoronav import __version__
 from fluoronav.bench import BENCH_STAGES, collect
@@ -33,9 +35,6 @@ def register(app: typer.Typer) -> None:
         if json_out:
             typer.echo(json.dumps(figures))
             return
-        from rich.console import Console
-        from rich.table import Table
-
         table = Table(title=f"fluoronav {__version__} benchmarks on {figures['machine']['device']}")
         for col in ("figure", "value", "baseline", "speed-up"):
             table.add_column(col, justify="right" if col != "figure" else "left")

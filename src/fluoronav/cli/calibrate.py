@@ -83,7 +83,7 @@ def _array(value: Any, shape: tuple[int, ...], what: str, src: str) -> np.ndarra
 
 
 def _robot(name: Any, src: str) -> Any:
-    from fluoronav.manipulator.robot import UR10
+    from fluoronav.manipulator.robot import UR10  # lazy: fast --help
 
     if name not in _ROBOTS:
         raise InputError(
@@ -132,10 +132,10 @@ def load_calibration_case(path: str | Path) -> CalibrationCase:
     Raises:
         InputError: naming the file, for anything malformed or missing.
     """
-    from fluoronav.detection.detector import load_image
-    from fluoronav.geometry.camera import Camera
-    from fluoronav.registration.case import detect_landmarks
-    from fluoronav.registration.cm import CMView
+    from fluoronav.detection.detector import load_image  # lazy: fast --help
+    from fluoronav.geometry.camera import Camera  # lazy: fast --help
+    from fluoronav.registration.case import detect_landmarks  # lazy: fast --help
+    from fluoronav.registration.cm import CMView  # lazy: fast --help
 
     p = Path(path)
     src = str(p)
@@ -248,9 +248,9 @@ def run_calibration(
     case_path: Path, out: Path, *, seed: int = 0, device: str = "cpu", config: Any = None
 ) -> dict[str, Any]:
     """Calibrate a case and write ``handeye.json``, ``trace.json`` and overlays; returns handeye.json."""
-    import torch
+    import torch  # heavy: torch
 
-    from fluoronav.calibration.handeye import (
+    from fluoronav.calibration.handeye import (  # lazy: fast --help
         AX_XB_METHODS,
         AX_YB_METHODS,
         calibrate_hand_eye,
@@ -259,10 +259,13 @@ def run_calibration(
         tip_rbase_tracker_chain,
         transform_error,
     )
-    from fluoronav.calibration.image_handeye import ImageHandEyeConfig, calibrate_hand_eye_from_images
-    from fluoronav.calibration.results import HandEyeFailure
-    from fluoronav.device import resolve_device
-    from fluoronav.manipulator.kinematics import CMKinematics
+    from fluoronav.calibration.image_handeye import (  # lazy: fast --help
+        ImageHandEyeConfig,
+        calibrate_hand_eye_from_images,
+    )
+    from fluoronav.calibration.results import HandEyeFailure  # lazy: fast --help
+    from fluoronav.device import resolve_device  # heavy: torch
+    from fluoronav.manipulator.kinematics import CMKinematics  # lazy: fast --help
 
     case = load_calibration_case(case_path)
     cfg = (config or ImageHandEyeConfig()).with_(device=str(resolve_device(device)))
@@ -333,9 +336,9 @@ def run_calibration(
 
 
 def _overlays(res: Any, out: Path) -> None:
-    import cv2
+    import cv2  # heavy: cv2
 
-    from fluoronav.registration.cm_overlays import edge_mask, to_uint8
+    from fluoronav.registration.cm_overlays import edge_mask, to_uint8  # lazy: fast --help
 
     for name, img, drr in zip(res.view_names, res.roi_images, res.roi_drrs, strict=True):
         rgb = np.repeat(to_uint8(img)[..., None], 3, axis=-1)
@@ -350,13 +353,13 @@ def write_example_calibration_case(
     FK in the file, oracle landmarks, simulated tracker readings) → path of ``case.json``.
 
     The initial hand-eye is the truth perturbed by 5° / 5 mm; ``ground_truth`` holds the truth."""
-    import torch
+    import torch  # heavy: torch
 
-    from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker
-    from fluoronav.geometry import se3
-    from fluoronav.manipulator.kinematics import CMKinematics
-    from fluoronav.simulation.articulated import anatomy_and_simulator
-    from fluoronav.simulation.robot_scene import (
+    from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker  # lazy: fast --help
+    from fluoronav.geometry import se3  # lazy: fast --help
+    from fluoronav.manipulator.kinematics import CMKinematics  # lazy: fast --help
+    from fluoronav.simulation.articulated import anatomy_and_simulator  # lazy: fast --help
+    from fluoronav.simulation.robot_scene import (  # lazy: fast --help
         perturb_transform,
         sample_handeye_scenario,
         simulate_scenario_images,

@@ -11,9 +11,11 @@ from contextlib import nullcontext
 from pathlib import Path
 
 import typer
+from rich.console import Console
+from rich.table import Table
 
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
-from fluoronav.cli.navigate import IGTL_OPTION
+from fluoronav.cli.navigate import EXIT_REFUSED, IGTL_OPTION, stage_progress
 
 
 def run(
@@ -27,15 +29,16 @@ def run(
 ) -> int:
     """Run the demo, print its table, write its files; returns the exit status (3: refused). With
     ``igtl`` (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer)."""
-    from rich.console import Console
-    from rich.table import Table
-
-    from fluoronav.cli.navigate import EXIT_REFUSED, stage_progress
-    from fluoronav.device import resolve_device
-    from fluoronav.navigation.demo import ERROR_ROWS, ordered_timings, run_demo, write_demo_outputs
-    from fluoronav.navigation.igtl import IGTLinkStreamer, chain_stage_callbacks
-    from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES
-    from fluoronav.navigation.simulated import SIMULATION_STAGES, SimulationConfig
+    from fluoronav.device import resolve_device  # heavy: torch
+    from fluoronav.navigation.demo import (  # lazy: fast --help
+        ERROR_ROWS,
+        ordered_timings,
+        run_demo,
+        write_demo_outputs,
+    )
+    from fluoronav.navigation.igtl import IGTLinkStreamer, chain_stage_callbacks  # lazy: fast --help
+    from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES  # lazy: fast --help
+    from fluoronav.navigation.simulated import SIMULATION_STAGES, SimulationConfig  # lazy: fast --help
 
     link = IGTLinkStreamer(igtl) if igtl is not None else None  # a malformed address is bad input
     console = Console(stderr=True)

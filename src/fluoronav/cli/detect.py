@@ -19,7 +19,7 @@ def detect_command(
     precision: str = PRECISION_OPTION,
 ) -> None:
     """Detect the CM in each image and write the detection files."""
-    from fluoronav.detection.detector import Detector, load_image, write_detection
+    from fluoronav.detection.detector import Detector, load_image, write_detection  # lazy: fast --help
 
     detector = Detector.load(model, device=device, precision=precision)
     for path in images:

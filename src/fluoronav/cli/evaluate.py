@@ -9,6 +9,7 @@ from typing import Any
 import typer
 
 from fluoronav.cli.common import DEVICE_OPTION, PRECISION_OPTION
+from fluoronav.errors import InputError
 
 
 def evaluate_command(
@@ -40,9 +41,8 @@ def evaluate_command(
 ) -> None:
     """Dice, landmark error (px, mm), found rate and false-positive rate of a detector on one or more
     data sets (several: each set's figures and the pooled ones)."""
-    from fluoronav.detection.detector import Detector
-    from fluoronav.detection.evaluate import evaluate, evaluate_sets
-    from fluoronav.errors import InputError
+    from fluoronav.detection.detector import Detector  # lazy: fast --help
+    from fluoronav.detection.evaluate import evaluate, evaluate_sets  # lazy: fast --help
 
     if split not in ("train", "val", "all"):
         raise InputError("--split", f"unknown split {split!r}; use train, val or all")

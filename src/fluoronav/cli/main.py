@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> None:
 
 def _usage_errors() -> tuple[type[Exception], ...]:
     """Usage-error classes: click's, and those of the click copy that typer >= 0.2x carries."""
-    import click
+    import click  # optional: typer no longer needs click; only on a usage error
 
     typer_error = getattr(typer, "TyperException", None)  # absent before typer carried click
     return (click.ClickException,) if typer_error is None else (click.ClickException, typer_error)

@@ -14,6 +14,8 @@ from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
 
@@ -57,9 +59,6 @@ STAGE_LABELS = {
 def stage_progress(total: int, description: str) -> Iterator[Callable[[str, str], None]]:
     """A progress display on stderr; yields the ``on_stage`` callback the pipelines take. Without a
     terminal (a log file), one line per finished stage."""
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
     console = Console(stderr=True)
     started: dict[str, float] = {}
     with Progress(
@@ -87,11 +86,16 @@ def stage_progress(total: int, description: str) -> Iterator[Callable[[str, str]
 def run(case_path: Path, out: Path, *, seed: int, device: str, igtl: str | None = None) -> int:
     """Navigate on a case file and write the outputs; returns the exit status. With ``igtl``
     (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer)."""
-    from fluoronav.device import resolve_device
-    from fluoronav.navigation.case import load_navigation_case
-    from fluoronav.navigation.igtl import IGTLinkStreamer, chain_stage_callbacks
-    from fluoronav.navigation.outputs import write_outputs
-    from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES, NavigationConfig, navigate
+    from fluoronav.device import resolve_device  # heavy: torch
+    from fluoronav.navigation.case import load_navigation_case  # lazy: fast --help
+    from fluoronav.navigation.igtl import IGTLinkStreamer, chain_stage_callbacks  # lazy: fast --help
+    from fluoronav.navigation.outputs import write_outputs  # lazy: fast --help
+    from fluoronav.navigation.pipeline import (  # lazy: fast --help
+        STAGES,
+        VERIFY_STAGES,
+        NavigationConfig,
+        navigate,
+    )
 
     link = IGTLinkStreamer(igtl) if igtl is not None else None  # a malformed address is bad input
     case = load_navigation_case(case_path)

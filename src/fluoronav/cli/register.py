@@ -18,9 +18,9 @@ def run_case(case_path: Path, out: Path, *, seed: int = 0, device: str = "cpu") 
     Returns:
         the ``result.json`` content.
     """
-    from fluoronav.device import resolve_device
-    from fluoronav.registration.case import load_case
-    from fluoronav.registration.cm import cm_pose_errors, register_cm, save_overlays
+    from fluoronav.device import resolve_device  # heavy: torch
+    from fluoronav.registration.case import load_case  # lazy: fast --help
+    from fluoronav.registration.cm import cm_pose_errors, register_cm, save_overlays  # lazy: fast --help
 
     case = load_case(case_path)
     config = case.config.with_(device=str(resolve_device(device)))

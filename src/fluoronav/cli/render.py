@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 import typer
 
-from fluoronav.anatomy.volume import MU_WATER_PER_MM, Volume
+from fluoronav.anatomy.io import resolve_ct
+from fluoronav.anatomy.volume import MU_WATER_PER_MM, Volume, hu_to_mu
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
 from fluoronav.errors import FluoronavError, InputError
 
@@ -20,52 +21,14 @@ __all__ = ["load_cm_pose", "register", "render_command", "write_png"]
 logger = logging.getLogger(__name__)
 
 
-def _read_ct_simpleitk(path: Path) -> Volume:
-    """Minimal CT reader used only while ``fluoronav.anatomy.io`` is not installed."""
-    import SimpleITK as sitk  # noqa: N813
-
-    try:
-        if path.is_dir():
-            reader = sitk.ImageSeriesReader()
-            files = reader.GetGDCMSeriesFileNames(str(path))
-            if not files:
-                raise InputError(path, "directory holds no DICOM series")
-            reader.SetFileNames(files)
-            image = reader.Execute()
-        else:
-            image = sitk.ReadImage(str(path))
-    except RuntimeError as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else "unknown error"
-        raise InputError(path, f"cannot be read as an image ({first})") from None
-    if image.GetDimension() != 3:
-        raise InputError(path, f"is a {image.GetDimension()}D image; a 3D CT volume is needed")
-    data = sitk.GetArrayFromImage(image).astype(np.float32)
-    return Volume(
-        data,
-        spacing_mm=image.GetSpacing(),
-        origin_mm=image.GetOrigin(),
-        direction=np.asarray(image.GetDirection()).reshape(3, 3),
-        name=path.name.split(".")[0],
-    )
-
-
 def load_ct_spec(spec: str, seed: int) -> Volume:
     """The CT named on the command line: ``phantom`` or a path; raises InputError naming it."""
     if spec != "phantom" and not Path(spec).exists():
         raise InputError(spec, "CT file or directory not found")
     try:
-        from fluoronav.anatomy.io import resolve_ct
-    except ModuleNotFoundError as exc:
-        if exc.name not in ("fluoronav.anatomy.io",):
-            raise
-        if spec == "phantom":
-            raise InputError("--ct", "the built-in phantom is not available in this installation") from None
-        volume = _read_ct_simpleitk(Path(spec))
-    else:
-        try:
-            volume = resolve_ct(spec, seed=seed)
-        except ValueError as exc:  # e.g. a 2D image rejected by Volume
-            raise InputError(spec, f"cannot be used as a CT ({exc})") from None
+        volume = resolve_ct(spec, seed=seed)
+    except ValueError as exc:  # e.g. a 2D image rejected by Volume
+        raise InputError(spec, f"cannot be used as a CT ({exc})") from None
     if volume.data.ndim != 3 or min(volume.data.shape) < 2:
         raise InputError(spec, f"is a 2D image (array shape {volume.data.shape}); a 3D CT volume is needed")
     if not np.all(np.isfinite(volume.spacing_mm)) or min(volume.spacing_mm) <= 0:
@@ -111,7 +74,7 @@ def load_cm_pose(path: Path, n_control_points: int = 5) -> tuple[np.ndarray, np.
 
 def write_png(path: Path, image: np.ndarray) -> None:
     """Min-max normalised 8-bit grayscale PNG (a constant image is written black)."""
-    from PIL import Image
+    from PIL import Image  # lazy: only for --png
 
     lo, hi = float(np.min(image)), float(np.max(image))
     scaled = (image - lo) / (hi - lo) if hi > lo else np.zeros_like(image)
@@ -135,11 +98,10 @@ def render_command(
     device: str = DEVICE_OPTION,
 ) -> None:
     """Render the line-integral image ∫μ dl of a CT (and the CM) for one camera."""
-    from fluoronav.anatomy.volume import hu_to_mu
-    from fluoronav.device import resolve_device
-    from fluoronav.geometry.camera import Camera
-    from fluoronav.manipulator.config import CMConfig
-    from fluoronav.rendering.ct import CTRenderer
+    from fluoronav.device import resolve_device  # heavy: torch
+    from fluoronav.geometry.camera import Camera  # lazy: fast --help
+    from fluoronav.manipulator.config import CMConfig  # lazy: fast --help
+    from fluoronav.rendering.ct import CTRenderer  # lazy: fast --help
 
     if not math.isfinite(mu_water) or mu_water <= 0:
         raise InputError("--mu-water", f"must be a positive number of 1/mm, got {mu_water}")
@@ -153,10 +115,10 @@ def render_command(
     )
     image = CTRenderer.from_hu(volume, mu_water_per_mm=mu_water, device=dev).render([cam])[0]
     if cm_pose is not None:
-        import torch
+        import torch  # heavy: torch
 
         try:
-            from fluoronav.rendering.cm import CMRenderer
+            from fluoronav.rendering.cm import CMRenderer  # lazy: fast --help
         except ModuleNotFoundError as exc:
             if exc.name != "fluoronav.rendering.cm":
                 raise

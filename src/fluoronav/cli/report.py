@@ -7,6 +7,8 @@ from pathlib import Path
 
 import typer
 
+from fluoronav.errors import InputError
+
 
 def register(app: typer.Typer) -> None:
     @app.command("report")
@@ -17,8 +19,13 @@ def register(app: typer.Typer) -> None:
         ),
     ) -> None:
         """Combine studies into the paper's Table I beside the paper's numbers, with their figures."""
-        from fluoronav.errors import InputError
-        from fluoronav.studies.report import Section, html_page, outcome_table, table_i, table_markdown
+        from fluoronav.studies.report import (  # lazy: fast --help
+            Section,
+            html_page,
+            outcome_table,
+            table_i,
+            table_markdown,
+        )
 
         for d in dirs:
             s = d / "summary.json"

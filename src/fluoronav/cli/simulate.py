@@ -71,8 +71,8 @@ def register(app: typer.Typer) -> None:
         refer to the stored pixels). Samples are written as they finish; rerun to resume. The same
         --seed gives the same samples for any number of workers.
         """
-        from fluoronav.device import resolve_device
-        from fluoronav.simulation.dataset import DatasetSpec, simulate_dataset
+        from fluoronav.device import resolve_device  # heavy: torch
+        from fluoronav.simulation.dataset import DatasetSpec, simulate_dataset  # lazy: fast --help
 
         try:
             spec = DatasetSpec(

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from fluoronav.cli.common import DEVICE_OPTION
+from fluoronav.errors import InputError
 
 
 def register(app: typer.Typer) -> None:
@@ -57,11 +58,10 @@ def register(app: typer.Typer) -> None:
         device: str = DEVICE_OPTION,
     ) -> None:
         """Run (or resume) a simulation study; writes trials.csv, summary.json and figures/."""
-        from fluoronav.device import resolve_device
-        from fluoronav.errors import InputError
+        from fluoronav.device import resolve_device  # heavy: torch
 
         if workflow in ("hand-eye", "navigation"):
-            from fluoronav.studies.handeye_study import run_handeye_or_navigation_study
+            from fluoronav.studies.handeye_study import run_handeye_or_navigation_study  # lazy: fast --help
 
             summary = run_handeye_or_navigation_study(
                 workflow,
@@ -80,7 +80,11 @@ def register(app: typer.Typer) -> None:
                 calibration_bend_deg=calibration_bend_deg,
             )
         else:
-            from fluoronav.studies.pipeline import STUDY_WORKFLOWS, StudyConfig, run_study
+            from fluoronav.studies.pipeline import (  # lazy: fast --help
+                STUDY_WORKFLOWS,
+                StudyConfig,
+                run_study,
+            )
 
             if workflow not in STUDY_WORKFLOWS:
                 raise InputError("WORKFLOW", f"unknown workflow {workflow!r}")

@@ -104,7 +104,7 @@ def train_command(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
 ) -> None:
     """Train the detector (segmentation + landmark heatmaps, or the landmark refinement) and write MODEL."""
-    from fluoronav.detection.train import TrainConfig, check_coarse_size, train
+    from fluoronav.detection.train import TrainConfig, check_coarse_size, train  # lazy: fast --help
 
     try:  # TrainConfig holds the rules (which --stage combinations train, ranges)
         config = TrainConfig(

@@ -481,7 +481,7 @@ class DetectorConfig(_Frozen):
     def _declare(cls, data: Any) -> Any:
         if not isinstance(data, dict):
             return data
-        from fluoronav.detection.flat_config import declared_from_flat, is_flat
+        from fluoronav.detection.flat_config import declared_from_flat, is_flat  # cycle: it imports config
 
         if is_flat(data):
             data = declared_from_flat(data, strict=True)
@@ -526,7 +526,7 @@ class DetectorConfig(_Frozen):
         """A config from :meth:`to_dict`'s form, or from a model file's flat configuration of format 1
         (keys it does not know are left aside; see
         :func:`~fluoronav.detection.flat_config.declared_from_flat`)."""
-        from fluoronav.detection.flat_config import declared_from_flat, is_flat
+        from fluoronav.detection.flat_config import declared_from_flat, is_flat  # cycle: it imports config
 
         if is_flat(d) or not d:
             return cls.model_validate(declared_from_flat(d, strict=False))

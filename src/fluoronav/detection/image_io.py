@@ -90,7 +90,7 @@ def load_image(path: str | Path) -> tuple[np.ndarray, float | None]:
 
 
 def _load_dicom(path: Path) -> tuple[np.ndarray, float | None]:
-    import SimpleITK as sitk  # noqa: N813
+    import SimpleITK as sitk  # noqa: N813  # heavy: SimpleITK, for DICOM input only
 
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(path))

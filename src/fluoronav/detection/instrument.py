@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import ndimage
 
-from fluoronav.detection.centerline import end_direction
+from fluoronav.detection.centerline import end_direction, extract_centerline
 
 __all__ = ["instrument_mask", "instrument_mask_from_landmarks", "instrument_masks", "shaft_direction"]
 
@@ -171,8 +171,6 @@ def instrument_mask_from_landmarks(
 ) -> np.ndarray | None:
     """:func:`instrument_mask` with the centreline extracted from the segmentation and the two
     landmarks (2, 2) [[uA, vA], [uB, vB]]; None (logged) where that fails."""
-    from fluoronav.detection.centerline import extract_centerline
-
     lm = np.asarray(landmarks_px, dtype=np.float64)
     try:
         cl = extract_centerline(np.asarray(cm_mask, bool), lm[0], lm[1])

@@ -18,6 +18,7 @@ import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from itertools import combinations
 from pathlib import Path
 from typing import Any
 
@@ -382,8 +383,6 @@ def triangulate_points_robust(
         ``(points (N, 3) mm, inliers (V, N) bool, residuals_px (V, N))``: residuals of every view
         (dropped ones too) against the final points.
     """
-    from itertools import combinations
-
     uv = np.asarray(uv, dtype=np.float64)
     pts = triangulate_points(cameras, uv)
     V, N = uv.shape[:2]

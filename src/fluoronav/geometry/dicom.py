@@ -75,7 +75,7 @@ def camera_from_dicom_tags(
 
 def camera_from_dicom(path: str | Path) -> Camera:
     """Read a single-frame X-ray DICOM's geometry tags and build its camera (module docstring)."""
-    import SimpleITK as sitk  # noqa: N813
+    import SimpleITK as sitk  # noqa: N813  # heavy: SimpleITK, for DICOM input only
 
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(path))

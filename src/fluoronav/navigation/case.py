@@ -26,12 +26,13 @@ from typing import Any
 
 import numpy as np
 
+from fluoronav.anatomy.io import load_ct, resolve_ct, save_volume
 from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import InputError, read_json_object
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
-from fluoronav.manipulator.robot import SerialRobot
-from fluoronav.navigation.planning import Plan
+from fluoronav.manipulator.robot import UR10, SerialRobot, robot_to_dict
+from fluoronav.navigation.planning import Plan, load_plan, plan_from_dict, save_plan
 
 __all__ = [
     "CASE_KEYS",
@@ -137,8 +138,7 @@ class NavigationCase:
 # ----- reading ---------------------------------------------------------------------------------
 def _volume(d: dict[str, Any], src: str, root: Path) -> tuple[Volume, str]:
     """The CT with labels and landmarks → (volume, the ``ct`` value for messages)."""
-    from fluoronav.anatomy.io import load_ct, resolve_ct
-    from fluoronav.navigation.case_io import require_file
+    from fluoronav.navigation.case_io import require_file  # cycle: case_io imports case
 
     ct = d.get("ct")
     if ct is None:
@@ -214,7 +214,7 @@ def load_navigation_case(path: str | Path) -> NavigationCase:
             key (and the other file at fault, where there is one). Unknown top-level keys are errors
             (except ``description``, ``notes`` and keys starting with ``_``).
     """
-    from fluoronav.navigation.case_io import (
+    from fluoronav.navigation.case_io import (  # cycle: case_io imports case
         keyed,
         parse_cm_config,
         parse_joints,
@@ -223,7 +223,6 @@ def load_navigation_case(path: str | Path) -> NavigationCase:
         require_file,
         vector,
     )
-    from fluoronav.navigation.planning import load_plan, plan_from_dict
 
     p = Path(path)
     src = str(p)
@@ -349,10 +348,7 @@ def write_navigation_case(
             view with a mask but no landmarks.
         FileNotFoundError: ``ct_path`` does not exist.
     """
-    from fluoronav.anatomy.io import save_volume
-    from fluoronav.manipulator.robot import UR10, robot_to_dict
-    from fluoronav.navigation.case_io import write_views
-    from fluoronav.navigation.planning import save_plan
+    from fluoronav.navigation.case_io import write_views  # cycle: case_io imports case
 
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)

@@ -22,12 +22,16 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+from pydantic import ValidationError
 
+from fluoronav.detection.image_io import load_image
 from fluoronav.errors import InputError, read_json_object
 from fluoronav.geometry.camera import Camera
-from fluoronav.manipulator.config import CMConfig
-from fluoronav.manipulator.robot import SerialRobot
+from fluoronav.geometry.dicom import camera_from_dicom
+from fluoronav.manipulator.config import CMConfig, load_cm_config
+from fluoronav.manipulator.robot import SerialRobot, load_robot
 from fluoronav.navigation.case import CaseView
 
 __all__ = [
@@ -129,8 +133,6 @@ def read_mask(path: Path) -> np.ndarray:
                     raise InputError(path, "no 'mask' or 'image' array in the .npz")
                 arr = np.asarray(npz[key])
         else:
-            import cv2
-
             raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if raw is None:
                 raise InputError(path, "unreadable mask image")
@@ -162,8 +164,6 @@ def _camera(
         with keyed(src, key):
             return Camera.from_dict(value, source=src)
     if value == "dicom":
-        from fluoronav.geometry.dicom import camera_from_dicom
-
         with keyed(src, f'{key} "dicom"'):
             cam_iso = camera_from_dicom(image_path)
         return cam_iso.with_pose(cam_iso.camera_from_world @ _translation(-isocenter_ct_mm))
@@ -190,8 +190,6 @@ def _landmarks(value: Any, key: str, src: str, rows: int, cols: int) -> np.ndarr
 def _view(
     entry: Any, k: int, key: str, src: str, root: Path, isocenter_ct_mm: np.ndarray, default_name: str
 ) -> CaseView:
-    from fluoronav.detection.detector import load_image
-
     vk = f"{key}[{k}]"
     if not isinstance(entry, dict):
         raise InputError(src, f"{vk} must be an object with 'image' and 'camera'")
@@ -282,8 +280,6 @@ def _file_stem(name: str, used: set[str]) -> str:
 def write_views(views: Sequence[CaseView], directory: Path, *, prefix: str = "") -> list[dict[str, Any]]:
     """Write views as ``<prefix><name>.npz`` (``image`` float32, ``pixel_spacing_mm`` when known),
     ``<prefix><name>_camera.json`` and ``<prefix><name>_mask.png`` → their case entries."""
-    import cv2
-
     used: set[str] = set()
     entries: list[dict[str, Any]] = []
     for v in views:
@@ -309,10 +305,6 @@ def write_views(views: Sequence[CaseView], directory: Path, *, prefix: str = "")
 
 def parse_cm_config(value: Any, src: str, root: Path) -> CMConfig:
     """``cm``: a CM config file, an inline object, or None (the paper's CM)."""
-    from pydantic import ValidationError
-
-    from fluoronav.manipulator.config import load_cm_config
-
     if value is None:
         return CMConfig()
     if isinstance(value, str):
@@ -359,8 +351,6 @@ def _ee_from_cm(value: Any, src: str, root: Path) -> np.ndarray:
 
 def parse_robot(d: dict[str, Any], src: str, root: Path) -> tuple[SerialRobot, np.ndarray, np.ndarray]:
     """``robot`` → (model, joints_deg (n,), ee_from_cm (4, 4))."""
-    from fluoronav.manipulator.robot import load_robot
-
     r = d.get("robot")
     if r is None:
         raise InputError(src, "'robot': missing (an object with model, joints_deg and ee_from_cm)")

@@ -19,7 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from fluoronav.navigation.pipeline import EventCallback
+from fluoronav import __version__
+from fluoronav.navigation.outputs import write_outputs
+from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES, EventCallback
 from fluoronav.navigation.simulated import SimulatedNavigation, SimulationConfig, run_simulated_navigation
 
 __all__ = ["ERROR_ROWS", "run_demo", "write_demo_outputs"]
@@ -65,8 +67,6 @@ def run_demo(
 
 def results_json(run: SimulatedNavigation) -> dict[str, Any]:
     """``results.json``: status, reason, errors against the truth, timings, config, version."""
-    from fluoronav import __version__
-
     errors: dict[str, float | None] = {
         k: (float(v) if math.isfinite(v) else None) for k, v in run.errors.items()
     }
@@ -87,8 +87,6 @@ def results_json(run: SimulatedNavigation) -> dict[str, Any]:
 
 def ordered_timings(run: SimulatedNavigation) -> dict[str, float]:
     """The loop's and the pipeline's stage times in the order they ran."""
-    from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES
-
     stages = run.result.stages if run.result is not None else {}
     order = [
         "anatomy",
@@ -112,8 +110,6 @@ def ordered_timings(run: SimulatedNavigation) -> dict[str, float]:
 def write_demo_outputs(run: SimulatedNavigation, out: Path) -> list[Path]:
     """``out/results.json``, and where the pipeline ran: ``navigation.json``, ``slicer/`` and
     ``report.html`` with the errors against the truth."""
-    from fluoronav.navigation.outputs import write_outputs
-
     out.mkdir(parents=True, exist_ok=True)
     path = out / "results.json"
     path.write_text(json.dumps(results_json(run), indent=2) + "\n", encoding="utf-8")

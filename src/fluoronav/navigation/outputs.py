@@ -22,6 +22,8 @@ from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.case import NavigationCase
 from fluoronav.navigation.pipeline import NavigationResult
+from fluoronav.navigation.report import write_report
+from fluoronav.navigation.slicer import cm_surface, femur_surface, write_slicer_folder
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +47,6 @@ def write_navigation_json(
 
 def write_slicer(result: NavigationResult, case: NavigationCase, out: Path) -> list[Path]:
     """``out/slicer/``: transforms, surface models, plan and landmarks (nothing without a registration)."""
-    from fluoronav.navigation.slicer import cm_surface, femur_surface, write_slicer_folder
-
     first = result.first
     if first is None:
         return []
@@ -106,8 +106,6 @@ def write_outputs(
 ) -> list[Path]:
     """``navigation.json`` first (the result is safe before any picture is drawn), then ``slicer/``
     and ``report.html``; returns the paths written."""
-    from fluoronav.navigation.report import write_report
-
     written = [write_navigation_json(result, out, extra=extra)]
     try:
         written += write_slicer(result, case, out)

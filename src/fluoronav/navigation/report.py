@@ -15,12 +15,20 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import matplotlib.pyplot as plt
 import numpy as np
+import torch
+from scipy import ndimage
+from skimage.feature import canny
 
+from fluoronav import __version__
 from fluoronav.geometry import se3
 from fluoronav.htmlpage import Section, figure_png, html_page
+from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.case import NavigationCase
 from fluoronav.navigation.pipeline import NavigationResult, Registration
+from fluoronav.registration.bone import bone_excess_mu
+from fluoronav.rendering.ct import render_line_integrals
 
 log = logging.getLogger(__name__)
 
@@ -36,8 +44,6 @@ def _gray(ax: Any, img: np.ndarray, extent: Any = None) -> None:
 
 def _edges(img: np.ndarray, frac: float = 0.2) -> np.ndarray:
     """Thin (Canny) edges of a DRR, thresholds relative to its strongest gradient."""
-    from skimage.feature import canny
-
     img = np.asarray(img, dtype=np.float64)
     top = float(np.ptp(img))
     if top <= 0:
@@ -54,8 +60,6 @@ def _box(points: np.ndarray, shape: tuple[int, ...], margin: float) -> tuple[int
 
 
 def _detection_figure(reg: Registration, true_landmarks: Sequence[np.ndarray] | None) -> bytes:
-    import matplotlib.pyplot as plt
-
     n = len(reg.views)
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.2), squeeze=False)
     for k, (ax, view, det) in enumerate(zip(axes[0], reg.views, reg.detections, strict=True)):
@@ -94,8 +98,6 @@ def _detection_figure(reg: Registration, true_landmarks: Sequence[np.ndarray] | 
 
 def _cm_overlay_figure(reg: Registration, title: str) -> bytes:
     """Fig. 12 style: edges of the registered CM DRR (green) on each view's ROI."""
-    import matplotlib.pyplot as plt
-
     cm = reg.cm
     k = len(cm.view_names)
     fig, axes = plt.subplots(1, k, figsize=(4.2 * k, 4.4), squeeze=False)
@@ -113,12 +115,6 @@ def _cm_overlay_figure(reg: Registration, title: str) -> bytes:
 
 def _femur_overlay_figure(reg: Registration, case: NavigationCase) -> bytes:
     """Edges of the femur DRR at the registered pose (green) on each whole view."""
-    import matplotlib.pyplot as plt
-    import torch
-
-    from fluoronav.registration.bone import bone_excess_mu
-    from fluoronav.rendering.ct import render_line_integrals
-
     mu, w_idx = bone_excess_mu(case.volume, [f"femur_{case.side}"])
     size = 256
     n = len(reg.views)
@@ -146,8 +142,6 @@ def _femur_overlay_figure(reg: Registration, case: NavigationCase) -> bytes:
 
 def _surface_points(volume: Any, label: str, n: int, rng: np.random.Generator) -> np.ndarray:
     """Up to n CT points on the boundary of a label (for a light 3D picture)."""
-    from scipy import ndimage
-
     v = volume.label_value(label)
     if v is None or volume.labels is None:
         return np.zeros((0, 3))
@@ -164,11 +158,6 @@ def _scene_figure(
     result: NavigationResult, case: NavigationCase, true_ct_from_cm: Mapping[str, np.ndarray] | None
 ) -> bytes:
     """3D, CT frame: pelvis, femur (registered), the CM registered (and true), the plan, C-arms."""
-    import matplotlib.pyplot as plt
-    import torch
-
-    from fluoronav.manipulator.kinematics import CMKinematics
-
     first = result.first
     assert first is not None
     kin = CMKinematics(case.cm_config)
@@ -226,8 +215,6 @@ def _scene_figure(
 
 
 def _convergence_figure(result: NavigationResult) -> bytes:
-    import matplotlib.pyplot as plt
-
     runs: list[tuple[str, Any]] = []
     for reg, tag in ((result.first, ""), (result.verification, " (verification)")):
         if reg is None:
@@ -251,8 +238,6 @@ def _convergence_figure(result: NavigationResult) -> bytes:
 
 
 def _timing_figure(timings_s: Mapping[str, float]) -> bytes:
-    import matplotlib.pyplot as plt
-
     names = list(timings_s)
     secs = [timings_s[s] for s in names]
     fig, ax = plt.subplots(figsize=(7, 0.6 + 0.25 * len(names)))
@@ -366,8 +351,6 @@ def write_report(
         error_rows: (label, value, unit, paper) rows of errors against a known truth (simulations).
         true_landmarks_px, true_ct_from_cm: the truth to draw beside the estimates (simulations).
     """
-    from fluoronav import __version__
-
     timings = dict(timings_s) if timings_s is not None else {k: v.seconds for k, v in result.stages.items()}
     summary = Section("Summary", paragraphs=[description] if description else [])
     summary.banner_html = _banner(result)

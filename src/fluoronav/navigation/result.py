@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from fluoronav import __version__
 from fluoronav.errors import FluoronavError
 from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera
@@ -205,8 +206,6 @@ class NavigationResult:
         return out
 
     def to_json(self) -> dict[str, Any]:
-        from fluoronav import __version__
-
         d: dict[str, Any] = {
             "version": __version__,
             "status": self.status,

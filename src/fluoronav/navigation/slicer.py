@@ -31,6 +31,8 @@ from typing import Literal
 import numpy as np
 import SimpleITK as sitk  # noqa: N813
 import torch
+from scipy import ndimage
+from skimage.measure import marching_cubes
 
 from fluoronav.anatomy.markups import write_markups
 from fluoronav.anatomy.volume import Volume
@@ -314,9 +316,6 @@ def femur_surface(
         ValueError: no label map, an unknown label name, an empty label, or no surface within the
             budget.
     """
-    from scipy import ndimage
-    from skimage.measure import marching_cubes
-
     if volume.labels is None:
         raise ValueError(f"volume {volume.name!r} has no label map")
     value = volume.label_value(label_name)

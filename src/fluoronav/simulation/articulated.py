@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from fluoronav.anatomy.io import resolve_ct
 from fluoronav.anatomy.volume import Volume
 from fluoronav.device import resolve_device
 from fluoronav.geometry.camera import Camera
@@ -280,9 +281,6 @@ def anatomy_and_simulator(
 ) -> tuple[Volume, ArticulatedSimulator]:
     """The CT (``"phantom"`` or a path, :func:`~fluoronav.anatomy.io.resolve_ct`) and a physics
     simulator that moves its left femur, at ``image_size``² (cached per process)."""
-    from fluoronav.anatomy.io import resolve_ct
-    from fluoronav.simulation.xray import SimulationConfig
-
     volume = resolve_ct(ct, seed=phantom_seed)
     sim = ArticulatedSimulator(
         volume, femur_side="left", config=SimulationConfig(image_size=image_size), device=device

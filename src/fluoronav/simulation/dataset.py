@@ -22,8 +22,11 @@ from typing import Any
 import numpy as np
 
 from fluoronav import __version__
+from fluoronav.anatomy.io import resolve_ct
+from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import InputError
+from fluoronav.geometry.camera import Camera
 from fluoronav.runner import JsonlLog, run_tasks
 from fluoronav.simulation.scene import SceneSampling, sample_scene
 from fluoronav.simulation.xray import SimulatedImage, SimulationConfig, XraySimulator
@@ -112,9 +115,6 @@ def _simulator(
     shaft_length_mm: float = 50.0,
 ) -> XraySimulator:
     """One simulator per anatomy and worker process (building one costs seconds; kept for reuse)."""
-    from fluoronav.anatomy.io import resolve_ct
-    from fluoronav.anatomy.phantom import hip_phantom
-
     if ct == "phantom":
         volume = hip_phantom(seed=phantom_seed, spacing_mm=phantom_spacing_mm)
     else:
@@ -202,8 +202,6 @@ def simulate_dataset(
         The manifest rows written by this call (not those of an earlier, resumed run).
     """
     # validate every CT up front, in this process: a bad file fails before anything is written
-    from fluoronav.anatomy.io import resolve_ct
-
     for ct in spec.cts:
         if ct != "phantom":
             resolve_ct(ct)
@@ -258,10 +256,10 @@ def simulate_dataset(
 
 def contact_sheet(data_dir: Path, rows: list[dict[str, Any]], path: Path) -> None:
     """A 4×4 sheet of samples with the mask outline and landmarks A (green) and B (red)."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib, for the contact sheet only
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # after use("Agg")
 
     n = len(rows)
     cols = 4
@@ -308,8 +306,6 @@ def check_dataset(data_dir: Path, *, n: int | None = None) -> list[str]:
     camera's size and ``fx = sdd / pixel_spacing`` consistent with the row, landmarks inside the
     image and equal to the npz's, empty mask and no landmarks for negatives.
     """
-    from fluoronav.geometry.camera import Camera
-
     data_dir = Path(data_dir)
     problems: list[str] = []
     rows_ = JsonlLog(data_dir / "manifest.jsonl").read()

@@ -34,6 +34,7 @@ from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.manipulator.robot import UR10, IKFailure, RobotErrorModel, SerialRobot, wrap_deg
+from fluoronav.simulation.protocol import sample_trial
 
 __all__ = [
     "HOME_DEG",
@@ -166,8 +167,6 @@ def sample_handeye_scenario(
     Raises:
         ValueError: when not enough reachable in-view poses are found in ``max_redraws`` draws.
     """
-    from fluoronav.simulation.protocol import sample_trial
-
     cm_config = cm_config or CMConfig()
     kin = CMKinematics(cm_config)
     trial = sample_trial("navigation", volume, rng, cm_config=cm_config)

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from scipy.ndimage import map_coordinates
 
 from fluoronav.anatomy.volume import Volume
 from fluoronav.device import resolve_device
@@ -188,8 +189,6 @@ class XraySimulator:
         ``drill_voxel_mm``; the CT is sampled trilinearly at those voxels, decomposed, weighted by
         the envelope fraction and integrated like the CT itself.
         """
-        from scipy.ndimage import map_coordinates
-
         env = voxelize_cm(
             envelope_config(scene.cm_config),
             np.asarray(scene.control_points_deg, np.float64),

@@ -40,10 +40,10 @@ def column(rows: list[dict[str, Any]], key: str) -> np.ndarray:
 
 def study_figures(rows: list[dict[str, Any]], out_dir: Path, *, workflow: str) -> list[Path]:
     """Write the study's PNG figures into ``out_dir``; returns their paths."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib, for the figures only
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # after use("Agg")
 
     out_dir.mkdir(parents=True, exist_ok=True)
     ok = [r for r in rows if str(r.get("status", "ok")) == "ok"]

@@ -16,7 +16,11 @@ from typing import Any
 
 import numpy as np
 
+from fluoronav import __version__
+from fluoronav.anatomy.io import resolve_ct
 from fluoronav.errors import InputError
+from fluoronav.runner import CsvLog, run_tasks
+from fluoronav.studies.figures import column, study_figures
 from fluoronav.studies.handeye_trials import (
     HANDEYE_DIAGNOSTICS,
     HANDEYE_METRICS,
@@ -29,6 +33,7 @@ from fluoronav.studies.handeye_trials import (
     run_handeye_trial,
     run_navigation_trial,
 )
+from fluoronav.studies.summary import summarize, write_summary
 
 __all__ = [
     "HANDEYE_METRICS",
@@ -85,12 +90,10 @@ def _columns(cfg: HandEyeStudyConfig) -> list[str]:
 
 def _figures(rows: list[dict[str, Any]], out: Path, cfg: HandEyeStudyConfig) -> list[Path]:
     """The generic histograms plus: hand-eye error vs M; navigation repositioning histogram."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib, for the figures only
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from fluoronav.studies.figures import column, study_figures
+    import matplotlib.pyplot as plt  # after use("Agg")
 
     written = study_figures(rows, out, workflow=cfg.workflow)
     ok = [r for r in rows if str(r.get("status")) == "ok"]
@@ -174,10 +177,6 @@ def run_study(
 ) -> dict[str, Any]:
     """Run (or resume) a hand-eye or navigation study into ``out``: trials.csv, summary.json,
     config.json, figures/."""
-    from fluoronav import __version__
-    from fluoronav.runner import CsvLog, run_tasks
-    from fluoronav.studies.summary import summarize, write_summary
-
     if cfg.workflow not in ("hand-eye", "navigation"):
         raise InputError("WORKFLOW", f"unknown workflow {cfg.workflow!r}; use hand-eye or navigation")
     if any(m < 1 for m in cfg.poses):
@@ -194,8 +193,6 @@ def run_study(
         if any(old.get(k) != cfg_dict.get(k) for k in keep):
             raise InputError(cfg_path, "this directory holds a study with other settings; use another --out")
     if cfg.ct != "phantom":
-        from fluoronav.anatomy.io import resolve_ct
-
         resolve_ct(cfg.ct)
     detector = detector_or_none(cfg.device)
     cfg_dict["detector_precision"] = None if detector is None else detector.precision

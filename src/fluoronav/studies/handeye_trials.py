@@ -37,10 +37,20 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from fluoronav.calibration.handeye import (
+    calibrate_hand_eye,
+    tip_rbase_tracker_chain,
+    transform_error,
+)
+from fluoronav.calibration.image_handeye import ImageHandEyeConfig, calibrate_hand_eye_from_images
 from fluoronav.calibration.results import HandEyeFailure
+from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker
 from fluoronav.errors import FluoronavError
 from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.navigation.simulated import SimulationConfig, run_simulated_navigation
+from fluoronav.registration.cm import CMView
+from fluoronav.registration.metrics import cm_errors
 from fluoronav.runner import finish_row, mark_failed, new_row
 from fluoronav.simulation.articulated import anatomy_and_simulator
 from fluoronav.simulation.robot_scene import (
@@ -164,7 +174,7 @@ class HandEyeStudyConfig:
 @functools.lru_cache(maxsize=1)
 def detector_or_none(device: str) -> Any:
     """The shipped detector, or None when no model is shipped (then oracle landmarks are used)."""
-    from fluoronav.detection.detector import Detector
+    from fluoronav.detection.detector import Detector  # heavy: monai; none shipped means oracle landmarks
 
     try:
         return Detector.load(None, device=device)
@@ -223,13 +233,6 @@ def _tracker_baseline(
     sc: HandEyeScenario, rng: np.random.Generator, sigma_mm: float, kin: CMKinematics
 ) -> dict[str, Any]:
     """AX = XB (Tsai) on the shaft marker O_s and the eq. 9 tip through the tip-segment marker O_t."""
-    from fluoronav.calibration.handeye import (
-        calibrate_hand_eye,
-        tip_rbase_tracker_chain,
-        transform_error,
-    )
-    from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker
-
     tracker = OpticalTracker(marker_sigma_mm=sigma_mm)
     # O_s on the shaft 60 mm behind the CM base; the tracker ~1.5 m from the robot base
     cm_from_os = se3.make(random_rotation(rng, 30.0), [30.0, 0.0, -60.0])
@@ -265,11 +268,6 @@ def _tracker_baseline(
 
 def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, Any]:
     """One hand-eye trial → one ``trials.csv`` row (metrics of the largest M, plus per-M columns)."""
-    from fluoronav.calibration.handeye import transform_error
-    from fluoronav.calibration.image_handeye import ImageHandEyeConfig, calibrate_hand_eye_from_images
-    from fluoronav.registration.cm import CMView
-    from fluoronav.registration.metrics import cm_errors
-
     t0 = time.perf_counter()
     torch.set_num_threads(1)
     rng = np.random.default_rng(seed)
@@ -403,8 +401,6 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
     """One navigation trial → one ``trials.csv`` row: the shared simulated navigation loop
     (:func:`fluoronav.navigation.simulated.run_simulated_navigation`), the same pipeline as
     ``fluoronav navigate`` and the demo."""
-    from fluoronav.navigation.simulated import SimulationConfig, run_simulated_navigation
-
     t0 = time.perf_counter()
     torch.set_num_threads(1)
     row = new_row(trial_id, seed, cfg.workflow)

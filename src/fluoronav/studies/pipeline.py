@@ -26,11 +26,42 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from fluoronav import __version__
+from fluoronav.anatomy.io import resolve_ct
 from fluoronav.anatomy.volume import Volume
+from fluoronav.detection.centerline import extract_centerline
+from fluoronav.detection.instrument import instrument_masks
 from fluoronav.errors import FluoronavError, InputError
-from fluoronav.registration.centerline_init import multiview_start_poses
+from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.registration.bone import (
+    register_femur,
+    register_pelvis,
+    register_pelvis_per_view,
+    static_view_composite,
+    views_from_images,
+    views_in_ct_frame,
+)
+from fluoronav.registration.centerline_init import (
+    centerline_initialize,
+    centerline_initialize_multiview,
+    depth_range_about,
+    mirror_about_chord,
+    multiview_start_poses,
+    roll_about_axis_deg,
+)
+from fluoronav.registration.cm import (
+    CMRegistrationConfig,
+    CMView,
+    register_cm,
+    register_cm_multistart,
+    roll_scan_initialization,
+)
 from fluoronav.registration.metrics import cm_errors, point_error_mm, relative_error_mm
 from fluoronav.runner import CsvLog, finish_row, mark_failed, new_row, run_tasks
+from fluoronav.simulation.articulated import anatomy_and_simulator
+from fluoronav.simulation.protocol import sample_trial, simulate_trial_images
+from fluoronav.studies.figures import study_figures
+from fluoronav.studies.summary import summarize, write_summary
 
 log = logging.getLogger(__name__)
 
@@ -84,14 +115,12 @@ class StudyConfig:
 
 # ----- per-process caches ---------------------------------------------------------------------------
 def _anatomy(ct: str, phantom_seed: int, image_size: int, device: str) -> tuple[Volume, Any]:
-    from fluoronav.simulation.articulated import anatomy_and_simulator
-
     return anatomy_and_simulator(ct, phantom_seed, image_size, device)
 
 
 @functools.lru_cache(maxsize=1)
 def _detector(device: str) -> Any:
-    from fluoronav.detection.detector import Detector
+    from fluoronav.detection.detector import Detector  # heavy: monai; oracle landmarks need no detector
 
     return Detector.load(None, device=device)
 
@@ -116,8 +145,6 @@ def _landmarks_and_centerline(
     by the image border (:attr:`~fluoronav.detection.detector.Detection.usable`), the
     landmarks' confidences (2,) (1 for oracle landmarks, 0 where nothing was found), and the CM
     segmentation (None where nothing was found)."""
-    from fluoronav.detection.centerline import extract_centerline
-
     lms: list[np.ndarray | None] = []
     cls: list[np.ndarray | None] = []
     confs: list[np.ndarray] = []
@@ -148,9 +175,6 @@ def _landmarks_and_centerline(
 def _theta_error_deg(camera_from_cm: np.ndarray, images: list[Any], trial: Any) -> float:
     """θ error: the roll about the true A→B chord between an estimated pose (view 0's camera frame)
     and the true pose, degrees in [0, 180]."""
-    from fluoronav.manipulator.kinematics import CMKinematics
-    from fluoronav.registration.centerline_init import roll_about_axis_deg
-
     carm0_true = images[0].camera.camera_from_world @ trial.world_from_cm[0]
     ab = (
         CMKinematics(trial.cm_config)
@@ -175,14 +199,6 @@ def _register_bones(
     """Pelvis (per view, and the view geometry), then femur, with the instrument (``instruments``:
     per image True on the CM and its shaft, or None) left out of the similarity. Returns cameras and
     the entry estimate."""
-    from fluoronav.registration.bone import (
-        register_femur,
-        register_pelvis_per_view,
-        static_view_composite,
-        views_from_images,
-        views_in_ct_frame,
-    )
-
     views = views_from_images(images, instruments)
     if cfg.workflow == "multi-cm":
         # one static C-arm view: every image shows the same anatomy and the CM elsewhere
@@ -227,8 +243,6 @@ def cm_start_poses(
     One by default: in a 20-trial single-view study (seed 5101) the second centreline minimum, often
     at another depth, won the intensity screening in 6 of 20 trials and ended 60–230 mm off: one view
     does not tell depth from tilt, at the centreline's nor at the 4× intensity level."""
-    from fluoronav.registration.centerline_init import mirror_about_chord
-
     alts = init.alternatives if init.alternatives is not None else init.camera_from_cm[None]
     poses = [init.camera_from_cm]
     for T in alts:
@@ -242,11 +256,6 @@ def cm_start_poses(
 
 def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
     """One trial → one ``trials.csv`` row (status ``ok`` or ``failed`` with its reason)."""
-    from fluoronav.detection.instrument import instrument_masks
-    from fluoronav.registration.centerline_init import centerline_initialize, depth_range_about
-    from fluoronav.registration.cm import CMRegistrationConfig, CMView
-    from fluoronav.simulation.protocol import sample_trial, simulate_trial_images
-
     t0 = time.perf_counter()
     torch.set_num_threads(1)  # one trial per worker process; numba kernels keep their own threads
     rng = np.random.default_rng(seed)
@@ -310,8 +319,6 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                 )
                 row["theta_centerline_deg"] = _theta_error_deg(init.camera_from_cm, images, trial)
                 if cfg.roll_scan:
-                    from fluoronav.registration.cm import roll_scan_initialization
-
                     scan = roll_scan_initialization(
                         CMView(images[0].image, cams[0], landmarks_px=lms[0]),
                         init,
@@ -342,8 +349,6 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
             base_from_cm = trial.world_from_cm if cfg.workflow == "multi-cm" else None
             cm_seed = int(rng.integers(2**31))
             if cfg.init == "perturbed":
-                from fluoronav.registration.cm import CMRegistrationConfig, register_cm
-
                 res = register_cm(
                     views,
                     initial_control_points_deg=trial.initial_control_points_deg,
@@ -353,11 +358,7 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
                     seed=cm_seed,
                 )
             else:
-                from fluoronav.registration.cm import CMRegistrationConfig, register_cm_multistart
-
                 if cfg.workflow == "multi-view":
-                    from fluoronav.registration.centerline_init import centerline_initialize_multiview
-
                     mv = centerline_initialize_multiview(
                         [cams[k] for k in found],
                         np.stack([np.asarray(lms[k]) for k in found]),
@@ -411,8 +412,6 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
             entry_est_c = (
                 cam0 @ np.linalg.inv(world_est_from_world) @ np.append(bones["entry_world_est"], 1.0)
             )[:3]
-            from fluoronav.manipulator.kinematics import CMKinematics
-
             kin = CMKinematics(trial.cm_config)
             cps = torch.as_tensor(np.stack([cp_est, trial.control_points_deg]), dtype=torch.float64)
             tips = kin.tip_cm(cps).numpy()
@@ -451,10 +450,6 @@ def run_study(
     cfg: StudyConfig, out: Path, *, scheduler: str | None = None, workers: int | None = None
 ) -> dict[str, Any]:
     """Run (or resume) a study into ``out``: trials.csv, summary.json, config.json, figures/."""
-    from fluoronav import __version__
-    from fluoronav.studies.figures import study_figures
-    from fluoronav.studies.summary import summarize, write_summary
-
     if cfg.workflow not in STUDY_WORKFLOWS:
         raise InputError(
             "WORKFLOW", f"unknown workflow {cfg.workflow!r}; use one of {', '.join(STUDY_WORKFLOWS)}"
@@ -469,8 +464,6 @@ def run_study(
         if any(old.get(k) != cfg_dict.get(k) for k in keep):
             raise InputError(cfg_path, "this directory holds a study with other settings; use another --out")
     if cfg.ct != "phantom":
-        from fluoronav.anatomy.io import resolve_ct
-
         resolve_ct(cfg.ct)  # fail early, in this process, on a bad CT
     if not cfg.oracle_landmarks:
         # fail early when no detector model is available; the precision its networks run in
@@ -510,8 +503,6 @@ def bone_registration_errors(trial: Any, images: list[Any], volume: Volume, *, s
     view's axis), ``femur_deg``, ``entry_mm`` (‖entry_est − entry_true‖, frame independent),
     ``pelvis_s``, ``femur_s``.
     """
-    from fluoronav.registration.bone import register_femur, register_pelvis, views_from_images
-
     views = views_from_images(images)
     pelvis = register_pelvis(
         views, volume, initial_world_from_patient=trial.initial_world_from_patient, seed=seed
