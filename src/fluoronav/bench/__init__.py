@@ -23,7 +23,7 @@ __all__ = ["BENCH_STAGES", "collect"]
 log = logging.getLogger(__name__)
 
 #: stages with a ``fluoronav.bench.<stage>`` module, in the order they run
-BENCH_STAGES = ("rendering", "simulation", "detection", "registration")
+BENCH_STAGES = ("rendering", "simulation", "detection", "registration", "navigation")
 
 
 def collect(*, quick: bool = False, only: list[str] | None = None, device: str = "cpu") -> dict[str, Any]:

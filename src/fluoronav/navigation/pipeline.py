@@ -38,6 +38,7 @@ import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -67,6 +68,7 @@ from fluoronav.navigation.result import (
 )
 from fluoronav.registration.bone import (
     BoneView,
+    femur_config,
     register_femur,
     register_pelvis_per_view,
     views_in_ct_frame,
@@ -270,7 +272,11 @@ def _register(
     bone_views = _bone_views(views, detections)
     with stage(f"{prefix}pelvis") as rec:
         pelvis = register_pelvis_per_view(
-            bone_views, case.volume, initial_world_from_patient=np.eye(4), seed=seed + 2
+            bone_views,
+            case.volume,
+            initial_world_from_patient=np.eye(4),
+            config=replace(config.pelvis, device=config.device),
+            seed=seed + 2,
         )
         rec.diagnostics["views"] = {
             v.name: {"cost": float(r.cost), "converged": bool(r.converged), "reason": r.reason}
@@ -280,7 +286,12 @@ def _register(
     cams_ct = [bv.camera for bv in views_ct]
     with stage(f"{prefix}femur") as rec:
         femur = register_femur(
-            views_ct, case.volume, side=case.side, world_from_patient=np.eye(4), seed=seed + 3
+            views_ct,
+            case.volume,
+            side=case.side,
+            world_from_patient=np.eye(4),
+            config=replace(config.femur or femur_config(views=len(views_ct)), device=config.device),
+            seed=seed + 3,
         )
         rec.diagnostics.update(cost=float(femur.cost), converged=bool(femur.converged), reason=femur.reason)
     with stage(f"{prefix}cm") as rec:

@@ -35,7 +35,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -201,6 +201,7 @@ def run_simulated_navigation(
     navigation: NavigationConfig | None = None,
     on_stage: Callable[[str, str], None] | None = None,
     on_event: EventCallback | None = None,
+    until: Literal["case", "end"] = "end",
 ) -> SimulatedNavigation:
     """Simulate a case, navigate on it, move, verify and correct; measure everything (module docstring).
 
@@ -213,6 +214,8 @@ def run_simulated_navigation(
         navigation: the pipeline's settings (default: device and seed of ``config``).
         on_stage: called with (stage name, "start" | "done") for the loop's and the pipeline's stages.
         on_event: passed to the pipeline (:data:`fluoronav.navigation.pipeline.EventCallback`).
+        until: ``"case"`` stops once the first case is simulated (``artifacts["case"]``, the
+            truth in ``truth``), before the pipeline runs.
     """
     cfg = config or SimulationConfig()
     nav_cfg = navigation or NavigationConfig(device=cfg.device, seed=cfg.seed)
@@ -282,6 +285,8 @@ def run_simulated_navigation(
             _write_truth(run, case_dir)
             case = case_io.load_navigation_case(path)
     A.update(volume=volume, scene=sc, images=images, names=names, case=case)
+    if until == "case":
+        return run
 
     res = navigate(case, nav_cfg, on_stage=on_stage, on_event=on_event)
     run.result = res

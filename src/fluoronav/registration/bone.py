@@ -46,6 +46,8 @@ from fluoronav.registration.bone_presets import (
     FEMUR_TILT_START_DEG,
     FEMUR_TILT_STARTS,
     PELVIS_AUTHORS_PRESET,
+    PELVIS_CMAES_PRESET,
+    PELVIS_LINEARIZED_PRESET,
     PELVIS_PRESET,
     BoneLevel,
     BoneRegistrationConfig,
@@ -57,6 +59,7 @@ from fluoronav.registration.engine import Registration
 from fluoronav.registration.levels import LevelConfig
 from fluoronav.registration.parameterization import RigidAboutPoint, RotationAboutPoint
 from fluoronav.registration.trace import RegistrationTrace
+from fluoronav.rendering.ct import CTRenderer
 
 __all__ = [
     "FEMUR_AUTHORS_PRESET",
@@ -65,6 +68,8 @@ __all__ = [
     "FEMUR_TILT_STARTS",
     "FEMUR_TILT_START_DEG",
     "PELVIS_AUTHORS_PRESET",
+    "PELVIS_CMAES_PRESET",
+    "PELVIS_LINEARIZED_PRESET",
     "PELVIS_PRESET",
     "TISSUE_HU",
     "BoneLevel",
@@ -157,14 +162,41 @@ def register_pelvis(
     if not views:
         raise ValueError("no views given")
     config = config or pelvis_config()
-    device = resolve_device(config.device)
-    mu_np, w_index = bone_excess_mu(volume, ["pelvis"])
-    mu = torch.from_numpy(mu_np).to(device)
-    center = np.asarray(volume.landmarks_world.get(center_landmark, volume.center_world), np.float64)
+    return _register_pelvis(
+        views, _PelvisVolume(volume, config, center_landmark), initial_world_from_patient, seed
+    )
+
+
+class _PelvisVolume:
+    """The pelvis's excess-μ volume, its rotation centre and its level renderers, built once for the
+    registrations of several views."""
+
+    def __init__(self, volume: Volume, config: BoneRegistrationConfig, center_landmark: str) -> None:
+        self.config = config
+        self.device = resolve_device(config.device)
+        mu_np, self.w_index = bone_excess_mu(volume, ["pelvis"])
+        self.mu = torch.from_numpy(mu_np).to(self.device)
+        self.center = np.asarray(volume.landmarks_world.get(center_landmark, volume.center_world), np.float64)
+        self.renderers: dict[str, CTRenderer] = {}
+
+
+def _register_pelvis(
+    views: Sequence[BoneView], pv: _PelvisVolume, initial_world_from_patient: np.ndarray, seed: int
+) -> BoneRegistrationResult:
+    config, device = pv.config, pv.device
     k_from_0, world_from_0 = _view_transforms(views)
     W0 = np.asarray(initial_world_from_patient, np.float64)
-    param = RigidAboutPoint(views[0].camera.camera_from_world @ W0, center, axes="camera", device=device)
-    data = BoneLevelData(views, mu, w_index, config.levels, "pelvis", device)
+    param = RigidAboutPoint(views[0].camera.camera_from_world @ W0, pv.center, axes="camera", device=device)
+    data = BoneLevelData(
+        views,
+        pv.mu,
+        pv.w_index,
+        config.levels,
+        "pelvis",
+        device,
+        skip_empty=config.skip_empty,
+        renderers=pv.renderers,
+    )
 
     def render(params: torch.Tensor, level: LevelConfig) -> torch.Tensor:
         return render_level(data, k_from_0, param(params).camera_from_object, level)
@@ -195,16 +227,13 @@ def register_pelvis_per_view(
     seed: int = 1,
 ) -> list[BoneRegistrationResult]:
     """Register the pelvis to each view alone; ``result[k].camera_from_bone[0]`` is view k's
-    ``camera_from_patient`` estimate (use :func:`relative_view_poses` for the view geometry)."""
+    ``camera_from_patient`` estimate (use :func:`relative_view_poses` for the view geometry). The
+    bone volume and its level renderers are built once for all views."""
+    if not views:
+        raise ValueError("no views given")
+    pv = _PelvisVolume(volume, config or pelvis_config(), "pelvis_center")
     return [
-        register_pelvis(
-            [v],
-            volume,
-            initial_world_from_patient=initial_world_from_patient,
-            config=config,
-            seed=seed + 101 * k,
-        )
-        for k, v in enumerate(views)
+        _register_pelvis([v], pv, initial_world_from_patient, seed + 101 * k) for k, v in enumerate(views)
     ]
 
 
@@ -267,8 +296,24 @@ def register_femur(
         initial_world_from_femur if initial_world_from_femur is not None else world_from_patient, np.float64
     )
     param = RotationAboutPoint(views[0].camera.camera_from_world @ W0, head, axes="camera", device=device)
-    femur = BoneLevelData(views, torch.from_numpy(mu_f).to(device), w_f, config.levels, "femur", device)
-    pelvis = BoneLevelData(views, torch.from_numpy(mu_p).to(device), w_p, config.levels, "femur", device)
+    femur = BoneLevelData(
+        views,
+        torch.from_numpy(mu_f).to(device),
+        w_f,
+        config.levels,
+        "femur",
+        device,
+        skip_empty=config.skip_empty,
+    )
+    pelvis = BoneLevelData(
+        views,
+        torch.from_numpy(mu_p).to(device),
+        w_p,
+        config.levels,
+        "femur",
+        device,
+        skip_empty=config.skip_empty,
+    )
     view0_from_patient = torch.as_tensor(views[0].camera.camera_from_world @ np.asarray(world_from_patient))[
         None
     ]

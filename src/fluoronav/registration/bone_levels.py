@@ -31,7 +31,7 @@ from fluoronav.registration.bone_views import BoneView
 from fluoronav.registration.engine import SimilarityFactory, default_similarity
 from fluoronav.registration.levels import LevelConfig, patch_radius_for
 from fluoronav.registration.roi import area_downsample
-from fluoronav.rendering.ct import render_line_integrals
+from fluoronav.rendering.ct import CTRenderer
 
 __all__ = [
     "TISSUE_HU",
@@ -91,9 +91,10 @@ def box_downsample(mu: torch.Tensor, world_from_index: np.ndarray, f: int) -> tu
 
 
 class BoneLevelData:
-    """Per level: working cameras, fixed images (filled, binned), view masks and the volume pyramid
-    level, keyed by the level's name (``<prefix>-<index>``); ``levels`` are the optimiser levels
-    with those names and their patch radii."""
+    """Per level: working cameras, fixed images (filled, binned), view masks and the renderer of the
+    volume pyramid level, keyed by the level's name (``<prefix>-<index>``); ``levels`` are the
+    optimiser levels with those names and their patch radii. ``renderers``: a dict of those
+    renderers from an earlier registration of the same volume and levels, reused and filled."""
 
     def __init__(
         self,
@@ -103,6 +104,9 @@ class BoneLevelData:
         levels: Sequence[BoneLevel],
         prefix: str,
         device: torch.device,
+        *,
+        skip_empty: bool = True,
+        renderers: dict[str, CTRenderer] | None = None,
     ) -> None:
         sizes = {(v.camera.rows, v.camera.cols) for v in views}
         if len(sizes) != 1:
@@ -111,7 +115,9 @@ class BoneLevelData:
         self.levels: list[LevelConfig] = []
         self.cams: dict[str, list[Camera]] = {}
         self.fixed: dict[str, torch.Tensor] = {}
-        self.volume: dict[str, tuple[torch.Tensor, np.ndarray]] = {}
+        # shared with the caller when given: registrations of the same bone on other views reuse
+        # each level's volume and its empty-space map
+        self.renderers: dict[str, CTRenderer] = {} if renderers is None else renderers
         self.masks: dict[str, torch.Tensor | None] = {}
         masks = (
             None
@@ -148,7 +154,11 @@ class BoneLevelData:
             self.fixed[name] = area_downsample(images, f)
             self.masks[name] = None if masks is None else area_downsample(masks, f) >= 0.5
             vf = max(1, math.floor(lv.voxel_mm / spacing + 1e-6))
-            self.volume[name] = box_downsample(mu, world_from_index, vf)
+            if name not in self.renderers:
+                small, w_small = box_downsample(mu, world_from_index, vf)
+                self.renderers[name] = CTRenderer.from_tensor(
+                    small, w_small, mipmap=False, skip_empty=skip_empty
+                )
 
 
 def render_level(
@@ -157,14 +167,13 @@ def render_level(
     """DRRs (P, V, h, w) of the level volume for object poses ``view0_from_object`` (P, 4, 4);
     ``camera_from_view0``: (V, 4, 4) ``camera_k_from_camera_0``."""
     cams = level_data.cams[level.name]
-    mu, w = level_data.volume[level.name]
     P, V = object_poses.shape[0], len(cams)
     T = (
         torch.as_tensor(camera_from_view0, dtype=torch.float64)[None] @ object_poses.cpu()[:, None]
     )  # (P, V, 4, 4)
     K = np.broadcast_to(np.stack([c.K for c in cams])[None], (P, V, 3, 3)).reshape(P * V, 3, 3)
-    out = render_line_integrals(
-        mu, w, K, T.reshape(P * V, 4, 4).numpy(), cams[0].rows, cams[0].cols, mipmap=False
+    out = level_data.renderers[level.name].render_poses(
+        K, T.reshape(P * V, 4, 4).numpy(), cams[0].rows, cams[0].cols
     )
     return out.reshape(P, V, cams[0].rows, cams[0].cols)
 

@@ -32,6 +32,7 @@ import torch
 
 from fluoronav.errors import RegistrationFailure
 from fluoronav.registration.levels import LevelConfig
+from fluoronav.registration.linearized import LinearizedRefiner
 from fluoronav.registration.optimizer import (
     CMAES,
     IterationRecord,
@@ -187,13 +188,16 @@ class Registration:
             mask = area_downsample(m, level.downsample) >= 0.5
         return f, mask
 
-    def objective(self, level: LevelConfig) -> Objective:
-        """The batched objective ``X (P, D) numpy -> (P,) numpy`` of one level."""
+    def level_parts(
+        self, level: LevelConfig
+    ) -> tuple[Callable[[torch.Tensor], torch.Tensor], Callable[[torch.Tensor, torch.Tensor], torch.Tensor]]:
+        """``render_images(params (P, D)) -> (P, V, h, w)`` and ``cost_of(moving, params) -> (P,)``
+        (similarity summed over views, plus the priors) of one level."""
         fixed, mask = self.fixed_for(level)
         sim = self.similarity(fixed, level, mask)
         n_views = fixed.shape[0]
 
-        def cost_torch(params: torch.Tensor) -> torch.Tensor:
+        def render_images(params: torch.Tensor) -> torch.Tensor:
             moving = self.render(params, level)
             if moving.dim() == 3 and n_views == 1:
                 moving = moving.unsqueeze(1)
@@ -202,11 +206,23 @@ class Registration:
                     f"render returned {tuple(moving.shape)}, expected (P, {', '.join(map(str, fixed.shape))})"
                     f" at downsample {level.downsample}"
                 )
-            s = sim(moving.to(fixed.dtype))
+            return moving.to(fixed.dtype)
+
+        def cost_of(moving: torch.Tensor, params: torch.Tensor) -> torch.Tensor:
+            s = sim(moving)
             c = (s.sum(dim=1) if s.dim() == 2 else s).to(torch.float64)
             for prior in self.priors:
                 c = c + prior(params).to(c)
             return c
+
+        return render_images, cost_of
+
+    def objective(self, level: LevelConfig) -> Objective:
+        """The batched objective ``X (P, D) numpy -> (P,) numpy`` of one level."""
+        render_images, cost_of = self.level_parts(level)
+
+        def cost_torch(params: torch.Tensor) -> torch.Tensor:
+            return cost_of(render_images(params), params)
 
         def objective(X: np.ndarray) -> np.ndarray:
             with torch.no_grad():
@@ -239,7 +255,18 @@ class Registration:
         lt = LevelTrace(index=i, name=level.name or f"level{i}", config=level.to_dict(), x_start=x.tolist())
         tl = time.perf_counter()
         cb = None if on_iteration is None else (lambda rec, i=i: on_iteration(i, rec))
-        res = optimizer_for(level, seed=self.seed + i).minimize(self.objective(level), x, callback=cb)
+        if level.optimizer == "linearized":
+            res = LinearizedRefiner(
+                level.sigma,
+                fd_step_sigma=level.fd_step_sigma,
+                trust_sigma=level.trust_sigma,
+                tolx=level.tolx,
+                tolfun=level.tolfun,
+                max_iters=level.max_iters,
+                bounds=level.bounds,
+            ).minimize(*self.level_parts(level), x, device=self.device, callback=cb)
+        else:
+            res = optimizer_for(level, seed=self.seed + i).minimize(self.objective(level), x, callback=cb)
         lt.iterations = res.history
         lt.x, lt.cost, lt.n_evals, lt.n_iters = res.x.tolist(), float(res.f), res.n_evals, res.n_iters
         lt.converged, lt.stop_reason, lt.n_nonfinite = res.converged, res.stop_reason, res.n_nonfinite

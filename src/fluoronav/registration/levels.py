@@ -52,7 +52,11 @@ class LevelConfig:
         tolx, tolfun: stopping tolerances (authors: 0.01).
         max_iters, max_evals: optimiser budgets (None: optimiser defaults / unlimited).
         landmark_sigma_full_px: landmark prior σ in full-resolution pixels (authors: 100).
-        optimizer: "cmaes" or "nelder-mead" (local refinement).
+        optimizer: "cmaes", "nelder-mead" (local refinement) or "linearized" (trust-region steps
+            on the forward-difference image Jacobian, :mod:`~fluoronav.registration.linearized`;
+            ``max_iters`` counts its accepted steps).
+        fd_step_sigma, trust_sigma: the "linearized" optimiser's difference step and initial trust
+            region, as multiples of ``sigma``.
         restarts: IPOP restarts when CMA-ES does not converge.
         bounds: optional absolute (lower, upper) parameter bounds.
         name: label for traces.
@@ -69,7 +73,9 @@ class LevelConfig:
     max_iters: int | None = None
     max_evals: int | None = None
     landmark_sigma_full_px: float = 100.0
-    optimizer: Literal["cmaes", "nelder-mead"] = "cmaes"
+    optimizer: Literal["cmaes", "nelder-mead", "linearized"] = "cmaes"
+    fd_step_sigma: float = 0.1
+    trust_sigma: float = 2.0
     restarts: int = 0
     bounds: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     name: str = field(default="", compare=False)
@@ -81,7 +87,7 @@ class LevelConfig:
             object.__setattr__(self, "patch_radius", patch_radius_for(int(self.downsample)))
         if self.stride < 1 or (self.patch_radius is not None and self.patch_radius < 0):
             raise ValueError("stride must be ≥ 1 and patch_radius ≥ 0")
-        if self.optimizer not in ("cmaes", "nelder-mead"):
+        if self.optimizer not in ("cmaes", "nelder-mead", "linearized"):
             raise ValueError(f"unknown optimizer {self.optimizer!r}")
         if any(s <= 0 for s in self.sigma):
             raise ValueError("sigma entries must be positive")

@@ -6,6 +6,13 @@ trilinear gather. Rays are clipped to the support of the trilinear interpolant w
 the grid, the open box ``(-1, n)`` along each index axis, and sampled with the midpoint rule.
 Samples whose eight corners all lie inside the grid (the bulk) take a branch-free path on the
 flattened volume; only the few samples near the faces check each corner.
+
+Empty-space skipping: with ``skip`` (the chessboard distance in voxels from each voxel to the nearest
+non-zero one, :func:`empty_space_distance`), an interior sample at a voxel of distance ``D ≥ 3`` is
+zero, and so are the next ``floor((D − 2) / h∞)`` samples (``h∞`` the step's largest index-axis
+component): their trilinear corners stay within distance ``D − 1`` of that voxel. Those samples are
+skipped, not approximated, so the sum is the same; a bone's excess-attenuation volume, ~90 % empty
+inside its bounding box, renders several times faster.
 """
 
 from __future__ import annotations
@@ -14,8 +21,12 @@ import math
 
 import numpy as np
 from numba import njit, prange
+from scipy import ndimage
 
-__all__ = ["march_rays"]
+__all__ = ["empty_space_distance", "march_rays"]
+
+#: distances are clipped here (uint8)
+_MAX_SKIP_DISTANCE = 255
 
 
 @njit(cache=True, fastmath=True, inline="always")
@@ -33,6 +44,16 @@ def _slab(s: float, d: float, lo: float, hi: float) -> tuple[float, float]:  # p
     return ta, tb
 
 
+def empty_space_distance(vol: np.ndarray) -> np.ndarray:
+    """(nz, ny, nx) uint8 chessboard distance in voxels from each voxel to the nearest non-zero
+    voxel of ``vol`` (0 on non-zero voxels, clipped at 255; all 255 for an all-zero volume)."""
+    empty = vol == 0
+    if empty.all():
+        return np.full(vol.shape, _MAX_SKIP_DISTANCE, np.uint8)
+    d = ndimage.distance_transform_cdt(empty, metric="chessboard")
+    return np.minimum(d, _MAX_SKIP_DISTANCE).astype(np.uint8)
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def march_rays(
     vol: np.ndarray,
@@ -41,6 +62,7 @@ def march_rays(
     source_index: np.ndarray,
     step_mm: float,
     out: np.ndarray,
+    skip: np.ndarray,
 ) -> None:  # pragma: no cover - jitted
     """Integrate trilinear ``vol`` along the rays of V cameras into ``out``.
 
@@ -51,9 +73,13 @@ def march_rays(
         source_index: (V, 3) source position in continuous index coordinates (i, j, k).
         step_mm: largest sample spacing along the ray, mm.
         out: (V, rows, cols) result, written in place.
+        skip: :func:`empty_space_distance` of ``vol`` (uint8, same shape), or an empty array for
+            no skipping.
     """
     nz, ny, nx = vol.shape
     flat = vol.ravel()
+    use_skip = skip.size == flat.size
+    dist = skip.ravel()
     sj = nx
     sk = nx * ny
     V, rows, cols = out.shape
@@ -112,18 +138,28 @@ def march_rays(
             hx = dx * h
             hy = dy * h
             hz = dz * h
+            h_inf = max(abs(hx), abs(hy), abs(hz))
+            inv_h_inf = 1.0 / h_inf if h_inf > 0.0 else 0.0
             acc = 0.0
-            for m in range(m_lo, m_hi):
+            m = m_lo
+            while m < m_hi:
                 x = px + hx * m
                 y = py + hy * m
                 z = pz + hz * m
                 i0 = int(x)
                 j0 = int(y)
                 k0 = int(z)
+                b = k0 * sk + j0 * sj + i0
+                if use_skip:
+                    D = int(dist[b])
+                    if D >= 3:
+                        # this sample and the next floor((D - 2) / h_inf) are zero
+                        m += 1 + int((D - 2) * inv_h_inf)
+                        continue
+                m += 1
                 fx = x - i0
                 fy = y - j0
                 fz = z - k0
-                b = k0 * sk + j0 * sj + i0
                 a0 = flat[b] + fx * (flat[b + 1] - flat[b])
                 a1 = flat[b + sj] + fx * (flat[b + sj + 1] - flat[b + sj])
                 b += sk

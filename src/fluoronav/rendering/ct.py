@@ -35,6 +35,7 @@ import torch.nn.functional as F  # noqa: N812
 from fluoronav.anatomy.volume import MU_WATER_PER_MM, Volume, hu_to_mu
 from fluoronav.device import resolve_device
 from fluoronav.geometry.camera import Camera
+from fluoronav.rendering._ct_numba import empty_space_distance, march_rays
 
 __all__ = ["DEFAULT_STEP_VOXELS", "CTRenderer", "mipmap_factors", "render_line_integrals"]
 
@@ -44,6 +45,9 @@ logger = logging.getLogger(__name__)
 #: Measured: going from 1 to 0.25 voxel changes the benchmark DRR by 4e-5 (median relative) and
 #: the sphere test's median error from 0.14 % to 0.13 % (it is set by the voxelisation), at 2-4× cost.
 DEFAULT_STEP_VOXELS = 1.0
+
+#: The numba kernel's "no empty-space skipping" argument.
+_NO_SKIP = np.zeros(0, np.uint8)
 
 #: Samples per torch chunk (bounds the (rays, samples, 3) grid to ~100 MB in float32).
 _TORCH_CHUNK_SAMPLES = 8_000_000
@@ -129,18 +133,18 @@ def _march_numba(
     source_index: np.ndarray,
     step_mm: float,
     out: torch.Tensor,
+    skip: np.ndarray | None = None,
 ) -> None:
-    from fluoronav.rendering._ct_numba import march_rays
-
     vol = mu.detach()
     if vol.dtype not in (torch.float32, torch.float64):
         vol = vol.float()
     vol_np = np.ascontiguousarray(vol.cpu().numpy())
+    dist = _NO_SKIP if skip is None else skip
     if out.is_contiguous() and out.device.type == "cpu" and out.dtype == vol.dtype:
-        march_rays(vol_np, index_from_pixel, mm_from_pixel, source_index, float(step_mm), out.numpy())
+        march_rays(vol_np, index_from_pixel, mm_from_pixel, source_index, float(step_mm), out.numpy(), dist)
     else:
         tmp = np.empty(tuple(out.shape), dtype=vol_np.dtype)
-        march_rays(vol_np, index_from_pixel, mm_from_pixel, source_index, float(step_mm), tmp)
+        march_rays(vol_np, index_from_pixel, mm_from_pixel, source_index, float(step_mm), tmp, dist)
         out.copy_(torch.from_numpy(tmp))
 
 
@@ -220,10 +224,13 @@ def _march_torch(
 
 # ----- public API -------------------------------------------------------------------------------
 class _Pyramid:
-    """The volume and its lazily built 2× box-downsampled versions, keyed by per-axis factors."""
+    """The volume and its lazily built 2× box-downsampled versions, keyed by per-axis factors, with
+    each one's empty-space distance (numba backend) when ``skip_empty``."""
 
-    def __init__(self, mu: torch.Tensor, world_from_index: np.ndarray) -> None:
+    def __init__(self, mu: torch.Tensor, world_from_index: np.ndarray, *, skip_empty: bool = False) -> None:
         self.levels: dict[Factors, tuple[torch.Tensor, np.ndarray]] = {(1, 1, 1): (mu, world_from_index)}
+        self.skip_empty = skip_empty
+        self._skip: dict[Factors, np.ndarray] = {}
 
     def get(self, factors: Factors) -> tuple[torch.Tensor, np.ndarray]:
         if factors not in self.levels:
@@ -231,6 +238,14 @@ class _Pyramid:
             self.levels[factors] = _downsample(mu, w, factors)
             logger.debug("built mipmap level %s: shape %s", factors, tuple(self.levels[factors][0].shape))
         return self.levels[factors]
+
+    def skip(self, factors: Factors) -> np.ndarray | None:
+        """The empty-space distance of a level, or None without skipping."""
+        if not self.skip_empty:
+            return None
+        if factors not in self._skip:
+            self._skip[factors] = empty_space_distance(self.get(factors)[0].detach().cpu().numpy())
+        return self._skip[factors]
 
 
 def _render(
@@ -280,7 +295,7 @@ def _render(
             else torch.empty((len(cams), rows, cols), dtype=out.dtype, device=out.device)
         )
         if backend == "numba":
-            _march_numba(vol, A, W, s, step, target)
+            _march_numba(vol, A, W, s, step, target, pyramid.skip(f))
         else:
             _march_torch(vol, A, W, s, step, target)
         if sel is None:
@@ -356,6 +371,8 @@ class CTRenderer:
         device: ``"cpu"``, ``"cuda"``, ``"auto"`` or a torch device.
         dtype: torch.float32 (default) or torch.float64.
         step_mm, backend, mipmap: see :func:`render_line_integrals`.
+        skip_empty: skip the empty space of the volume (numba backend; the same integrals, see
+            :mod:`fluoronav.rendering._ct_numba`); each level's distance map is built on first use.
     """
 
     def __init__(
@@ -367,17 +384,63 @@ class CTRenderer:
         step_mm: float | None = None,
         backend: str = "auto",
         mipmap: bool = True,
+        skip_empty: bool = True,
     ) -> None:
-        self.device = resolve_device(device)
-        self.world_from_index = np.asarray(volume_mu.world_from_index, dtype=np.float64)
         data = np.ascontiguousarray(
             np.asarray(volume_mu.data), dtype=np.float32 if dtype == torch.float32 else np.float64
         )
-        self.mu = torch.from_numpy(data).to(self.device)
+        self._setup(
+            torch.from_numpy(data).to(resolve_device(device)),
+            np.asarray(volume_mu.world_from_index, dtype=np.float64),
+            step_mm=step_mm,
+            backend=backend,
+            mipmap=mipmap,
+            skip_empty=skip_empty,
+        )
+
+    def _setup(
+        self,
+        mu: torch.Tensor,
+        world_from_index: np.ndarray,
+        *,
+        step_mm: float | None,
+        backend: str,
+        mipmap: bool,
+        skip_empty: bool,
+    ) -> None:
+        self.mu = mu
+        self.device = mu.device
+        self.world_from_index = world_from_index
         self.step_mm = step_mm
         self.backend = backend
         self.mipmap = mipmap
-        self._pyramid = _Pyramid(self.mu, self.world_from_index)
+        self._pyramid = _Pyramid(self.mu, self.world_from_index, skip_empty=skip_empty)
+
+    @classmethod
+    def from_tensor(
+        cls,
+        mu: torch.Tensor,
+        world_from_index: np.ndarray,
+        *,
+        step_mm: float | None = None,
+        backend: str = "auto",
+        mipmap: bool = True,
+        skip_empty: bool = True,
+    ) -> CTRenderer:
+        """Renderer of a (nz, ny, nx) μ tensor (1/mm, rendered on its device) with its (4, 4)
+        ``world_from_index``; the tensor is used as it is, not copied."""
+        if mu.ndim != 3:
+            raise ValueError(f"mu must be (nz, ny, nx), got shape {tuple(mu.shape)}")
+        self = cls.__new__(cls)
+        self._setup(
+            mu.contiguous(),
+            np.asarray(world_from_index, np.float64),
+            step_mm=step_mm,
+            backend=backend,
+            mipmap=mipmap,
+            skip_empty=skip_empty,
+        )
+        return self
 
     @classmethod
     def from_hu(
@@ -403,6 +466,33 @@ class CTRenderer:
             T,
             rows,
             cols,
+            step_mm=self.step_mm,
+            backend=self.backend,
+            mipmap=self.mipmap,
+            out=out,
+        )
+
+    def render_poses(
+        self,
+        K: np.ndarray,
+        camera_from_world: np.ndarray,
+        rows: int,
+        cols: int,
+        *,
+        out: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Line integrals (V, rows, cols) for intrinsics ``K`` (V, 3, 3) and poses
+        ``camera_from_world`` (V, 4, 4) (either may be a single (3, 3) / (4, 4))."""
+        Ks = _as_f64(K, (3, 3), "K")
+        Ts = _as_f64(camera_from_world, (4, 4), "camera_from_world")
+        if Ks.shape[0] == 1 and Ts.shape[0] > 1:
+            Ks = np.repeat(Ks, Ts.shape[0], axis=0)
+        return _render(
+            self._pyramid,
+            Ks,
+            Ts,
+            int(rows),
+            int(cols),
             step_mm=self.step_mm,
             backend=self.backend,
             mipmap=self.mipmap,

@@ -1,0 +1,105 @@
+"""Navigation benchmarks (``fluoronav bench``): the pelvis on one view and the whole ``navigate``
+pipeline, each beside the same work with the registration settings of fluoronav 0.1.0.
+
+The problem is a simulated phantom case as ``fluoronav demo`` makes it (seed :data:`BENCH_SEED`,
+768² physics-simulated views, the shipped detector), without its verification views:
+
+- ``register_bone_view_s``: the pelvis registered to the case's first view with the default
+  :data:`~fluoronav.registration.bone_presets.PELVIS_PRESET`; ``register_bone_view_linearized_s``
+  with :data:`~fluoronav.registration.bone_presets.PELVIS_LINEARIZED_PRESET`; ``_reference``: the
+  CMA-ES ladder without empty-space skipping (0.1.0).
+- ``navigate_s``: :func:`~fluoronav.navigation.pipeline.navigate` from detection through the robot
+  command on the three views with the default settings; ``navigate_linearized_s`` with the
+  linearised pelvis preset; ``_reference``: the pelvis and femur of 0.1.0 (no skipping).
+
+Each ``_speedup`` is the reference over the figure. The errors of every run against the
+simulation's truth are reported too (``*_pelvis_mm``: the pelvis centre in the camera frame;
+``*_tip_mm``: the registered CM tip), so that a faster setting that got worse shows.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from fluoronav.geometry import se3
+from fluoronav.navigation.pipeline import navigate
+from fluoronav.navigation.result import NavigationConfig
+from fluoronav.navigation.simulated import SimulationConfig, run_simulated_navigation
+from fluoronav.registration.bone import BoneView, register_pelvis
+from fluoronav.registration.bone_presets import (
+    PELVIS_CMAES_PRESET,
+    PELVIS_LINEARIZED_PRESET,
+    PELVIS_PRESET,
+    femur_config,
+)
+
+__all__ = ["BENCH_SEED", "run"]
+
+log = logging.getLogger(__name__)
+
+#: the simulated case's seed
+BENCH_SEED = 3
+
+
+def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
+    """Seconds of one pelvis view and of one navigation, each with its 0.1.0 reference (one repeat:
+    a navigation takes minutes at the reference settings; ``quick`` changes nothing)."""
+    sim = run_simulated_navigation(SimulationConfig(seed=BENCH_SEED, device=device), until="case")
+    case = replace(sim.artifacts["case"], verification=None)
+    truth = sim.truth
+    out: dict[str, float] = {}
+
+    view = case.views[0]
+    true_camera_from_ct = np.asarray(next(iter(truth["carm_from_ct"].values())))
+    centre = np.asarray(case.volume.landmarks_world.get("pelvis_center", case.volume.center_world))
+    reference_pelvis = replace(PELVIS_CMAES_PRESET, skip_empty=False)
+    for key, preset in (
+        ("register_bone_view_s", PELVIS_PRESET),
+        ("register_bone_view_linearized_s", PELVIS_LINEARIZED_PRESET),
+        ("register_bone_view_s_reference", reference_pelvis),
+    ):
+        t0 = time.perf_counter()
+        res = register_pelvis(
+            [BoneView(np.asarray(view.image, np.float32), view.camera, None)],
+            case.volume,
+            initial_world_from_patient=np.eye(4),
+            config=replace(preset, device=device),
+            seed=BENCH_SEED,
+        )
+        out[key] = time.perf_counter() - t0
+        err = se3.apply(res.camera_from_bone[0], centre) - se3.apply(true_camera_from_ct, centre)
+        out[key.replace("_s", "_pelvis_mm", 1)] = float(np.linalg.norm(err))
+        log.info("%s: %.2f s", key, out[key])
+
+    reference_femur = replace(femur_config(views=len(case.views)), skip_empty=False)
+    for key, nav in (
+        ("navigate_s", NavigationConfig(device=device, seed=BENCH_SEED)),
+        (
+            "navigate_linearized_s",
+            NavigationConfig(device=device, seed=BENCH_SEED, pelvis=PELVIS_LINEARIZED_PRESET),
+        ),
+        (
+            "navigate_s_reference",
+            NavigationConfig(device=device, seed=BENCH_SEED, pelvis=reference_pelvis, femur=reference_femur),
+        ),
+    ):
+        t0 = time.perf_counter()
+        result = navigate(case, nav)
+        out[key] = time.perf_counter() - t0
+        if result.first is not None:
+            out[key.replace("_s", "_tip_mm", 1)] = float(
+                np.linalg.norm(np.asarray(result.first.tip_ct_mm) - np.asarray(truth["tip_ct_mm"]))
+            )
+        log.info("%s: %.1f s (%s)", key, out[key], result.status)
+    for key, ref in (
+        ("register_bone_view_s", "register_bone_view_s_reference"),
+        ("register_bone_view_linearized_s", "register_bone_view_s_reference"),
+        ("navigate_s", "navigate_s_reference"),
+        ("navigate_linearized_s", "navigate_s_reference"),
+    ):
+        out[f"{key}_speedup"] = out[ref] / out[key]
+    return out
