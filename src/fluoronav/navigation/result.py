@@ -21,7 +21,7 @@ from fluoronav.navigation.case import CaseView
 from fluoronav.navigation.planning import Plan
 from fluoronav.navigation.safety import SafetyConfig
 from fluoronav.registration.bone import BoneRegistrationResult
-from fluoronav.registration.bone_presets import PELVIS_PRESET, BoneRegistrationConfig
+from fluoronav.registration.bone_presets import PELVIS_LINEARIZED_PRESET, BoneRegistrationConfig
 from fluoronav.registration.centerline_init import MultiViewInitResult
 from fluoronav.registration.cm import CMRegistrationResult
 
@@ -49,7 +49,8 @@ class NavigationConfig:
             whose case gives landmarks but no mask.
         ik_tol_mm, ik_tol_deg: inverse-kinematics acceptance.
         safety: the thresholds of the registration checks.
-        pelvis: the per-view pelvis registration's levels (its ``device`` is replaced by ``device``).
+        pelvis: the per-view pelvis registration's levels (its ``device`` is replaced by ``device``):
+            CMA-ES to ~96 px, then the linearised refinement at ~128 and ~256 px.
         femur: the femur registration's levels; None: the multi-view preset
             (:func:`~fluoronav.registration.bone_presets.femur_config`).
     """
@@ -62,7 +63,7 @@ class NavigationConfig:
     ik_tol_mm: float = 1e-6
     ik_tol_deg: float = 1e-6
     safety: SafetyConfig = field(default_factory=SafetyConfig)
-    pelvis: BoneRegistrationConfig = PELVIS_PRESET
+    pelvis: BoneRegistrationConfig = PELVIS_LINEARIZED_PRESET
     femur: BoneRegistrationConfig | None = None
 
 
