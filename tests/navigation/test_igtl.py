@@ -35,6 +35,7 @@ from fluoronav.navigation.igtl import (
     parse_address,
     ras_from_lps_transform,
 )
+from fluoronav.navigation.simulated import SimulationConfig, run_simulated_navigation
 
 LOGGER = "fluoronav.navigation.igtl"
 D = np.diag([-1.0, -1.0, 1.0])  # ras_from_lps for points
@@ -379,9 +380,12 @@ def _refusing_case(tmp_path: Path, make_case: Callable[..., NavigationCase]) -> 
 
 
 def _navigate(case: Path, out: Path, igtl: str) -> int:
-    with pytest.raises(SystemExit) as exc:
+    """The command's exit status (``main`` returns on success and raises SystemExit otherwise)."""
+    try:
         main(["navigate", str(case), "--out", str(out), "--device", "cpu", "--igtl", igtl])
-    return int(exc.value.code or 0)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    return 0
 
 
 def test_navigate_command_streams_a_refusal_to_the_server(
@@ -411,3 +415,67 @@ def test_navigate_command_without_a_server_runs_as_without_the_option(
     nav = json.loads((tmp_path / "out" / "navigation.json").read_text(encoding="utf-8"))
     assert nav["status"] == "refused" and "check views_with_cm" in nav["reason"]
     assert len([r for r in caplog.records if r.name == LOGGER and r.levelno == logging.WARNING]) == 1
+
+
+# --------------------------------------------------------------------------------------------------
+# the whole pipeline on a small simulated phantom case
+
+
+@pytest.fixture(scope="module")
+def small_phantom_case(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 384² two-view phantom case as the demo writes it (physics-simulated images, landmarks and
+    CM masks given, so that the detector does not run), without verification views: about a minute
+    of navigation on two cores."""
+    case_dir = tmp_path_factory.mktemp("phantom") / "case"
+    run_simulated_navigation(
+        SimulationConfig(seed=21, image_size=384, orbit_deg=(20.0,), oracle_landmarks=True),
+        case_dir=case_dir,
+        until="case",
+    )
+    return case_dir / "navigation.json"
+
+
+def test_navigate_streams_the_registered_poses_of_a_phantom_case(
+    tmp_path: Path, server: _RecordingServer, small_phantom_case: Path
+) -> None:
+    """`fluoronav navigate CASE --igtl`: every TRANSFORM is navigation.json's pose in RAS, every
+    view's IMAGE arrives placed first by its initial and then by its registered camera, and the
+    status strings follow the stages to "navigation ok"."""
+    out = tmp_path / "out"
+    assert _navigate(small_phantom_case, out, f"127.0.0.1:{server.bound_port}") == 0
+    assert _wait_until(lambda: any(m.string == "navigation ok" for m in server.messages("STRING")))
+    nav = json.loads((out / "navigation.json").read_text(encoding="utf-8"))
+    assert nav["status"] == "ok"
+    ct_from_cm = np.asarray(nav["ct_from_cm"])
+    ct_from_femur = np.asarray(nav["ct_from_femur"])
+    plan = ct_from_femur @ np.asarray(nav["femur_from_cm_target"])
+    got = server.messages("TRANSFORM")
+    assert [m.device_name for m in got] == ["CMToCT", "FemurToCT", "PlanToCT"]
+    for m, T in zip(got, (ct_from_cm, ct_from_femur, plan), strict=True):
+        # LPS → RAS flips the x and y rows and columns: R_ras = D R D, t_ras = D t
+        expected = np.eye(4)
+        expected[:3, :3] = D @ T[:3, :3] @ D
+        expected[:3, 3] = D @ T[:3, 3]
+        np.testing.assert_allclose(m.matrix, expected, rtol=0.0, atol=1e-4)
+
+    case = json.loads(small_phantom_case.read_text(encoding="utf-8"))
+    names = [device_name(v["name"]) for v in case["views"]]
+    images = server.messages("IMAGE")
+    assert [m.device_name for m in images] == names + names
+    registered = {device_name(k): np.asarray(v) for k, v in nav["carm_from_ct"].items()}
+    for m in images[len(names) :]:
+        assert m.image.shape == (1, 384, 384)
+        # the registered camera: the source (camera origin) sits on the line through the detector
+        # point of the principal pixel along the camera's axis, at the detector distance
+        T = registered[m.device_name]
+        source_ras = D @ (-T[:3, :3].T @ T[:3, 3])
+        axis_ras = D @ (T[:3, :3].T @ np.array([0.0, 0.0, 1.0]))
+        ijk = m.ijk_to_world_matrix
+        normal = np.cross(ijk[:3, 0], ijk[:3, 1])
+        assert abs(abs(normal @ axis_ras) / np.linalg.norm(normal) - 1.0) < 1e-6  # detector ⟂ axis
+        assert (ijk[:3, 3] - source_ras) @ axis_ras > 500.0  # the detector lies beyond the patient
+
+    texts = [m.string for m in server.messages("STRING", "Status")]
+    for stage in ("detect", "pelvis", "femur", "cm", "plan", "robot"):
+        assert f"{stage}: started" in texts and f"{stage}: done" in texts
+    assert texts[-1] == "navigation ok"
