@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from fluoronav.registration.engine import Registration
+from fluoronav.registration.engine import Registration, optimizer_for
 from fluoronav.registration.levels import LevelConfig
 from fluoronav.registration.linearized import LinearizedRefiner
 from fluoronav.registration.similarity import PatchGradNCC
@@ -94,5 +94,7 @@ def test_engine_runs_a_linearized_level_after_cmaes() -> None:
     assert [lt.name for lt in res.trace.levels] == ["cma", "lin"]
     assert res.trace.levels[1].cost <= res.trace.levels[0].cost
     assert np.all(np.abs(res.params - TRUTH) < [0.01, 0.01, 0.05, 0.05])
+    with pytest.raises(ValueError, match="runs in Registration"):
+        optimizer_for(levels[1], seed=0)  # no silent CMA-ES in its place
     with pytest.raises(ValueError, match="unknown optimizer"):
         LevelConfig(sigma=(1.0,), optimizer="newton")  # type: ignore[arg-type]

@@ -74,7 +74,11 @@ def default_similarity(
 
 
 def optimizer_for(level: LevelConfig, *, seed: int) -> Optimizer:
-    """The optimiser a level asks for."""
+    """The derivative-free optimiser a level asks for ("linearized" levels need the rendered images,
+    not only their costs: :meth:`Registration.run` gives them a
+    :class:`~fluoronav.registration.linearized.LinearizedRefiner`)."""
+    if level.optimizer == "linearized":
+        raise ValueError(f"level {level.name!r} is 'linearized': it runs in Registration, not as Optimizer")
     if level.optimizer == "nelder-mead":
         return NelderMead(
             sigma=level.sigma,
