@@ -13,6 +13,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from fluoronav.anatomy.phantom import hip_phantom
+from fluoronav.anatomy.volume import Volume
 from fluoronav.geometry.carm import carm_camera, orbit_camera
 from fluoronav.registration.bone import (
     FEMUR_AUTHORS_PRESET,
@@ -25,6 +26,7 @@ from fluoronav.registration.bone import (
     BoneRegistrationResult,
     BoneView,
     bone_excess_mu,
+    bone_footprints,
     femur_config,
     pelvis_config,
     register_femur,
@@ -174,6 +176,52 @@ def test_relative_view_poses_from_per_view_estimates():
     p_world = world_from_patient[:3, :3] @ p_ct + world_from_patient[:3, 3]
     for v, c in zip(ct_views, cams, strict=True):
         np.testing.assert_allclose(v.camera.project(p_ct[None]), c.project(p_world[None]), atol=1e-9)
+
+
+def _ball_volume(radius_mm: float, spacing_mm: float = 1.0) -> Volume:
+    """A 1,000 HU ball labelled ``femur_left`` about the origin in soft tissue."""
+    n = 64
+    ax = (np.arange(n) - (n - 1) / 2) * spacing_mm
+    z, y, x = np.meshgrid(ax, ax, ax, indexing="ij")
+    ball = x**2 + y**2 + z**2 <= radius_mm**2
+    return Volume(
+        data=np.where(ball, 1000.0, 40.0).astype(np.float32),
+        spacing_mm=(spacing_mm,) * 3,
+        origin_mm=(float(ax[0]),) * 3,
+        labels=ball.astype(np.int16),
+        label_names={1: "femur_left"},
+    )
+
+
+def test_bone_footprints_are_the_projected_ball_widened_by_the_margin():
+    radius, margin = 20.0, 3.0
+    vol = _ball_volume(radius)
+    cam = carm_camera().downsample(8)
+    # the ball moved 15 mm along x and 10 mm along y of the CT: the footprint follows the pose
+    moved = np.eye(4)
+    moved[:3, 3] = [15.0, 10.0, 0.0]
+    pose = cam.camera_from_world @ moved
+    centre_cam = (pose @ _h(np.zeros(3)))[:3]
+    f = float(cam.K[0, 0])
+    c_px = cam.project((moved @ _h(np.zeros(3)))[None, :3])[0]
+    rows, cols = np.mgrid[0 : cam.rows, 0 : cam.cols]
+    r_px = np.hypot(cols - c_px[0], rows - c_px[1])
+    # a sphere's outline: the tangent cone, radius f·R/√(d² − R²) on the image (here |c| ≈ depth)
+    d = float(np.linalg.norm(centre_cam))
+    ball_px = f * radius / np.sqrt(d**2 - radius**2)
+    for m, extra in ((0.0, 0.0), (margin, margin * f / centre_cam[2])):
+        fp = bone_footprints([cam], vol, "femur_left", pose[None], margin_mm=m, center_bone_mm=np.zeros(3))
+        assert fp.shape == (1, cam.rows, cam.cols) and fp.dtype == bool
+        # within 1.5 px of the analytic outline (the 2 % threshold and the voxelised ball)
+        assert fp[0][r_px < ball_px + extra - 1.5].all()
+        assert not fp[0][r_px > ball_px + extra + 1.5].any()
+
+
+def test_per_view_pelvis_takes_one_start_per_view(volume):
+    cam = carm_camera().downsample(32)
+    views = [BoneView(np.zeros((cam.rows, cam.cols), np.float32), cam)] * 2
+    with pytest.raises(ValueError, match=r"\(4, 4\) or \(2, 4, 4\)"):
+        register_pelvis_per_view(views, volume, initial_world_from_patient=np.eye(4)[None].repeat(3, 0))
 
 
 def test_instrument_masks_become_view_masks():

@@ -399,3 +399,39 @@ def test_turn_about_chord_keeps_the_landmarks_and_composes() -> None:
         )
     np.testing.assert_allclose(turn_about_chord(turn_about_chord(W, CP, 50.0), CP, -50.0), W, atol=1e-12)
     np.testing.assert_allclose(mirror_about_chord(W, CP), turn_about_chord(W, CP, 180.0), atol=1e-12)
+
+
+def test_multiview_init_prediction_keeps_two_wrong_views_from_outvoting_a_right_one() -> None:
+    """Three views, A of two of them detected at one wrong 3D point 12 mm away (they agree with
+    each other, so the vote keeps them): with the CM's expected landmarks (1.5 mm off, as after a
+    move), those two are left out and A lies on the right view's ray nearest the prediction."""
+    from fluoronav.registration.centerline_init import centerline_initialize_multiview
+
+    kin = CMKinematics()
+    cams, cp, W, lms, cls = _multiview_scene(
+        np.random.default_rng(11), cp_max_deg=5.0, rot_max_deg=40.0, orbits_deg=(20.0, -15.0)
+    )
+    cpt = torch.as_tensor(cp)
+    ab = kin.landmarks_cm(cpt).numpy() @ W[:3, :3].T + W[:3, 3]
+    wrong_a = ab[0] + [6.0, 0.0, 10.0]
+    bad = lms.copy()
+    for k in (1, 2):
+        bad[k, 0] = cams[k].project(wrong_a[None])[0]
+    naive = centerline_initialize_multiview(cams, bad, cls, cp)
+    assert np.linalg.norm(naive.landmarks_world[0] - ab[0]) > 5.0  # the failure the prediction is for
+    expected = ab + np.array([[1.0, -0.8, 0.7], [0.9, 0.6, -0.9]])
+    res = centerline_initialize_multiview(cams, bad, cls, cp, landmark_prior_world=expected)
+    np.testing.assert_array_equal(res.landmark_inliers, [[True, True], [False, True], [False, True]])
+    # B triangulated from the three views; A on view 0's ray: off the truth only along that ray
+    np.testing.assert_allclose(res.landmarks_world[1], ab[1], atol=1e-6)
+    ray = cams[0].world_from_camera[:3, :3] @ np.linalg.solve(cams[0].K, np.r_[lms[0, 0], 1.0])
+    ray /= np.linalg.norm(ray)
+    off = res.landmarks_world[0] - ab[0]
+    assert np.linalg.norm(off - ray * (off @ ray)) < 1e-6 and abs(off @ ray) < 2.0
+    # the replaced A's pixels: the prediction's depth error along view 0's ray, seen at ±20°
+    np.testing.assert_allclose(res.landmarks_px[1:, 0], lms[1:, 0], atol=6.0)
+    # detections that agree with the prediction: the same result as without it
+    same = centerline_initialize_multiview(cams, lms, cls, cp, landmark_prior_world=expected)
+    np.testing.assert_allclose(
+        same.world_from_cm, centerline_initialize_multiview(cams, lms, cls, cp).world_from_cm
+    )

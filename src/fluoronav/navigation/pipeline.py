@@ -46,6 +46,7 @@ import torch
 
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.detection.instrument import instrument_masks
+from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.manipulator.robot import wrap_deg
@@ -67,7 +68,9 @@ from fluoronav.navigation.result import (
     ViewDetection,
 )
 from fluoronav.registration.bone import (
+    BoneRegistrationResult,
     BoneView,
+    bone_footprints,
     femur_config,
     register_femur,
     register_pelvis_per_view,
@@ -247,6 +250,8 @@ def _register(
     initial_control_points_deg: np.ndarray,
     recovery_ct_from_cm: Callable[[np.ndarray], np.ndarray] | None = None,
     motion_check: Callable[[np.ndarray, CMRegistrationResult], dict[str, float]] | None = None,
+    ct_from_femur_prior: np.ndarray | None = None,
+    expected_ct_from_cm: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Registration:
     """Detection, pelvis per view, femur, CM in one set of views.
 
@@ -254,6 +259,12 @@ def _register(
     registered ``ct_from_femur`` giving the CM start (verification: the plan on the new femur);
     ``recovery_ct_from_cm`` likewise, a second start tried where the first fails its checks;
     ``motion_check(ct_from_femur, cm)``: a further check of the CM against the robot's kinematics.
+    ``ct_from_femur_prior``: the femur of an earlier registration (verification: the first); the
+    femur starts there, and each view's pelvis is registered a second time with the femur's
+    footprint left out (``config.verify_pelvis_refine``).
+    ``expected_ct_from_cm``: a function of the registered ``ct_from_femur`` giving where the CM is
+    expected (verification: where the robot's kinematics put it); detected landmarks far from its
+    landmarks are left out of their triangulation.
     """
     with stage(f"{prefix}detect") as rec:
         stage.emit("views", prefix=prefix, views=tuple(views))
@@ -282,6 +293,10 @@ def _register(
             v.name: {"cost": float(r.cost), "converged": bool(r.converged), "reason": r.reason}
             for v, r in zip(views, pelvis, strict=True)
         }
+        if ct_from_femur_prior is not None and config.verify_pelvis_refine is not None:
+            pelvis = _pelvis_without_femur(
+                case, bone_views, pelvis, ct_from_femur_prior, config, seed=seed + 4, record=rec.diagnostics
+            )
     views_ct = views_in_ct_frame(bone_views, pelvis)
     cams_ct = [bv.camera for bv in views_ct]
     with stage(f"{prefix}femur") as rec:
@@ -292,6 +307,7 @@ def _register(
             world_from_patient=np.eye(4),
             config=replace(config.femur or femur_config(views=len(views_ct)), device=config.device),
             seed=seed + 3,
+            initial_world_from_femur=ct_from_femur_prior,
         )
         rec.diagnostics.update(cost=float(femur.cost), converged=bool(femur.converged), reason=femur.reason)
     with stage(f"{prefix}cm") as rec:
@@ -308,6 +324,14 @@ def _register(
                 initial_control_points_deg,
                 config=case.cm_config,
                 landmark_confidence=np.stack([detections[k].confidence for k in seen]),  # type: ignore[union-attr]
+                landmark_prior_world=None
+                if expected_ct_from_cm is None
+                else se3.apply(
+                    expected_ct_from_cm(femur.world_from_bone),
+                    CMKinematics(case.cm_config)
+                    .landmarks_cm(torch.as_tensor(initial_control_points_deg, dtype=torch.float64))
+                    .numpy(),
+                ),
             )
             for i, k in enumerate(seen):
                 lm_views[k] = init.landmarks_px[i]
@@ -346,6 +370,47 @@ def _register(
     )
     stage.emit("registration", prefix=prefix, registration=reg)
     return reg
+
+
+def _pelvis_without_femur(
+    case: NavigationCase,
+    bone_views: Sequence[BoneView],
+    pelvis: Sequence[BoneRegistrationResult],
+    ct_from_femur: np.ndarray,
+    config: NavigationConfig,
+    *,
+    seed: int,
+    record: dict[str, Any],
+) -> list[BoneRegistrationResult]:
+    """Each view's pelvis again, from its first result, with the femur's footprint (the femur at
+    ``ct_from_femur``, seen through that result's camera) left out of the similarity."""
+    assert config.verify_pelvis_refine is not None
+    cams = [r.camera_from_bone[0] for r in pelvis]
+    head = np.asarray(case.volume.landmarks_world[f"femoral_head_{case.side}"], np.float64)
+    femur = bone_footprints(
+        [v.camera for v in bone_views],
+        case.volume,
+        f"femur_{case.side}",
+        np.stack([c @ ct_from_femur for c in cams]),
+        margin_mm=config.femur_margin_mm,
+        center_bone_mm=head,
+    )
+    views = [
+        BoneView(v.image, v.camera, ~f if v.mask is None else (_as_bool(v.mask) & ~f))
+        for v, f in zip(bone_views, femur, strict=True)
+    ]
+    again = register_pelvis_per_view(
+        views,
+        case.volume,
+        initial_world_from_patient=np.stack([r.world_from_bone for r in pelvis]),
+        config=replace(config.verify_pelvis_refine, device=config.device),
+        seed=seed,
+    )
+    for name, f, r in zip(record["views"], femur, again, strict=True):
+        record["views"][name].update(
+            femur_left_out=float(f.mean()), cost_without_femur=float(r.cost), reason_without_femur=r.reason
+        )
+    return again
 
 
 def _stage_seed(seed: int, k: int) -> int:
@@ -488,6 +553,8 @@ def verify(
             initial_control_points_deg=np.asarray(result.first.cm.control_points_deg),
             recovery_ct_from_cm=lambda ct_from_femur: ct_from_femur @ predicted,
             motion_check=functools.partial(motion_consistency, case, first),
+            ct_from_femur_prior=first.ct_from_femur,
+            expected_ct_from_cm=lambda ct_from_femur: ct_from_femur @ predicted,
         )
         result.verification = ver
         with stage("correct") as rec:

@@ -21,7 +21,11 @@ from fluoronav.navigation.case import CaseView
 from fluoronav.navigation.planning import Plan
 from fluoronav.navigation.safety import SafetyConfig
 from fluoronav.registration.bone import BoneRegistrationResult
-from fluoronav.registration.bone_presets import PELVIS_LINEARIZED_PRESET, BoneRegistrationConfig
+from fluoronav.registration.bone_presets import (
+    PELVIS_LINEARIZED_PRESET,
+    PELVIS_REFINE_PRESET,
+    BoneRegistrationConfig,
+)
 from fluoronav.registration.centerline_init import MultiViewInitResult
 from fluoronav.registration.cm import CMRegistrationResult
 
@@ -53,6 +57,12 @@ class NavigationConfig:
             CMA-ES to ~96 px, then the linearised refinement at ~128 and ~256 px.
         femur: the femur registration's levels; None: the multi-view preset
             (:func:`~fluoronav.registration.bone_presets.femur_config`).
+        verify_pelvis_refine: the verification views' second pelvis registration, from the first,
+            with the femur (placed by the first registration) left out of the similarity; None:
+            none (in views centred on the hip the femoral head pulled the pelvis 1.5–2 mm along
+            the beam).
+        femur_margin_mm: how far around the femur's footprint that second registration leaves out,
+            in mm at the femur (the femur's and the camera's errors, and a leg that moved a little).
     """
 
     device: str = "cpu"
@@ -65,6 +75,8 @@ class NavigationConfig:
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     pelvis: BoneRegistrationConfig = PELVIS_LINEARIZED_PRESET
     femur: BoneRegistrationConfig | None = None
+    verify_pelvis_refine: BoneRegistrationConfig | None = PELVIS_REFINE_PRESET
+    femur_margin_mm: float = 3.0
 
 
 class NavigationRefused(FluoronavError):

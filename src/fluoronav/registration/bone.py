@@ -29,9 +29,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy import ndimage as ndi
 
 from fluoronav.anatomy.volume import Volume
 from fluoronav.device import resolve_device
+from fluoronav.geometry.camera import Camera
 from fluoronav.registration.bone_levels import (
     TISSUE_HU,
     BoneLevelData,
@@ -49,6 +51,7 @@ from fluoronav.registration.bone_presets import (
     PELVIS_CMAES_PRESET,
     PELVIS_LINEARIZED_PRESET,
     PELVIS_PRESET,
+    PELVIS_REFINE_PRESET,
     BoneLevel,
     BoneRegistrationConfig,
     femur_config,
@@ -71,12 +74,14 @@ __all__ = [
     "PELVIS_CMAES_PRESET",
     "PELVIS_LINEARIZED_PRESET",
     "PELVIS_PRESET",
+    "PELVIS_REFINE_PRESET",
     "TISSUE_HU",
     "BoneLevel",
     "BoneRegistrationConfig",
     "BoneRegistrationResult",
     "BoneView",
     "bone_excess_mu",
+    "bone_footprints",
     "femur_config",
     "pelvis_config",
     "register_femur",
@@ -228,13 +233,49 @@ def register_pelvis_per_view(
 ) -> list[BoneRegistrationResult]:
     """Register the pelvis to each view alone; ``result[k].camera_from_bone[0]`` is view k's
     ``camera_from_patient`` estimate (use :func:`relative_view_poses` for the view geometry). The
-    bone volume and its level renderers are built once for all views."""
+    bone volume and its level renderers are built once for all views.
+
+    ``initial_world_from_patient``: (4, 4) the start of every view, or (V, 4, 4) one per view.
+    """
     if not views:
         raise ValueError("no views given")
+    W0 = np.asarray(initial_world_from_patient, np.float64)
+    starts = np.broadcast_to(W0, (len(views), 4, 4)) if W0.ndim == 2 else W0
+    if starts.shape != (len(views), 4, 4):
+        raise ValueError(f"initial_world_from_patient must be (4, 4) or ({len(views)}, 4, 4), got {W0.shape}")
     pv = _PelvisVolume(volume, config or pelvis_config(), "pelvis_center")
-    return [
-        _register_pelvis([v], pv, initial_world_from_patient, seed + 101 * k) for k, v in enumerate(views)
-    ]
+    return [_register_pelvis([v], pv, starts[k], seed + 101 * k) for k, v in enumerate(views)]
+
+
+def bone_footprints(
+    cameras: Sequence[Camera],
+    volume: Volume,
+    label: str,
+    camera_from_bone: np.ndarray,
+    *,
+    margin_mm: float,
+    center_bone_mm: np.ndarray,
+    min_fraction: float = 0.02,
+) -> np.ndarray:
+    """Where a bone lies in each view, widened by a margin: (V, rows, cols) bool.
+
+    The label's excess-μ DRR at ``camera_from_bone`` (V, 4, 4) (the CT's copy of the bone placed by
+    that pose), thresholded at ``min_fraction`` of its maximum and dilated by ``margin_mm`` at the
+    depth of ``center_bone_mm`` (a point of the bone, in the CT's coordinates): the pixels another bone's
+    registration leaves out where this one overlaps it (a femoral head over the acetabulum pulled
+    the pelvis ~1.5 mm along the beam in views centred on the hip).
+    """
+    mu, world_from_index = bone_excess_mu(volume, [label])
+    renderer = CTRenderer.from_tensor(torch.from_numpy(mu), world_from_index)
+    T = np.asarray(camera_from_bone, np.float64).reshape(-1, 4, 4)
+    out = []
+    for cam, pose in zip(cameras, T, strict=True):
+        drr = renderer.render_poses(cam.K, pose, cam.rows, cam.cols)[0].numpy()
+        inside = drr > min_fraction * max(float(drr.max()), 1e-12)
+        depth = float((pose @ np.r_[center_bone_mm, 1.0])[2])
+        margin_px = margin_mm * float(cam.K[0, 0]) / max(depth, 1e-6)
+        out.append(ndi.distance_transform_edt(~inside) <= margin_px)
+    return np.stack(out) if out else np.zeros((0, 0, 0), bool)
 
 
 def relative_view_poses(per_view: Sequence[BoneRegistrationResult]) -> np.ndarray:

@@ -25,6 +25,7 @@ __all__ = [
     "PELVIS_CMAES_PRESET",
     "PELVIS_LINEARIZED_PRESET",
     "PELVIS_PRESET",
+    "PELVIS_REFINE_PRESET",
     "BoneLevel",
     "BoneRegistrationConfig",
     "femur_config",
@@ -109,9 +110,8 @@ PELVIS_PRESET = PELVIS_CMAES_PRESET
 #: the linearised refinement (:mod:`~fluoronav.registration.linearized`, ≤ 8 steps of 7 renders each)
 #: at ~128 px / 2 mm and ~256 px / 1 mm, where CMA-ES spent 720 renders. On the nine views of demo
 #: seeds 0, 3 and 9 the pelvis centre was 0.33 mm from the truth (mean; max 0.79) against 0.32 (max
-#: 0.95) with :data:`PELVIS_CMAES_PRESET`, at ~400 renders instead of 1,360. Opt-in
-#: (``NavigationConfig(pelvis=PELVIS_LINEARIZED_PRESET)``) until the registration and navigation
-#: studies have measured it.
+#: 0.95) with :data:`PELVIS_CMAES_PRESET`, at ~400 renders instead of 1,360. The navigation
+#: pipeline's pelvis (``NavigationConfig.pelvis``).
 PELVIS_LINEARIZED_PRESET = BoneRegistrationConfig(
     levels=(
         BoneLevel(
@@ -150,6 +150,10 @@ PELVIS_LINEARIZED_PRESET = BoneRegistrationConfig(
         ),
     )
 )
+
+#: The linearised levels of :data:`PELVIS_LINEARIZED_PRESET` alone: a refinement from a pose already
+#: within ~1 mm / 1° (the navigation's verification views, registered again with the femur left out).
+PELVIS_REFINE_PRESET = BoneRegistrationConfig(levels=PELVIS_LINEARIZED_PRESET.levels[1:])
 
 #: The authors' coarse σ (30° ×3, 50/50/100 mm) and population 50 at ~96 px, then σ / 10 at ~128 px;
 #: 2 mm voxels, no generation cap.

@@ -41,6 +41,10 @@ class MultiViewInitConfig:
             ``landmark_residual_fraction`` of view 0's width.
         landmark_residual_fraction: the default threshold as a fraction of the image width (2.5 %:
             19 px at 768², ~7.5 mm on the CIOS Fusion detector).
+        prior_gate_mm: with landmarks predicted in 3D (``landmark_prior_world``), a detection whose
+            pixel lies farther than this from the prediction's, in mm at the prediction's depth, is
+            left out (the verification's wrong detections of A lay ~11 mm off, its first moves
+            0.5–2.4 mm from the plan).
     """
 
     n_theta: int = 360
@@ -48,6 +52,7 @@ class MultiViewInitConfig:
     trim_fraction: float = 0.1
     max_landmark_residual_px: float | None = None
     landmark_residual_fraction: float = 0.025
+    prior_gate_mm: float = 6.0
 
 
 @dataclass(frozen=True)
@@ -89,6 +94,7 @@ def centerline_initialize_multiview(
     config: CMConfig | None = None,
     init_config: MultiViewInitConfig | None = None,
     landmark_confidence: np.ndarray | None = None,
+    landmark_prior_world: np.ndarray | None = None,
 ) -> MultiViewInitResult:
     """Initial CM pose from two or more views: triangulated landmarks, then a scan of the roll.
 
@@ -118,6 +124,12 @@ def centerline_initialize_multiview(
             more confident view, at the model's A–B distance from the other landmark on that view's
             ray; both intersections are scanned. Measured: a detection of A on B (confidence 0.28
             against 0.83 in the other view) turned the roll 49° (tip 3.4 mm) in a 20-trial study.
+        landmark_prior_world: (2, 3) where A and B are expected (the verification: the CM where the
+            robot's kinematics put it). Detections farther than ``prior_gate_mm`` from it are left
+            out before the vote, so two wrong views cannot outvote a right one; a landmark that one
+            view keeps lies on that view's ray nearest the prediction, one that none keeps at the
+            prediction. Measured: two of three verification views detected A ~45 px off and the
+            vote replaced the right one.
 
     Raises:
         InputError: malformed inputs; RegistrationFailure: coincident triangulated landmarks.
@@ -140,13 +152,19 @@ def centerline_initialize_multiview(
         if opt.max_landmark_residual_px is None
         else float(opt.max_landmark_residual_px)
     )
-    ab, inliers, residuals = triangulate_points_robust(cameras, lm, max_residual_px=thr)
+    if landmark_prior_world is None:
+        ab, inliers, residuals = triangulate_points_robust(cameras, lm, max_residual_px=thr)
+    else:
+        prior = checked_array(landmark_prior_world, (2, 3), "landmark_prior_world")
+        ab, inliers, residuals = _triangulate_near_prior(
+            cameras, lm, prior, gate_mm=opt.prior_gate_mm, max_residual_px=thr
+        )
     kin = CMKinematics(cfg)
     cp_t = torch.as_tensor(cp, dtype=dt)
     lm_cm = kin.landmarks_cm(cp_t)
     chord_mm = float((lm_cm[1] - lm_cm[0]).norm())
     candidates = [ab]
-    if conf is not None:
+    if conf is not None and landmark_prior_world is None:
         candidates, inliers = _two_view_landmark_candidates(
             cameras, lm, conf, ab, inliers, residuals, chord_mm=chord_mm, max_residual_px=thr
         )
@@ -184,6 +202,38 @@ def centerline_initialize_multiview(
         landmark_inliers=inliers.copy(),
         landmarks_px=consensus,
     )
+
+
+def _triangulate_near_prior(
+    cameras: Sequence[Camera], lm: np.ndarray, prior: np.ndarray, *, gate_mm: float, max_residual_px: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robust triangulation of the detections within ``gate_mm`` of the predicted points (see
+    :func:`centerline_initialize_multiview`): ``(points (2, 3), inliers (V, 2), residuals_px (V, 2))``."""
+    V = len(cameras)
+    near = np.zeros((V, 2), dtype=bool)
+    for k, cam in enumerate(cameras):
+        depth = (cam.camera_from_world[:3, :3] @ prior.T + cam.camera_from_world[:3, 3:4])[2]
+        off_mm = np.linalg.norm(lm[k] - cam.project(prior), axis=1) * depth / float(cam.K[0, 0])
+        near[k] = off_mm <= gate_mm
+    pts, inliers = prior.astype(np.float64).copy(), near.copy()
+    for n in range(2):
+        use = np.flatnonzero(near[:, n])
+        if len(use) >= 2:
+            X, inl, _ = triangulate_points_robust(
+                [cameras[int(v)] for v in use], lm[use][:, n : n + 1], max_residual_px=max_residual_px
+            )
+            pts[n], inliers[use, n] = X[0], inl[:, 0]
+        elif len(use) == 1:
+            cam = cameras[int(use[0])]
+            centre = cam.world_from_camera[:3, 3]
+            d = cam.world_from_camera[:3, :3] @ np.linalg.solve(cam.K, np.r_[lm[use[0], n], 1.0])
+            pts[n] = centre + d * float((prior[n] - centre) @ d / (d @ d))
+        if len(use) < V:
+            logger.info(
+                "landmark %s: %d of %d views within %.1f mm of the prediction", "AB"[n], len(use), V, gate_mm
+            )
+    residuals = np.stack([np.linalg.norm(cam.project(pts) - lm[k], axis=1) for k, cam in enumerate(cameras)])
+    return pts, inliers, residuals
 
 
 def _roll_scan(
