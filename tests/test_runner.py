@@ -68,6 +68,21 @@ def test_dask_local_cluster_gives_the_same_results_as_in_process(tmp_path: Path)
     assert {r["id"]: r["value"] for r in local} == {r["id"]: r["value"] for r in dask}
 
 
+def _numba_threads_task(tid: int, seed: int) -> dict:
+    import numba
+
+    return {"id": tid, "threads": int(numba.get_num_threads())}
+
+
+def test_local_workers_share_the_cores_between_their_numba_threads(tmp_path: Path) -> None:
+    import os
+
+    before = os.environ.get("NUMBA_NUM_THREADS")
+    rows = run_tasks(_numba_threads_task, 2, 3, JsonlLog(tmp_path / "t.jsonl"), workers=2)
+    assert {r["threads"] for r in rows} == {max(1, (os.cpu_count() or 1) // 2)}
+    assert os.environ.get("NUMBA_NUM_THREADS") == before
+
+
 def test_failed_rows_keep_a_one_line_reason_and_empty_non_finite_cells() -> None:
     import time
 

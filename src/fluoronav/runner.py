@@ -151,6 +151,22 @@ def _iter_local(
 
 
 @contextlib.contextmanager
+def _numba_threads(n: int) -> Iterator[None]:
+    """Worker processes started in this context use ``n`` numba threads (the cores over the workers):
+    a numba kernel of each worker taking every core made the OpenMP threads of the workers wait on
+    each other (the environment is read when numba is imported, so it is set for the spawn)."""
+    old = os.environ.get("NUMBA_NUM_THREADS")
+    os.environ["NUMBA_NUM_THREADS"] = str(n)
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("NUMBA_NUM_THREADS", None)
+        else:
+            os.environ["NUMBA_NUM_THREADS"] = old
+
+
+@contextlib.contextmanager
 def _client(scheduler: str | None, workers: int | None) -> Iterator[Any]:
     from dask.distributed import Client, LocalCluster  # heavy: dask, not needed in-process
 
@@ -163,6 +179,7 @@ def _client(scheduler: str | None, workers: int | None) -> Iterator[Any]:
         return
     n = workers if workers else max(1, min(2, os.cpu_count() or 1))
     with (
+        _numba_threads(max(1, (os.cpu_count() or 1) // n)),
         LocalCluster(
             n_workers=n,
             threads_per_worker=1,
