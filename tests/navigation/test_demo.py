@@ -86,6 +86,9 @@ def test_demo_case_navigates_in_a_separate_process(tmp_path: Path) -> None:
     v = nav["verification"]
     assert np.linalg.norm(np.subtract(v["tip_ct_mm"], truth["verification"]["tip_ct_mm"])) < 1.0
     assert len(v["joints_target_deg"]) == 6
+    # the verification views' pelvis again with the femur left out (the views are centred on the hip)
+    for view in nav["stages"]["verify_pelvis"]["views"].values():
+        assert 0.05 < view["femur_left_out"] < 0.8 and view["reason_without_femur"]
     # the Slicer files: the file of ct_from_x maps CT points to x (ITK's resampling direction)
     rng = np.random.default_rng(0)
     p_ct = rng.uniform(-100.0, 100.0, (5, 3))
