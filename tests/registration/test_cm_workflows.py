@@ -228,6 +228,25 @@ def test_multi_view_recovers_pose() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("linearized", [False, True])
+def test_multi_view_finishes_at_768(linearized: bool) -> None:
+    """The 2x finishing level on three 768² views: CMA-ES (the default) or the linearised one."""
+    case = simulate_cm_case(
+        "multi-view", seed=4, image_size=768, photons_per_pixel=None, rotation_deg=5.0, translation_mm=5.0
+    )
+    levels = default_cm_levels(linearized=linearized)
+    assert levels[-1].optimizer == ("linearized" if linearized else "cmaes") and levels[-1].downsample == 2
+    res = register_cm(
+        case.views,
+        initial_world_from_cm=case.initial_world_from_cm,
+        initial_control_points_deg=case.initial_control_points_deg,
+        config=CMRegistrationConfig(levels=levels),
+    )
+    (err,) = _errors(res, case)
+    assert err["tip_error_mm"] < 0.3, err
+
+
+@pytest.mark.slow
 def test_multi_cm_recovers_poses() -> None:
     case = simulate_cm_case(
         "multi-cm", seed=5, image_size=384, photons_per_pixel=None, rotation_deg=5.0, translation_mm=5.0
