@@ -538,8 +538,13 @@ def verify(
     assert plan is not None
     target = result.femur_from_cm_target
     first = result.first
-    # where the robot's kinematics say the CM went: a second start, and a check of the verification
+    # where the robot's kinematics say the CM went: a second start, the gate of the detected landmarks
+    # and a check of the verification
     predicted = predicted_femur_from_cm(case, first, case.verification.joints_deg)
+
+    def kinematic_ct_from_cm(ct_from_femur: np.ndarray) -> np.ndarray:
+        return ct_from_femur @ predicted
+
     kin = CMKinematics(case.cm_config)
     try:
         ver = _register(
@@ -551,10 +556,10 @@ def verify(
             seed=_stage_seed(cfg.seed, 1),
             initial_ct_from_cm=lambda ct_from_femur: ct_from_femur @ target,
             initial_control_points_deg=np.asarray(result.first.cm.control_points_deg),
-            recovery_ct_from_cm=lambda ct_from_femur: ct_from_femur @ predicted,
+            recovery_ct_from_cm=kinematic_ct_from_cm,
             motion_check=functools.partial(motion_consistency, case, first),
             ct_from_femur_prior=first.ct_from_femur,
-            expected_ct_from_cm=lambda ct_from_femur: ct_from_femur @ predicted,
+            expected_ct_from_cm=kinematic_ct_from_cm,
         )
         result.verification = ver
         with stage("correct") as rec:

@@ -212,7 +212,7 @@ def _triangulate_near_prior(
     V = len(cameras)
     near = np.zeros((V, 2), dtype=bool)
     for k, cam in enumerate(cameras):
-        depth = (cam.camera_from_world[:3, :3] @ prior.T + cam.camera_from_world[:3, 3:4])[2]
+        depth = cam.to_camera(prior)[:, 2]
         off_mm = np.linalg.norm(lm[k] - cam.project(prior), axis=1) * depth / float(cam.K[0, 0])
         near[k] = off_mm <= gate_mm
     pts, inliers = prior.astype(np.float64).copy(), near.copy()
@@ -225,9 +225,8 @@ def _triangulate_near_prior(
             pts[n], inliers[use, n] = X[0], inl[:, 0]
         elif len(use) == 1:
             cam = cameras[int(use[0])]
-            centre = cam.world_from_camera[:3, 3]
-            d = cam.world_from_camera[:3, :3] @ np.linalg.solve(cam.K, np.r_[lm[use[0], n], 1.0])
-            pts[n] = centre + d * float((prior[n] - centre) @ d / (d @ d))
+            d = cam.ray_directions_world(lm[use[0], n])
+            pts[n] = cam.source_world + d * float((prior[n] - cam.source_world) @ d)
         if len(use) < V:
             logger.info(
                 "landmark %s: %d of %d views within %.1f mm of the prediction", "AB"[n], len(use), V, gate_mm
