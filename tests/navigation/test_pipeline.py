@@ -16,6 +16,7 @@ import pytest
 
 from fluoronav.navigation.case import write_navigation_case
 from fluoronav.navigation.pipeline import NavigationConfig, _band_mask, navigate
+from fluoronav.navigation.result import navigation_cm_config
 
 
 def test_no_cm_in_the_views_refuses_at_detection_without_a_command(make_no_cm_case) -> None:
@@ -68,3 +69,12 @@ def test_navigate_command_bad_case_is_one_line_and_exit_2(tmp_path: Path, make_n
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and str(case) in lines[0] and "joints_deg" in lines[0]
     assert not (tmp_path / "o" / "navigation.json").exists()
+
+
+def test_navigation_cm_settings_by_number_of_views() -> None:
+    from fluoronav.registration.cm_config import default_cm_levels
+
+    nav = navigation_cm_config(3).levels_for("multi-view")
+    assert nav == default_cm_levels(popsize=25, linearized=True)
+    assert nav[0].popsize == 25 and nav[-1].optimizer == "linearized"
+    assert navigation_cm_config(1).levels_for("single-view") == default_cm_levels()

@@ -381,3 +381,33 @@ def test_femur_multi_view_joint(volume, simulator):
     ]
     res = register_femur(views_from_images(imgs), volume, side="left", world_from_patient=np.eye(4), seed=3)
     assert _errors(res.world_from_bone, world_from_femur, head)[1] < 1.0
+
+
+def test_bone_volume_and_level_renderers_are_built_once_per_ct(volume):
+    """The registrations of a navigation share each bone's excess-μ volume and level renderers."""
+    from fluoronav.registration.bone_levels import BoneLevelData, shared_level_renderers
+    from fluoronav.registration.bone_presets import PELVIS_LINEARIZED_PRESET
+    from fluoronav.registration.bone_views import BoneView
+
+    mu, w = bone_excess_mu(volume, ["pelvis"])
+    mu2, w2 = bone_excess_mu(volume, ["pelvis"])
+    assert mu2 is mu and np.array_equal(w2, w)
+    w2[0, 3] += 1.0  # the pose is the caller's copy
+    assert not np.array_equal(bone_excess_mu(volume, ["pelvis"])[1], w2)
+    cam = carm_camera(isocenter_world=volume.landmarks_world["pelvis_center"]).downsample(8)
+    view = BoneView(np.zeros((cam.rows, cam.cols), np.float32), cam, None)
+    shared = shared_level_renderers(volume, ["pelvis"], "cpu")
+    assert shared_level_renderers(volume, ["pelvis"], "cpu") is shared
+    assert shared_level_renderers(volume, ["femur_left"], "cpu") is not shared
+    levels = PELVIS_LINEARIZED_PRESET.levels
+    a = BoneLevelData(
+        [view], torch.from_numpy(mu), w, levels, "pelvis", torch.device("cpu"), renderers=shared
+    )
+    b = BoneLevelData(
+        [view], torch.from_numpy(mu), w, levels, "pelvis", torch.device("cpu"), renderers=shared
+    )
+    assert all(a.renderers[k] is b.renderers[k] for k in a.renderers)
+    # one renderer per voxel factor (levels of the same voxel size share theirs)
+    spacing = float(np.linalg.norm(w[:3, :3], axis=0).min())
+    factors = {max(1, int(np.floor(lv.voxel_mm / spacing + 1e-6))) for lv in levels}
+    assert len({id(r) for r in a.renderers.values()}) == len(shared) == len(factors)

@@ -230,7 +230,7 @@ def test_multi_view_recovers_pose() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("linearized", [False, True])
 def test_multi_view_finishes_at_768(linearized: bool) -> None:
-    """The 2x finishing level on three 768² views: CMA-ES (the default) or the linearised one."""
+    """The 2x finishing level on three 768² views: CMA-ES or the linearised one (the default)."""
     case = simulate_cm_case(
         "multi-view", seed=4, image_size=768, photons_per_pixel=None, rotation_deg=5.0, translation_mm=5.0
     )
@@ -244,6 +244,17 @@ def test_multi_view_finishes_at_768(linearized: bool) -> None:
     )
     (err,) = _errors(res, case)
     assert err["tip_error_mm"] < 0.3, err
+
+
+def test_default_levels_by_workflow() -> None:
+    """Several views of one CM pose finish with the linearised 2x level; one view and multiple-CM
+    (one camera, where it resolved depth worse) with CMA-ES; explicit levels are kept."""
+    cfg = CMRegistrationConfig()
+    assert cfg.levels is None
+    assert cfg.levels_for("multi-view") == default_cm_levels(linearized=True)
+    assert cfg.levels_for("single-view") == cfg.levels_for("multi-cm") == default_cm_levels()
+    assert [lv.optimizer for lv in cfg.levels_for("multi-view")] == ["cmaes", "linearized"]
+    assert CMRegistrationConfig(levels=FAST_LEVELS).levels_for("multi-view") == FAST_LEVELS
 
 
 @pytest.mark.slow

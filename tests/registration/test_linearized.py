@@ -98,3 +98,23 @@ def test_engine_runs_a_linearized_level_after_cmaes() -> None:
         optimizer_for(levels[1], seed=0)  # no silent CMA-ES in its place
     with pytest.raises(ValueError, match="unknown optimizer"):
         LevelConfig(sigma=(1.0,), optimizer="newton")  # type: ignore[arg-type]
+
+
+def test_refiner_counts_every_render_and_spends_one_on_a_rejected_step() -> None:
+    """``n_evals`` is the number of images rendered; a trial step is one render, and the Jacobian's
+    D renders are made only where a next step starts."""
+    render, cost_of = _parts()
+    rendered = []
+
+    def counting(params: torch.Tensor) -> torch.Tensor:
+        rendered.append(params.shape[0])
+        return render(params)
+
+    res = LinearizedRefiner((1.0, 1.0, 2.0, 2.0), tolx=1e-3, tolfun=1e-9, max_iters=20).minimize(
+        counting, cost_of, np.array([4.0, 0.5, 7.0, 0.0]), device=torch.device("cpu")
+    )
+    assert res.n_evals == sum(rendered)
+    trials = [n for n in rendered[1:] if n == 1]
+    jacobians = [n for n in rendered[1:] if n == 4]
+    assert rendered[0] == 5 and len(trials) + len(jacobians) == len(rendered) - 1
+    assert len(jacobians) <= len(trials)  # one Jacobian per accepted step that is not the last

@@ -243,3 +243,45 @@ def test_patch_grad_ncc_cuda_matches_cpu() -> None:
     gpu = PatchGradNCC(fixed.cuda(), patch_radius=6, stride=2)(moving.cuda())
     assert gpu.device.type == "cuda"
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("r", "stride", "sigma", "masked"),
+    [(10, 5, 1.0, True), (3, 1, 2.0, False), (2, 7, 0.0, True), (4, 2, 1.0, False)],
+)
+def test_numba_kernel_matches_torch_ops_at_registration_scale(
+    r: int, stride: int, sigma: float, masked: bool
+) -> None:
+    """The fused CPU kernel (the default on the CPU) against the torch ops: float32 images as the
+    renderers give them, overlapping and disjoint (stride > side) patches, with and without mask."""
+    rows, cols = 90, 104
+    fixed = torch.from_numpy(tube_image(rows, cols)).float()
+    moving = torch.stack(
+        [torch.from_numpy(tube_image(rows, cols, s, seed=1)).float() for s in (0.0, 0.7, 2.5, -4.0)]
+    )
+    mask = torch.from_numpy(np.random.default_rng(3).random((rows, cols)) > 0.3) if masked else None
+    kw = dict(patch_radius=r, stride=stride, sigma_px=sigma, mask=mask)
+    fast = PatchGradNCC(fixed, **kw)(moving)
+    ops = PatchGradNCC(fixed, backend="torch", **kw)(moving)
+    assert fast.dtype == torch.float32 and fast.shape == (4,)
+    # the kernel sums patches in float64, the torch ops in float32
+    torch.testing.assert_close(fast, ops, rtol=0, atol=1e-5)
+    ref = reference_patch_grad_ncc(
+        fixed.double().numpy(),
+        moving[2].double().numpy(),
+        r,
+        stride,
+        sigma,
+        None if mask is None else mask.numpy(),
+    )
+    assert abs(float(fast[2]) - ref) < 1e-5
+
+
+def test_torch_backend_is_used_where_a_gradient_is_needed() -> None:
+    fixed = torch.from_numpy(tube_image(40, 44))
+    moving = torch.from_numpy(tube_image(40, 44, 1.0))[None].requires_grad_(True)
+    cost = PatchGradNCC(fixed, patch_radius=4, stride=2)(moving)
+    cost.sum().backward()
+    assert moving.grad is not None and float(moving.grad.abs().sum()) > 0
+    with pytest.raises(ValueError, match="backend"):
+        PatchGradNCC(fixed, patch_radius=4, backend="cuda")  # type: ignore[arg-type]

@@ -7,10 +7,11 @@ The problem is a simulated phantom case as ``fluoronav demo`` makes it (seed :da
 - ``register_bone_view_s``: the pelvis registered to the case's first view with the navigation
   pipeline's preset (:data:`~fluoronav.registration.bone_presets.PELVIS_LINEARIZED_PRESET`);
   ``_reference``: the CMA-ES ladder (:data:`~fluoronav.registration.bone_presets.PELVIS_CMAES_PRESET`)
-  without empty-space skipping, the settings of 0.1.0.
+  without empty-space skipping and with the similarity's torch ops, the settings of 0.1.0.
 - ``navigate_s``: :func:`~fluoronav.navigation.pipeline.navigate` from detection through the robot
-  command on the three views with the default settings; ``_reference``: the pelvis and femur of
-  0.1.0 (CMA-ES ladders, no skipping).
+  command on the three views with the default settings; ``_reference``: the pelvis, femur and CM of
+  0.1.0 (CMA-ES ladders without skipping, the CM's CMA-ES levels
+  (:data:`~fluoronav.bench.registration.REFERENCE_CONFIG`), the similarity's torch ops).
 
 Each ``_speedup`` is the reference over the figure. The errors of every run against the
 simulation's truth are reported too (``*_pelvis_mm``: the pelvis centre in the camera frame;
@@ -25,12 +26,13 @@ from dataclasses import replace
 
 import numpy as np
 
+from fluoronav.bench.registration import REFERENCE_CONFIG
 from fluoronav.geometry import se3
 from fluoronav.navigation.pipeline import navigate
 from fluoronav.navigation.result import NavigationConfig
 from fluoronav.navigation.simulated import SimulationConfig, run_simulated_navigation
 from fluoronav.registration.bone import BoneView, register_pelvis
-from fluoronav.registration.bone_presets import PELVIS_CMAES_PRESET, femur_config
+from fluoronav.registration.bone_presets import PELVIS_CMAES_PRESET, BoneRegistrationConfig, femur_config
 
 __all__ = ["BENCH_SEED", "run"]
 
@@ -38,6 +40,14 @@ log = logging.getLogger(__name__)
 
 #: the simulated case's seed
 BENCH_SEED = 3
+
+
+def _reference(preset: BoneRegistrationConfig) -> BoneRegistrationConfig:
+    """A bone preset as fluoronav 0.1.0 ran it: no empty-space skipping, the similarity's torch ops."""
+    levels = tuple(
+        replace(lv, optimizer=lv.optimizer.with_(similarity_backend="torch")) for lv in preset.levels
+    )
+    return replace(preset, levels=levels, skip_empty=False)
 
 
 def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
@@ -51,7 +61,7 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
     view = case.views[0]
     true_camera_from_ct = np.asarray(next(iter(truth["carm_from_ct"].values())))
     centre = np.asarray(case.volume.landmarks_world.get("pelvis_center", case.volume.center_world))
-    reference_pelvis = replace(PELVIS_CMAES_PRESET, skip_empty=False)
+    reference_pelvis = _reference(PELVIS_CMAES_PRESET)
     for key, preset in (
         ("register_bone_view_s", NavigationConfig().pelvis),
         ("register_bone_view_s_reference", reference_pelvis),
@@ -69,12 +79,18 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
         out[key.replace("_s", "_pelvis_mm", 1)] = float(np.linalg.norm(err))
         log.info("%s: %.2f s", key, out[key])
 
-    reference_femur = replace(femur_config(views=len(case.views)), skip_empty=False)
+    reference_femur = _reference(femur_config(views=len(case.views)))
     for key, nav in (
         ("navigate_s", NavigationConfig(device=device, seed=BENCH_SEED)),
         (
             "navigate_s_reference",
-            NavigationConfig(device=device, seed=BENCH_SEED, pelvis=reference_pelvis, femur=reference_femur),
+            NavigationConfig(
+                device=device,
+                seed=BENCH_SEED,
+                pelvis=reference_pelvis,
+                femur=reference_femur,
+                cm=REFERENCE_CONFIG,
+            ),
         ),
     ):
         t0 = time.perf_counter()

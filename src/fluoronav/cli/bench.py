@@ -36,12 +36,12 @@ def register(app: typer.Typer) -> None:
             typer.echo(json.dumps(figures))
             return
         table = Table(title=f"fluoronav {__version__} benchmarks on {figures['machine']['device']}")
-        for col in ("figure", "value", "baseline", "speed-up"):
+        for col in ("figure", "value", "baseline or 0.1.0 reference", "speed-up"):
             table.add_column(col, justify="right" if col != "figure" else "left")
         for key, value in figures.items():
-            if key.endswith(("_baseline", "_speedup")) or not isinstance(value, int | float):
+            if key.endswith(("_baseline", "_reference", "_speedup")) or not isinstance(value, int | float):
                 continue
-            base = figures.get(f"{key}_baseline")
+            base = figures.get(f"{key}_baseline", figures.get(f"{key}_reference"))
             spd = figures.get(f"{key}_speedup")
             table.add_row(
                 key,

@@ -66,6 +66,7 @@ from fluoronav.navigation.result import (
     Registration,
     StageRecord,
     ViewDetection,
+    navigation_cm_config,
 )
 from fluoronav.registration.bone import (
     BoneRegistrationResult,
@@ -81,11 +82,7 @@ from fluoronav.registration.centerline_init import (
     centerline_initialize_multiview,
     multiview_start_poses,
 )
-from fluoronav.registration.cm import (
-    CMRegistrationConfig,
-    CMRegistrationResult,
-    CMView,
-)
+from fluoronav.registration.cm import CMRegistrationResult, CMView
 
 log = logging.getLogger(__name__)
 
@@ -352,7 +349,9 @@ def _register(
             rec,
             stage_name=f"{prefix}cm",
             initial_control_points_deg=initial_control_points_deg,
-            cm_config=CMRegistrationConfig(device=config.device, cm_config=case.cm_config),
+            cm_config=(config.cm or navigation_cm_config(len(views))).with_(
+                device=config.device, cm_config=case.cm_config
+            ),
             safety=config.safety,
             seed=seed + 5,
             motion_check=None

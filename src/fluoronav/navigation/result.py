@@ -28,6 +28,7 @@ from fluoronav.registration.bone_presets import (
 )
 from fluoronav.registration.centerline_init import MultiViewInitResult
 from fluoronav.registration.cm import CMRegistrationResult
+from fluoronav.registration.cm_config import CMRegistrationConfig, default_cm_levels
 
 __all__ = [
     "NavigationConfig",
@@ -36,6 +37,7 @@ __all__ = [
     "Registration",
     "StageRecord",
     "ViewDetection",
+    "navigation_cm_config",
 ]
 
 
@@ -63,6 +65,8 @@ class NavigationConfig:
             the beam).
         femur_margin_mm: how far around the femur's footprint that second registration leaves out,
             in mm at the femur (the femur's and the camera's errors, and a leg that moved a little).
+        cm: the CM registration's settings (its ``device`` and ``cm_config`` are replaced by the
+            pipeline's and the case's); None: :func:`navigation_cm_config` for the number of views.
     """
 
     device: str = "cpu"
@@ -77,6 +81,19 @@ class NavigationConfig:
     femur: BoneRegistrationConfig | None = None
     verify_pelvis_refine: BoneRegistrationConfig | None = PELVIS_REFINE_PRESET
     femur_margin_mm: float = 3.0
+    cm: CMRegistrationConfig | None = None
+
+
+def navigation_cm_config(n_views: int) -> CMRegistrationConfig:
+    """The pipeline's CM registration settings for ``n_views`` views: with several, a coarse level
+    of population 25 (its starts come from the centreline initialisation, not 10° / 10 mm off as in
+    the authors' protocol) finished by the linearised refinement
+    (:data:`~fluoronav.registration.cm_config.CM_FINE_LINEARIZED_LEVEL`). On four demo cases
+    (seeds 3, 12, 23, 41) the tip ended 0.075–0.31 mm from the truth with it and 0.085–0.25 mm with
+    population 50, in 3.7–5.4 s instead of 4.6–8.0 s. With one view, the workflow's default."""
+    if n_views > 1:
+        return CMRegistrationConfig(levels=default_cm_levels(popsize=25, linearized=True))
+    return CMRegistrationConfig()
 
 
 class NavigationRefused(FluoronavError):

@@ -40,6 +40,7 @@ from fluoronav.registration.bone_levels import (
     bone_excess_mu,
     level_similarity,
     render_level,
+    shared_level_renderers,
 )
 from fluoronav.registration.bone_presets import (
     FEMUR_AUTHORS_PRESET,
@@ -182,7 +183,7 @@ class _PelvisVolume:
         mu_np, self.w_index = bone_excess_mu(volume, ["pelvis"])
         self.mu = torch.from_numpy(mu_np).to(self.device)
         self.center = np.asarray(volume.landmarks_world.get(center_landmark, volume.center_world), np.float64)
-        self.renderers: dict[str, CTRenderer] = {}
+        self.renderers = shared_level_renderers(volume, ["pelvis"], self.device)
 
 
 def _register_pelvis(
@@ -345,6 +346,7 @@ def register_femur(
         "femur",
         device,
         skip_empty=config.skip_empty,
+        renderers=shared_level_renderers(volume, [f"femur_{side}"], device),
     )
     pelvis = BoneLevelData(
         views,
@@ -354,6 +356,7 @@ def register_femur(
         "femur",
         device,
         skip_empty=config.skip_empty,
+        renderers=shared_level_renderers(volume, ["pelvis"], device),
     )
     view0_from_patient = torch.as_tensor(views[0].camera.camera_from_world @ np.asarray(world_from_patient))[
         None

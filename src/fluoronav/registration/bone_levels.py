@@ -17,7 +17,9 @@ rotations were unobservable (measured: a 10° rotation about the camera x axis c
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -40,19 +42,51 @@ __all__ = [
     "box_downsample",
     "level_similarity",
     "render_level",
+    "shared_level_renderers",
 ]
 
 #: soft tissue HU subtracted from the bone attenuation (see the module docstring)
 TISSUE_HU = 40.0
 
 
+#: per CT (weakly held: dropped with the volume): each bone's excess-μ volume and level renderers,
+#: so that the registrations of a navigation (pelvis per view, femur, the verification's again)
+#: build them once; a volume is treated as unchanging once registered against
+_VOLUME_CACHE: weakref.WeakKeyDictionary[Volume, dict[Any, Any]] = weakref.WeakKeyDictionary()
+
+
+def _cache_of(volume: Volume) -> dict[Any, Any]:
+    try:
+        return _VOLUME_CACHE.setdefault(volume, {})
+    except TypeError:  # not weakly referenceable: no cache
+        return {}
+
+
+def shared_level_renderers(
+    volume: Volume, label_names: Sequence[str], device: torch.device | str
+) -> dict[Any, Any]:
+    """The dict of level renderers of :func:`bone_excess_mu` ``(volume, label_names)`` on ``device``
+    that every registration of those labels shares (:class:`BoneLevelData` ``renderers``)."""
+    return _cache_of(volume).setdefault(("renderers", tuple(label_names), str(device)), {})
+
+
 def bone_excess_mu(volume: Volume, label_names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     """Bone attenuation in excess of soft tissue on the labels, cropped: (μ (nz, ny, nx) float32 1/mm,
-    world_from_index (4, 4) of the crop).
+    world_from_index (4, 4) of the crop). Computed once per volume and labels (the arrays returned
+    are shared: do not modify them).
 
     Raises:
         ValueError: no labels or a missing / empty label.
     """
+    cache = _cache_of(volume)
+    key = ("excess_mu", tuple(label_names))
+    if key not in cache:
+        cache[key] = _bone_excess_mu(volume, label_names)
+    mu, world_from_index = cache[key]
+    return mu, world_from_index.copy()
+
+
+def _bone_excess_mu(volume: Volume, label_names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     if volume.labels is None:
         raise ValueError("bone registration needs a labelled CT")
     values = []
@@ -93,8 +127,9 @@ def box_downsample(mu: torch.Tensor, world_from_index: np.ndarray, f: int) -> tu
 class BoneLevelData:
     """Per level: working cameras, fixed images (filled, binned), view masks and the renderer of the
     volume pyramid level, keyed by the level's name (``<prefix>-<index>``); ``levels`` are the
-    optimiser levels with those names and their patch radii. ``renderers``: a dict of those
-    renderers from an earlier registration of the same volume and levels, reused and filled."""
+    optimiser levels with those names and their patch radii. ``renderers``: a dict of the volume's
+    renderers by (voxel factor, ``skip_empty``) from earlier registrations of the same ``mu``
+    (:func:`shared_level_renderers`), reused and filled."""
 
     def __init__(
         self,
@@ -106,7 +141,7 @@ class BoneLevelData:
         device: torch.device,
         *,
         skip_empty: bool = True,
-        renderers: dict[str, CTRenderer] | None = None,
+        renderers: dict[Any, CTRenderer] | None = None,
     ) -> None:
         sizes = {(v.camera.rows, v.camera.cols) for v in views}
         if len(sizes) != 1:
@@ -117,7 +152,8 @@ class BoneLevelData:
         self.fixed: dict[str, torch.Tensor] = {}
         # shared with the caller when given: registrations of the same bone on other views reuse
         # each level's volume and its empty-space map
-        self.renderers: dict[str, CTRenderer] = {} if renderers is None else renderers
+        shared: dict[Any, CTRenderer] = {} if renderers is None else renderers
+        self.renderers: dict[str, CTRenderer] = {}
         self.masks: dict[str, torch.Tensor | None] = {}
         masks = (
             None
@@ -154,11 +190,12 @@ class BoneLevelData:
             self.fixed[name] = area_downsample(images, f)
             self.masks[name] = None if masks is None else area_downsample(masks, f) >= 0.5
             vf = max(1, math.floor(lv.voxel_mm / spacing + 1e-6))
-            if name not in self.renderers:
+            if (vf, skip_empty) not in shared:
                 small, w_small = box_downsample(mu, world_from_index, vf)
-                self.renderers[name] = CTRenderer.from_tensor(
+                shared[vf, skip_empty] = CTRenderer.from_tensor(
                     small, w_small, mipmap=False, skip_empty=skip_empty
                 )
+            self.renderers[name] = shared[vf, skip_empty]
 
 
 def render_level(

@@ -39,12 +39,13 @@ CM_FINE_LEVEL = LevelConfig(
 )
 
 #: :data:`CM_FINE_LEVEL` with the linearised refinement (:mod:`~fluoronav.registration.linearized`,
-#: ≤ 8 steps of 12 renders) instead of CMA-ES. Opt-in (``default_cm_levels(linearized=True)``), for
-#: several views only. Three noise-free 768² views: 10.3 s instead of 24.8 s, the tip 0.014 mm from
-#: the truth against 0.009 mm. The first views of four demo cases (true cameras, after the multi-start
-#: screening): the finish took 8.3–10.9 s instead of 24.6–28.1 s, the tip 0.02–0.06 mm against
-#: 0.01–0.04 mm. One view: the tip 3.6 mm off in depth against 1.4 mm (the depth changes the cost too
-#: little for its stopping rule). The registration and navigation studies have not measured it.
+#: ≤ 8 steps of 12 renders) instead of CMA-ES: the default of the multi-view workflow
+#: (:meth:`CMRegistrationConfig.levels_for`). Three noise-free 768² views: 10.3 s instead of 24.8 s,
+#: the tip 0.014 mm from the truth against 0.009 mm. The first views of four demo cases (true
+#: cameras, after the multi-start screening): the finish took 8.3–10.9 s instead of 24.6–28.1 s, the
+#: tip 0.02–0.06 mm against 0.01–0.04 mm. Not for one view (nor multiple-CM, one camera): there the
+#: tip ended 3.6 mm off in depth against 1.4 mm (the depth changes the cost too little for its
+#: stopping rule).
 CM_FINE_LINEARIZED_LEVEL = CM_FINE_LEVEL.with_(optimizer="linearized", max_iters=8, tolfun=1e-5)
 
 
@@ -66,6 +67,7 @@ class CMRegistrationConfig:
         levels: registration levels; ``downsample`` is counted in full-detector pixels (4 = the
             authors' 4× of a 1536² image), whatever the binning of the input images; a level finer
             than the coarsest image binning is skipped (e.g. the 2× level for 384² CIOS images).
+            None: the workflow's default (:meth:`levels_for`).
         roi_size_full_px: side of the square crop around the landmarks, full-detector pixels.
         landmark_sigma_full_px: landmark prior σ in full-detector pixels (authors: 100); None
             disables the prior.
@@ -107,10 +109,13 @@ class CMRegistrationConfig:
             as fractions of ``shaft_length_mm`` behind A.
         response_profiles: number of profiles fitted along that stretch.
         chunk_size: render at most this many candidates per call (None: the whole population).
+        row_spans: the CM renderer evaluates each row of a link's box only across the link's
+            projected footprint (:class:`~fluoronav.rendering.cm.CMRenderer`; False: the whole box,
+            as fluoronav 0.1.0; the same images).
         device: torch device of rendering and similarity.
     """
 
-    levels: tuple[LevelConfig, ...] = field(default_factory=default_cm_levels)
+    levels: tuple[LevelConfig, ...] | None = None
     roi_size_full_px: int = 500
     landmark_sigma_full_px: float | None = 100.0
     control_point_sigma_deg: float | None = 0.25
@@ -126,7 +131,16 @@ class CMRegistrationConfig:
     response_shaft_span: tuple[float, float] = (0.1, 0.9)
     response_profiles: int = 40
     chunk_size: int | None = None
+    row_spans: bool = True
     device: str = "cpu"
+
+    def levels_for(self, workflow: str) -> tuple[LevelConfig, ...]:
+        """The levels of a workflow ("single-view", "multi-view", "multi-cm"): ``levels``, or by
+        default :func:`default_cm_levels`, finished by the linearised refinement in the multi-view
+        workflow (:data:`CM_FINE_LINEARIZED_LEVEL`)."""
+        if self.levels is not None:
+            return self.levels
+        return default_cm_levels(linearized=workflow == "multi-view")
 
     def with_(self, **changes: Any) -> CMRegistrationConfig:
         """Copy with changes."""

@@ -68,7 +68,8 @@ def register_cm_multistart(
             config=cfg,
             seed=seed,
         )
-    screen = cfg.with_(levels=(cfg.levels[0].with_(max_iters=screen_iterations, restarts=0),))
+    first = cfg.levels_for("multi-view" if len(views) > 1 and base_from_cm is None else "single-view")[0]
+    screen = cfg.with_(levels=(first.with_(max_iters=screen_iterations, restarts=0),))
     screened = [
         register_cm(
             views,

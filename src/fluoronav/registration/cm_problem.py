@@ -137,7 +137,10 @@ class CMProblem:
             self.centers.append(landmark_center(v, proj.mean(axis=0)))
 
         self.renderer = CMRenderer(
-            with_shaft(cfg.cm_config, cfg.shaft_length_mm), mu_per_mm=cfg.cm_mu_per_mm, device=device
+            with_shaft(cfg.cm_config, cfg.shaft_length_mm),
+            mu_per_mm=cfg.cm_mu_per_mm,
+            device=device,
+            row_spans=cfg.row_spans,
         )
         # per-view response of the image to the DRR (linear until measured)
         self.gain = torch.ones(len(views), dtype=torch.float32, device=device)
@@ -168,13 +171,12 @@ class CMProblem:
 
         # a level finer than an image's binning cannot be formed from it: drop it
         coarsest = max(v.image_binning for v in views)
-        self.levels = [lv for lv in cfg.levels if lv.downsample % coarsest == 0]
+        levels = cfg.levels_for(self.workflow)
+        self.levels = [lv for lv in levels if lv.downsample % coarsest == 0]
         if not self.levels:
             raise ValueError(f"no level is compatible with images binned {coarsest}x")
-        if len(self.levels) < len(cfg.levels):
-            logger.info(
-                "dropped %d level(s) finer than the images' binning", len(cfg.levels) - len(self.levels)
-            )
+        if len(self.levels) < len(levels):
+            logger.info("dropped %d level(s) finer than the images' binning", len(levels) - len(self.levels))
         self.pose_box = pose_box(
             self.param.initial(),
             cfg.cm_config.n_control_points,

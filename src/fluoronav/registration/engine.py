@@ -69,7 +69,12 @@ def default_similarity(
 ) -> Callable[[torch.Tensor], torch.Tensor]:
     """Patch gradient NCC with the level's radius, stride and smoothing."""
     return PatchGradNCC(
-        fixed, patch_radius=level.radius, stride=level.stride, sigma_px=level.smooth_sigma_px, mask=mask
+        fixed,
+        patch_radius=level.radius,
+        stride=level.stride,
+        sigma_px=level.smooth_sigma_px,
+        mask=mask,
+        backend=level.similarity_backend,
     )
 
 

@@ -59,6 +59,9 @@ class LevelConfig:
             region, as multiples of ``sigma``.
         restarts: IPOP restarts when CMA-ES does not converge.
         bounds: optional absolute (lower, upper) parameter bounds.
+        similarity_backend: the patch gradient NCC's backend (:class:`PatchGradNCC`): ``"auto"``
+            (the fused numba kernel on the CPU) or ``"torch"`` (the torch ops of fluoronav 0.1.0,
+            the benchmarks' reference).
         name: label for traces.
     """
 
@@ -78,6 +81,7 @@ class LevelConfig:
     trust_sigma: float = 2.0
     restarts: int = 0
     bounds: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+    similarity_backend: Literal["auto", "torch"] = "auto"
     name: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:

@@ -190,18 +190,41 @@ class LinearizedRefiner:
                 moving = render_images(params)
                 c = float(cost_of(moving[:1], params[:1])[0])
             n_evals += D + 1
-            I0 = moving[0]
-            J = (moving[1:] - I0) / torch.as_tensor(h, dtype=moving.dtype, device=moving.device).reshape(
+            return c, moving[0], jacobian(moving[0], moving[1:])
+
+        def jacobian(I0: torch.Tensor, shifted: torch.Tensor) -> torch.Tensor:
+            return (shifted - I0) / torch.as_tensor(h, dtype=shifted.dtype, device=shifted.device).reshape(
                 D, *([1] * I0.dim())
             )
-            return c, I0, J
+
+        def trial(at: np.ndarray) -> tuple[float, torch.Tensor]:
+            nonlocal n_evals
+            params = torch.as_tensor(at[None], dtype=torch.float64, device=device)
+            with torch.no_grad():
+                moving = render_images(params)
+                c = float(cost_of(moving, params)[0])
+            n_evals += 1
+            return c, moving[0]
+
+        def columns(at: np.ndarray, I_at: torch.Tensor) -> torch.Tensor:
+            # the Jacobian's D renders only where the next step starts: a rejected trial costs one
+            # render, the last accepted one none
+            nonlocal n_evals
+            X = np.repeat(at[None], D, axis=0) + np.diag(h)
+            with torch.no_grad():
+                shifted = render_images(torch.as_tensor(X, dtype=torch.float64, device=device))
+            n_evals += D
+            return jacobian(I_at, shifted)
 
         f, I0, J = linearise(x)
         if not np.isfinite(f):
             return OptimizationResult(x, f, n_evals, 0, False, "non-finite cost", history, 1)
+        J_at: torch.Tensor | None = J
         while steps < self.max_iters:
+            if J_at is None:  # made lazily: a step that ends the refinement needs none
+                J_at = columns(x, I0)
             xt = torch.as_tensor(x, dtype=torch.float64, device=device)
-            delta = self._solve(I0, J, xt, cost_of, radius)
+            delta = self._solve(I0, J_at, xt, cost_of, radius)
             if lo is not None and hi is not None:
                 delta = np.clip(x + delta, lo, hi) - x
             if np.all(np.abs(delta) < self.tolx):
@@ -212,10 +235,10 @@ class LinearizedRefiner:
                     break
                 radius = 0.5 * radius
                 continue
-            f_new, I_new, J_new = linearise(x + delta)
+            f_new, I_new = trial(x + delta)
             if np.isfinite(f_new) and f_new < f:
                 gain = f - f_new
-                x, f, I0, J = x + delta, f_new, I_new, J_new
+                x, f, I0, J_at = x + delta, f_new, I_new, None
                 steps += 1
                 if gain < self.tolfun:
                     stop, converged = "tolfun", True

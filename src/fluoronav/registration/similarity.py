@@ -32,7 +32,9 @@ Conventions (fixed here, tested against an explicit-loop reference in the tests)
 from __future__ import annotations
 
 import math
+from typing import Any, Literal
 
+import numpy as np
 import torch
 from torch.nn import functional as tnf
 
@@ -181,6 +183,9 @@ class PatchGradNCC(torch.nn.Module):
         eps_rel: flat-patch threshold relative to the largest fixed patch variance.
         flat_rel: a moving patch with centred variance ≤ ``flat_rel`` × its energy Σg² counts as flat
             (NCC 0); None: 1e-5 for float32, 1e-12 for float64 sums (their rounding level).
+        backend: ``"auto"``: on the CPU, for moving images that need no gradient, the fused numba
+            kernel (:mod:`~fluoronav.registration._similarity_numba`: the same cost with float64 patch
+            sums, ~5× faster on two cores), else torch; ``"torch"``: always torch (autograd, CUDA).
 
     ``forward(moving (B, V, H, W) or (B, H, W)) -> (B, V) or (B,)`` cost, dtype of ``moving``.
     """
@@ -204,8 +209,12 @@ class PatchGradNCC(torch.nn.Module):
         accum_dtype: torch.dtype | None = None,
         eps_rel: float = _EPS_REL,
         flat_rel: float | None = None,
+        backend: Literal["auto", "torch"] = "auto",
     ) -> None:
         super().__init__()
+        if backend not in ("auto", "torch"):
+            raise ValueError(f"backend must be 'auto' or 'torch', got {backend!r}")
+        self.backend = backend
         self.has_views = fixed.dim() == 3
         f = fixed if self.has_views else fixed.unsqueeze(0)
         if f.dim() != 3:
@@ -241,6 +250,9 @@ class PatchGradNCC(torch.nn.Module):
         self.register_buffer("std_f", var_f.sqrt().to(acc))  # sqrt of the centred sum of squares
         self.register_buffer("weight", weight)  # (V, 2, Pr, Pc) float64
         self.register_buffer("weight_total", weight.sum(dim=(1, 2, 3)))  # (V,)
+        # the numba kernel's inputs (float64 fixed statistics), made on its first use
+        self._sum_f64, self._std_f64 = sf, var_f.sqrt()
+        self._kernel_args: tuple[np.ndarray, ...] | None = None
 
     @property
     def n_patches(self) -> tuple[int, int]:
@@ -266,12 +278,36 @@ class PatchGradNCC(torch.nn.Module):
             raise ValueError(
                 f"moving shape {tuple(moving.shape)} does not match fixed {tuple(self.mask.shape)}"
             )
+        needs_grad = mv.requires_grad and torch.is_grad_enabled()
+        if self.backend == "auto" and mv.device.type == "cpu" and not needs_grad:
+            return self._forward_numba(mv, moving)
         r = self.patch_ncc(mv)
         wsum = (self.weight * (1.0 - r.double())).sum(dim=(2, 3, 4))
         total = self.weight_total
         cost = torch.where(total > 0, wsum / total.clamp_min(1e-300), torch.ones_like(wsum))
         cost = _nan_if_nonfinite(cost, mv).to(moving.dtype)
         return cost if self.has_views else cost[:, 0]
+
+    def _forward_numba(self, mv: torch.Tensor, moving: torch.Tensor) -> torch.Tensor:
+        from fluoronav.registration._similarity_numba import patch_grad_ncc_cost
+
+        kernel: Any = patch_grad_ncc_cost  # a numba dispatcher
+        x = mv.detach().contiguous().numpy()
+        if self._kernel_args is None or self._kernel_args[0].dtype != x.dtype:
+            g = _gaussian_kernel1d(self.sigma_px) if self.sigma_px > 0 else [1.0]
+            self._kernel_args = (
+                self.mask.cpu().numpy().astype(x.dtype),
+                self.grad_fixed.cpu().numpy().astype(x.dtype),
+                self._sum_f64.cpu().numpy(),
+                self._std_f64.cpu().numpy(),
+                self.n[:, 0].double().cpu().numpy(),
+                self.weight.double().cpu().numpy(),
+                self.weight_total.double().cpu().numpy(),
+                np.asarray(g, dtype=x.dtype),
+            )
+        cost = kernel(x, *self._kernel_args, self.patch_radius, self.stride, self.eps_rel, self.flat_rel)
+        c = torch.from_numpy(cost).to(moving.dtype)
+        return c if self.has_views else c[:, 0]
 
 
 def _global_ncc(f: torch.Tensor, m: torch.Tensor, w: torch.Tensor, eps_rel: float) -> torch.Tensor:

@@ -113,11 +113,36 @@ def chord_link(  # pragma: no cover - jitted
     return total if total > 0.0 else 0.0
 
 
+#: the 12 edges of a link's box, as pairs of corner indices (corners differ in one of the x, y, z bits)
+_BOX_EDGES = np.array([(a, a | bit) for bit in (1, 2, 4) for a in range(8) if not a & bit], dtype=np.int64)
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _row_span(uv: np.ndarray, v: float, edges: np.ndarray) -> tuple[float, float]:  # pragma: no cover
+    """Columns [lo, hi] where the row at ``v`` meets the convex hull of the projected corners ``uv``
+    (8, 2): the hull's outline is made of projected box edges, and the others lie inside it, so the
+    span is that of the row's crossings of all 12 (empty as lo > hi)."""
+    lo, hi = _BIG, -_BIG
+    for e in range(edges.shape[0]):
+        ua, va = uv[edges[e, 0], 0], uv[edges[e, 0], 1]
+        ub, vb = uv[edges[e, 1], 0], uv[edges[e, 1], 1]
+        if (va - v) * (vb - v) > 0.0:
+            continue
+        if va == vb:
+            lo, hi = min(lo, ua, ub), max(hi, ua, ub)
+        else:
+            u = ua + (v - va) * (ub - ua) / (vb - va)
+            lo, hi = min(lo, u), max(hi, u)
+    return lo, hi
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def render_links(  # pragma: no cover - jitted
     out: np.ndarray,
     link_from_camera: np.ndarray,
     bbox: np.ndarray,
+    corners_uv: np.ndarray,
+    clip: np.ndarray,
     Kinv: np.ndarray,
     n_views: int,
     z_range: np.ndarray,
@@ -134,12 +159,16 @@ def render_links(  # pragma: no cover - jitted
         link_from_camera: (BV, L, 4, 4) float64 rigid transforms.
         bbox: (BV, L, 4) int64 pixel boxes ``(row0, row1, col0, col1)``, half-open; empty when
             row1 ≤ row0.
+        corners_uv: (BV, L, 8, 2) float64 projected corners of each link's box.
+        clip: (BV, L) bool: evaluate each row of the box only across the corners' hull (False: the
+            whole box row, e.g. for a link reaching behind the source).
         Kinv: (V, 3, 3) float64 inverse intrinsics; image ``i`` uses view ``i % n_views``.
         z_range: (L, 2) axial slab of each link (already clipped to the rendered region).
         notches: (L, 2, 3) half-notches ``(z_lo, z_hi, side)`` per link.
     """
     BV = out.shape[0]
     L = z_range.shape[0]
+    edges = _BOX_EDGES
     for i in prange(BV):
         Ki = Kinv[i % n_views]
         img = out[i]
@@ -149,17 +178,30 @@ def render_links(  # pragma: no cover - jitted
                 continue
             T = link_from_camera[i, k]
             ox, oy, oz = T[0, 3], T[1, 3], T[2, 3]
+            # pixel (u, v, 1) → ray direction in the link frame in one 3×3 product (the camera-frame
+            # direction, for the chord's length in mm, only where the ray hits)
+            M = np.empty((3, 3))
+            for a in range(3):
+                for b in range(3):
+                    M[a, b] = T[a, 0] * Ki[0, b] + T[a, 1] * Ki[1, b] + T[a, 2] * Ki[2, b]
             nk = notches[k]
             z0, z1 = z_range[k, 0], z_range[k, 1]
             for r in range(r0, r1):
-                for c in range(c0, c1):
-                    # camera-frame direction through pixel (u=c, v=r), then rotated into the link frame
-                    ex = Ki[0, 0] * c + Ki[0, 1] * r + Ki[0, 2]
-                    ey = Ki[1, 0] * c + Ki[1, 1] * r + Ki[1, 2]
-                    ez = Ki[2, 0] * c + Ki[2, 1] * r + Ki[2, 2]
-                    dx = T[0, 0] * ex + T[0, 1] * ey + T[0, 2] * ez
-                    dy = T[1, 0] * ex + T[1, 1] * ey + T[1, 2] * ez
-                    dz = T[2, 0] * ex + T[2, 1] * ey + T[2, 2] * ez
+                ca, cb = c0, c1
+                if clip[i, k]:
+                    lo, hi = _row_span(corners_uv[i, k], float(r), edges)
+                    if lo > hi:
+                        continue
+                    ca = max(c0, int(math.floor(lo)))  # noqa: RUF046 (numba)
+                    cb = min(c1, int(math.ceil(hi)) + 1)  # noqa: RUF046
+                rx = M[0, 1] * r + M[0, 2]
+                ry = M[1, 1] * r + M[1, 2]
+                rz = M[2, 1] * r + M[2, 2]
+                for c in range(ca, cb):
+                    dx = M[0, 0] * c + rx
+                    dy = M[1, 0] * c + ry
+                    dz = M[2, 0] * c + rz
                     t_len = chord_link(ox, oy, oz, dx, dy, dz, z0, z1, nk, r_in, r_out, cut)
                     if t_len > 0.0:
-                        img[r, c] += scale * t_len * math.sqrt(ex * ex + ey * ey + ez * ez)
+                        # the rotation keeps lengths: |d| is the camera-frame direction's length
+                        img[r, c] += scale * t_len * math.sqrt(dx * dx + dy * dy + dz * dz)

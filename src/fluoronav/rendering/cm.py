@@ -123,6 +123,9 @@ class CMRenderer:
         torch_dtype: compute dtype of the torch backend (float64 by default; float32 is faster on
             GPUs and agrees to ~2e-3 mm near grazing rays).
         max_tile_elements: memory bound of the torch backend (groups × tile pixels per chunk).
+        row_spans: numba backend: in each row of a link's box, only the columns across the box's
+            projected footprint (the hull of its 8 projected corners; the same images, ~1.4×
+            faster for an oblique CM); False: every pixel of the box (fluoronav 0.1.0).
     """
 
     def __init__(
@@ -134,6 +137,7 @@ class CMRenderer:
         backend: Backend = "auto",
         torch_dtype: torch.dtype = torch.float64,
         max_tile_elements: int = 1 << 22,
+        row_spans: bool = True,
     ) -> None:
         self.config = config or CMConfig()
         self.mu_per_mm = float(mu_per_mm)
@@ -143,6 +147,7 @@ class CMRenderer:
         self.backend = ("numba" if self.device.type == "cpu" else "torch") if backend == "auto" else backend
         self.torch_dtype = torch_dtype
         self.max_tile_elements = int(max_tile_elements)
+        self.row_spans = bool(row_spans)
         self.kinematics = CMKinematics(self.config)
         self._table = link_table(self.config)
 
@@ -175,18 +180,18 @@ class CMRenderer:
         zr[:, 1] = np.minimum(zr[:, 1], zhi)
         return zr
 
-    def link_bboxes(
-        self, camera_from_link: torch.Tensor, K: torch.Tensor, z_range: np.ndarray, rows: int, cols: int
-    ) -> torch.Tensor:
-        """Projected pixel boxes of the links.
+    def link_corners_px(
+        self, camera_from_link: torch.Tensor, K: torch.Tensor, z_range: np.ndarray
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Projected corners of each link's straight box (``±r_out`` in x and y, its slab in z).
 
         Args:
             camera_from_link: (B, V, L, 4, 4); K: (V, 3, 3); z_range: (L, 2) rendered slab per link.
 
         Returns:
-            (B, V, L, 4) int64 half-open ``(row0, row1, col0, col1)``, clipped to the image; empty
-            (row1 = row0) for links with nothing to render. A box reaching behind the source covers
-            the whole image.
+            uv (B, V, L, 8, 2) pixel positions of the corners (corner ``i``: x sign bit 0, y sign bit
+            1, z end bit 2), and behind (B, V, L) bool: a corner lies at or behind the source plane
+            (its projection is then not the box's footprint).
         """
         r = self._table.r_out_mm
         zr = torch.as_tensor(z_range, dtype=camera_from_link.dtype, device=camera_from_link.device)
@@ -199,7 +204,30 @@ class CMRenderer:
         uvw = pc @ K[None, :, None].transpose(-1, -2)
         depth = uvw[..., 2]
         behind = (depth <= 1e-6).any(dim=-1)  # (B, V, L)
-        uv = uvw[..., :2] / depth.clamp_min(1e-6)[..., None]
+        return uvw[..., :2] / depth.clamp_min(1e-6)[..., None], behind
+
+    def link_bboxes(
+        self,
+        camera_from_link: torch.Tensor,
+        K: torch.Tensor,
+        z_range: np.ndarray,
+        rows: int,
+        cols: int,
+        *,
+        corners: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> torch.Tensor:
+        """Projected pixel boxes of the links.
+
+        Args:
+            camera_from_link: (B, V, L, 4, 4); K: (V, 3, 3); z_range: (L, 2) rendered slab per link.
+            corners: :meth:`link_corners_px` of the same arguments, if already computed.
+
+        Returns:
+            (B, V, L, 4) int64 half-open ``(row0, row1, col0, col1)``, clipped to the image; empty
+            (row1 = row0) for links with nothing to render. A box reaching behind the source covers
+            the whole image.
+        """
+        uv, behind = corners if corners is not None else self.link_corners_px(camera_from_link, K, z_range)
         lo = uv.amin(dim=-2).floor()
         hi = uv.amax(dim=-2).ceil() + 1.0
         c0 = lo[..., 0].clamp(0, cols)
@@ -208,7 +236,7 @@ class CMRenderer:
         r1 = hi[..., 1].clamp(0, rows)
         r0, c0 = torch.where(behind, 0.0, r0), torch.where(behind, 0.0, c0)
         r1, c1 = torch.where(behind, float(rows), r1), torch.where(behind, float(cols), c1)
-        empty = torch.as_tensor(z_range[:, 1] <= z_range[:, 0], device=zr.device)
+        empty = torch.as_tensor(z_range[:, 1] <= z_range[:, 0], device=uv.device)
         r1 = torch.where(empty, r0, r1)
         return torch.stack([r0, r1, c0, c1], dim=-1).to(torch.int64)
 
@@ -255,8 +283,9 @@ class CMRenderer:
         B, V = T_cam.shape[:2]
         zr = self._z_range(region)
         cam_from_link = self._camera_from_link(T_cam, cp)
+        corners = self.link_corners_px(cam_from_link, Kt, zr)
         if roi:
-            bbox = self.link_bboxes(cam_from_link, Kt, zr, rows, cols)
+            bbox = self.link_bboxes(cam_from_link, Kt, zr, rows, cols, corners=corners)
         else:
             full = torch.tensor([0, rows, 0, cols], dtype=torch.int64, device=self.device)
             bbox = full.expand(B, V, zr.shape[0], 4).clone()
@@ -268,13 +297,17 @@ class CMRenderer:
         link_from_cam[..., 3, 3] = 1.0
         Kinv = torch.linalg.inv(Kt)
         if self.backend == "numba":
-            return self._render_numba(link_from_cam, bbox, Kinv, zr, B, V, rows, cols, scale)
+            # within a box, each row only across the box's projected footprint (its hull is ~2.5×
+            # smaller than the axis-aligned box of a link seen obliquely)
+            hull = corners if roi and self.row_spans else None
+            return self._render_numba(link_from_cam, bbox, hull, Kinv, zr, B, V, rows, cols, scale)
         return self._render_torch(link_from_cam, bbox, Kinv, zr, B, V, rows, cols, scale)
 
     def _render_numba(
         self,
         link_from_cam: torch.Tensor,
         bbox: torch.Tensor,
+        hull: tuple[torch.Tensor, torch.Tensor] | None,
         Kinv: torch.Tensor,
         zr: np.ndarray,
         B: int,
@@ -287,10 +320,19 @@ class CMRenderer:
 
         out = np.zeros((B * V, rows, cols), dtype=np.float32)
         tab = self._table
+        L = zr.shape[0]
+        if hull is None:  # every pixel of the box
+            uv = np.zeros((B * V, L, 8, 2))
+            clip = np.zeros((B * V, L), dtype=np.bool_)
+        else:
+            uv = hull[0].reshape(B * V, L, 8, 2).cpu().numpy()
+            clip = ~hull[1].reshape(B * V, L).cpu().numpy()
         render_links(
             out,
             np.ascontiguousarray(link_from_cam.reshape(B * V, -1, 4, 4).cpu().numpy()),
             np.ascontiguousarray(bbox.reshape(B * V, -1, 4).cpu().numpy()),
+            np.ascontiguousarray(uv),
+            np.ascontiguousarray(clip),
             np.ascontiguousarray(Kinv.cpu().numpy()),
             V,
             np.ascontiguousarray(zr),

@@ -32,4 +32,7 @@ def veil_response(line_integral: torch.Tensor, gain: torch.Tensor, veil: torch.T
     """
     g = gain.to(line_integral)[:, None, None]
     f = veil.to(line_integral)[:, None, None]
-    return -torch.log((1.0 - f) * torch.exp(-g * line_integral) + f)
+    if line_integral.requires_grad and torch.is_grad_enabled():
+        return -torch.log((1.0 - f) * torch.exp(-g * line_integral) + f)
+    # in place on one new tensor: a registration calls this on every candidate image
+    return (line_integral * -g).exp_().mul_(1.0 - f).add_(f).log_().neg_()
