@@ -78,3 +78,6 @@ def test_navigation_cm_settings_by_number_of_views() -> None:
     assert nav == default_cm_levels(popsize=25, linearized=True)
     assert nav[0].popsize == 25 and nav[-1].optimizer == "linearized"
     assert navigation_cm_config(1).levels_for("single-view") == default_cm_levels()
+    # the verification finishes with CMA-ES: it starts from the plan, where the linearised finish
+    # was caught in local minima
+    assert navigation_cm_config(3, verification=True).levels_for("multi-view") == default_cm_levels()

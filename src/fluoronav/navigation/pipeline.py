@@ -342,6 +342,10 @@ def _register(
         if recovery_ct_from_cm is not None:  # a second start, tried only where the first fails
             tries.append([recovery_ct_from_cm(femur.world_from_bone)])
         tag = f" ({prefix.rstrip('_')})" if prefix else ""
+        verification = ct_from_femur_prior is not None
+        cm_settings = (config.verify_cm if verification else config.cm) or navigation_cm_config(
+            len(views), verification=verification
+        )
         cm = register_cm_checked(
             _cm_views(views, cams_ct, lm_views, tag),
             lm_views,
@@ -349,9 +353,7 @@ def _register(
             rec,
             stage_name=f"{prefix}cm",
             initial_control_points_deg=initial_control_points_deg,
-            cm_config=(config.cm or navigation_cm_config(len(views))).with_(
-                device=config.device, cm_config=case.cm_config
-            ),
+            cm_config=cm_settings.with_(device=config.device, cm_config=case.cm_config),
             safety=config.safety,
             seed=seed + 5,
             motion_check=None
