@@ -20,6 +20,8 @@ Conventions (fixed here, tested against an explicit-loop reference in the tests)
   running sums); float32 is ~10× faster than float64 on CPU. Because of that limit a *moving* patch
   whose centred variance is below ``flat_rel`` × its energy (1e-5 in float32, 1e-12 in float64) is
   treated as flat: its NCC would be rounding noise.
+  On the CPU :class:`PatchGradNCC` runs a fused numba kernel instead (sliding float64 window sums,
+  the same thresholds; equal to the torch ops within ~1e-7, tested).
 - Weights: a (patch, direction) term has weight = number of unmasked pixels in the patch, and weight
   0 where the *fixed* gradient is flat in that patch (variance ≤ ``eps_rel`` × the largest patch
   variance of that fixed gradient image, or fewer than 2 pixels) — such a patch carries no
@@ -185,7 +187,7 @@ class PatchGradNCC(torch.nn.Module):
             (NCC 0); None: 1e-5 for float32, 1e-12 for float64 sums (their rounding level).
         backend: ``"auto"``: on the CPU, for moving images that need no gradient, the fused numba
             kernel (:mod:`~fluoronav.registration._similarity_numba`: the same cost with float64 patch
-            sums, ~5× faster on two cores), else torch; ``"torch"``: always torch (autograd, CUDA).
+            sums, ~4× faster on two cores), else torch; ``"torch"``: always torch (autograd, CUDA).
 
     ``forward(moving (B, V, H, W) or (B, H, W)) -> (B, V) or (B,)`` cost, dtype of ``moving``.
     """
