@@ -410,4 +410,6 @@ def test_bone_volume_and_level_renderers_are_built_once_per_ct(volume):
     # one renderer per voxel factor (levels of the same voxel size share theirs)
     spacing = float(np.linalg.norm(w[:3, :3], axis=0).min())
     factors = {max(1, int(np.floor(lv.voxel_mm / spacing + 1e-6))) for lv in levels}
-    assert len({id(r) for r in a.renderers.values()}) == len(shared) == len(factors)
+    used = {id(r) for r in a.renderers.values()}
+    # (earlier registrations of the same CT may have added renderers of other voxel sizes)
+    assert len(used) == len(factors) and used <= {id(r) for r in shared.values()}
