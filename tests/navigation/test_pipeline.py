@@ -76,7 +76,7 @@ def test_navigation_cm_settings_are_the_cmaes_levels() -> None:
     the verification's refusals rose with the faster multi-view settings (docstring)."""
     from fluoronav.registration.cm_config import default_cm_levels
 
-    for n_views, verification in ((1, False), (3, False), (3, True)):
-        cfg = navigation_cm_config(n_views, verification=verification)
-        assert cfg.levels == default_cm_levels()
-        assert [lv.optimizer for lv in cfg.levels_for("multi-view")] == ["cmaes", "cmaes"]
+    cfg = navigation_cm_config()
+    assert cfg.levels == default_cm_levels()
+    for workflow in ("single-view", "multi-view"):
+        assert [lv.optimizer for lv in cfg.levels_for(workflow)] == ["cmaes", "cmaes"]

@@ -343,9 +343,7 @@ def _register(
             tries.append([recovery_ct_from_cm(femur.world_from_bone)])
         tag = f" ({prefix.rstrip('_')})" if prefix else ""
         verification = ct_from_femur_prior is not None
-        cm_settings = (config.verify_cm if verification else config.cm) or navigation_cm_config(
-            len(views), verification=verification
-        )
+        cm_settings = (config.verify_cm if verification else config.cm) or navigation_cm_config()
         cm = register_cm_checked(
             _cm_views(views, cams_ct, lm_views, tag),
             lm_views,

@@ -87,7 +87,7 @@ class NavigationConfig:
     verify_cm: CMRegistrationConfig | None = None
 
 
-def navigation_cm_config(n_views: int, *, verification: bool = False) -> CMRegistrationConfig:
+def navigation_cm_config() -> CMRegistrationConfig:
     """The pipeline's CM registration settings: the CMA-ES levels (:func:`default_cm_levels`) for the
     first registration and the verification, whatever the number of views.
 
@@ -95,9 +95,7 @@ def navigation_cm_config(n_views: int, *, verification: bool = False) -> CMRegis
     first registration's tip was as good (0.13–0.16 mm mean in two navigation studies), but on the
     first four trials of a navigation study (seed 9741) the verification then refused three, which
     all passed with these levels: the verification leans on the first registration's whole pose
-    (the kinematic prediction, its landmark gate and second start), not only its tip.
-    ``n_views`` and ``verification`` are kept for settings that differ by case."""
-    del n_views, verification
+    (the kinematic prediction, its landmark gate and second start), not only its tip."""
     return CMRegistrationConfig(levels=default_cm_levels())
 
 

@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 
 from fluoronav.registration.cm_config import CMRegistrationConfig
-from fluoronav.registration.cm_problem import register_cm
+from fluoronav.registration.cm_problem import cm_workflow, register_cm
 from fluoronav.registration.cm_result import CMRegistrationResult
 from fluoronav.registration.cm_views import CMView
 
@@ -68,7 +68,7 @@ def register_cm_multistart(
             config=cfg,
             seed=seed,
         )
-    first = cfg.levels_for("multi-view" if len(views) > 1 and base_from_cm is None else "single-view")[0]
+    first = cfg.levels_for(cm_workflow(len(views), multiple_cm=base_from_cm is not None))[0]
     screen = cfg.with_(levels=(first.with_(max_iters=screen_iterations, restarts=0),))
     screened = [
         register_cm(

@@ -41,6 +41,7 @@ __all__ = [
     "CONTROL_POINT_BOX_DEG",
     "CMProblem",
     "Workflow",
+    "cm_workflow",
     "on_box_edge",
     "pose_box",
     "register_cm",
@@ -56,6 +57,14 @@ CONTROL_POINT_BOX_DEG = 90.0
 BOX_EDGE_FRACTION = 0.02
 #: stands for "no bound" (pycma wants finite bounds on every coordinate)
 _UNBOUNDED = 1e6
+
+
+def cm_workflow(n_views: int, *, multiple_cm: bool) -> Workflow:
+    """The workflow of ``n_views`` views: "multi-cm" with one CM pose per view (``base_from_cm``),
+    else "single-view" or "multi-view"."""
+    if multiple_cm:
+        return "multi-cm"
+    return "single-view" if n_views == 1 else "multi-view"
 
 
 def _initial_world_from_cm(
@@ -108,12 +117,12 @@ class CMProblem:
         self.kinematics = CMKinematics(cfg.cm_config)
 
         # workflow and parameterisation (the world frame plays the parameterisation's "camera")
+        self.workflow = cm_workflow(len(views), multiple_cm=base_from_cm is not None)
         self.param: CMPoseShape | MultiCMReference
         if base_from_cm is not None:
             bfc = np.asarray(base_from_cm, dtype=np.float64)
             if bfc.ndim != 3 or bfc.shape[1:] != (4, 4) or bfc.shape[0] != len(views):
                 raise ValueError(f"base_from_cm must be ({len(views)}, 4, 4) for {len(views)} views")
-            self.workflow: Workflow = "multi-cm"
             world_from_base0 = world_from_cm0 @ np.linalg.inv(bfc[0])
             base_from_ref, ref_from_cm = reference_frame(bfc)
             self.param = MultiCMReference(
@@ -121,7 +130,6 @@ class CMProblem:
             )
             self.pose_of_view = torch.arange(len(views), device=device)
         else:
-            self.workflow = "single-view" if len(views) == 1 else "multi-view"
             self.param = CMPoseShape(world_from_cm0, cp0, device=device)
             self.pose_of_view = torch.zeros(len(views), dtype=torch.long, device=device)
 

@@ -283,7 +283,7 @@ class CMRenderer:
         B, V = T_cam.shape[:2]
         zr = self._z_range(region)
         cam_from_link = self._camera_from_link(T_cam, cp)
-        corners = self.link_corners_px(cam_from_link, Kt, zr)
+        corners = self.link_corners_px(cam_from_link, Kt, zr) if roi else None
         if roi:
             bbox = self.link_bboxes(cam_from_link, Kt, zr, rows, cols, corners=corners)
         else:
@@ -299,7 +299,7 @@ class CMRenderer:
         if self.backend == "numba":
             # within a box, each row only across the box's projected footprint (its hull is ~2.5×
             # smaller than the axis-aligned box of a link seen obliquely)
-            hull = corners if roi and self.row_spans else None
+            hull = corners if self.row_spans else None
             return self._render_numba(link_from_cam, bbox, hull, Kinv, zr, B, V, rows, cols, scale)
         return self._render_torch(link_from_cam, bbox, Kinv, zr, B, V, rows, cols, scale)
 
