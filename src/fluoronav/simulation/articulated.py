@@ -33,7 +33,7 @@ from fluoronav.anatomy.volume import Volume
 from fluoronav.device import resolve_device
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
-from fluoronav.rendering.ct import render_line_integrals
+from fluoronav.rendering.ct import CTRenderer
 from fluoronav.simulation.materials import MM_PER_CM, decompose_hu
 from fluoronav.simulation.scene import Scene
 from fluoronav.simulation.xray import RENDERED_CT_MATERIALS, SimulatedImage, SimulationConfig, XraySimulator
@@ -89,9 +89,18 @@ class _XrayHelpers(XraySimulator):
         self._renderers = {}
 
 
-def _body_tensors(parts: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
+def _body_renderers(
+    parts: dict[str, np.ndarray], world_from_index: np.ndarray, device: torch.device
+) -> dict[str, CTRenderer]:
+    """One renderer per non-zero material of a body; each skips its own empty space (the femur's
+    volumes are zero outside its mask, the rest's outside the body)."""
     return {
-        m: torch.from_numpy(np.ascontiguousarray(parts[m], dtype=np.float32)).to(device)
+        m: CTRenderer.from_tensor(
+            torch.from_numpy(np.ascontiguousarray(parts[m], dtype=np.float32)).to(device),
+            world_from_index,
+            mipmap=False,
+            skip_empty=True,
+        )
         for m in RENDERED_CT_MATERIALS
         if np.any(parts[m] != 0)
     }
@@ -122,18 +131,18 @@ class ArticulatedSimulator:
         mask, box = split_femur(volume, femur_side)
         hu = np.asarray(volume.data, dtype=np.float32)
         rest_hu = np.where(mask, np.float32(FILLER_HU), hu)
-        self._rest = _body_tensors(decompose_hu(rest_hu), self.device)
         self.rest_world_from_index = np.asarray(volume.world_from_index, dtype=np.float64)
+        self._rest = _body_renderers(decompose_hu(rest_hu), self.rest_world_from_index, self.device)
         # femur body: own densities minus the filler's, on the mask, cropped to the box
         crop_hu = hu[box]
         crop_mask = mask[box]
         own = decompose_hu(crop_hu)
         filler = decompose_hu(np.array([FILLER_HU], dtype=np.float32))
         delta = {m: np.where(crop_mask, own[m] - filler[m][0], 0.0).astype(np.float32) for m in own}
-        self._femur = _body_tensors(delta, self.device)
         offset = np.eye(4)
         offset[:3, 3] = [box[2].start, box[1].start, box[0].start]
         self.femur_world_from_index = self.rest_world_from_index @ offset
+        self._femur = _body_renderers(delta, self.femur_world_from_index, self.device)
         # drilling samplers (see the module docstring): rest CT in the patient frame; the femur's
         # CT (filler outside its mask) and the filler alone in the femur frame, subtracted
         # (both cropped to the box: outside it they sample the same air and cancel)
@@ -199,13 +208,10 @@ class ArticulatedSimulator:
         wf = np.asarray(world_from_femur, np.float64)
         K = stored.K[None]
         dens: dict[str, torch.Tensor] = {}
-        for body, w_index, w_body in (
-            (self._rest, self.rest_world_from_index, wp),
-            (self._femur, self.femur_world_from_index, wf),
-        ):
+        for body, w_body in ((self._rest, wp), (self._femur, wf)):
             T = (stored.camera_from_world @ w_body)[None]
-            for m, mu in body.items():
-                img = render_line_integrals(mu, w_index, K, T, stored.rows, stored.cols, mipmap=False)[0]
+            for m, renderer in body.items():
+                img = renderer.render_poses(K, T, stored.rows, stored.cols)[0]
                 dens[m] = dens[m] + img if m in dens else img
         dens = {m: v.clamp_min(0.0) for m, v in dens.items()}
         scene = self._scene(camera, cm, cm_config)

@@ -34,6 +34,7 @@ from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.geometry import voxelize_cm
 from fluoronav.rendering.cm import CMRenderer
 from fluoronav.rendering.ct import CTRenderer, render_line_integrals
+from fluoronav.simulation._tube_numba import binned_tube_chords
 from fluoronav.simulation.materials import MM_PER_CM, decompose_hu, get_material
 from fluoronav.simulation.physics import XrayPhysics
 from fluoronav.simulation.scene import Scene
@@ -288,12 +289,18 @@ class XraySimulator:
         fine = scene.camera.scaled_to(camera.rows * f, camera.cols * f)
         crop = fine.crop(row0=r0 * f, col0=c0 * f, rows=(r1 - r0) * f, cols=(c1 - c0) * f)
         cm_from_camera = np.linalg.inv(crop.camera_from_world @ scene.world_from_cm)
-        dirs = crop.ray_directions_world()  # unit rays in the world frame, (rows, cols, 3)
-        d = torch.as_tensor(dirs.reshape(-1, 3) @ scene.world_from_cm[:3, :3], dtype=torch.float64)
-        o = torch.as_tensor(cm_from_camera[:3, 3], dtype=torch.float64)
-        chord = tube_chord_mm(o, d, r_out, z0, z1) - tube_chord_mm(o, d, r_in, z0, z1)
-        img = chord.reshape(crop.rows, crop.cols).to(torch.float32).to(self.device)
-        out[r0:r1, c0:c1] = torch.nn.functional.avg_pool2d(img[None, None], f)[0, 0]
+        binned = np.empty((r1 - r0, c1 - c0), np.float64)
+        binned_tube_chords(
+            np.ascontiguousarray(cm_from_camera[:3, :3] @ np.linalg.inv(crop.K)),
+            np.ascontiguousarray(cm_from_camera[:3, 3]),
+            r_out,
+            r_in,
+            z0,
+            z1,
+            f,
+            binned,
+        )
+        out[r0:r1, c0:c1] = torch.from_numpy(binned).to(torch.float32).to(self.device)
         return out
 
     def _ct_densities(self, camera: Camera) -> dict[str, torch.Tensor]:
