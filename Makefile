@@ -17,6 +17,8 @@ install: $(PY)
 	# torch first, pinned, so that no dependency pulls a CUDA build
 	$(PIP) install -q torch==2.13.0
 	$(PIP) install -q -c constraints.txt -e ".[dev]"
+	# the CPU kernels into numba's cache, so that the first run after an install does not compile
+	$(PY) -m fluoronav.cli.compile_kernels
 
 demo: install
 	$(VENV)/bin/fluoronav demo --out $(OUT) --seed $(SEED)

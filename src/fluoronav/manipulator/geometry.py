@@ -20,7 +20,7 @@ from typing import Literal
 
 import numpy as np
 import torch
-from numba import njit, prange
+from numba import njit, prange, types
 
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
@@ -28,6 +28,7 @@ from fluoronav.manipulator.kinematics import CMKinematics
 __all__ = [
     "LinkTable",
     "VoxelizedCM",
+    "compile_kernels",
     "inside_cm",
     "inside_cm_straight",
     "link_table",
@@ -285,6 +286,37 @@ def _link_corners(table: LinkTable, k: int) -> np.ndarray:
     r = table.r_out_mm
     z0, z1 = table.z_range_mm[k]
     return np.array([[sx * r, sy * r, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (z0, z1)])
+
+
+_F64 = types.float64
+_I64 = types.int64
+
+#: the argument types :func:`voxelize_cm` passes to :func:`_voxelize_link`
+_VOXELIZE_LINK_ARGS = (
+    (
+        types.Array(types.int32, 3, "C"),
+        types.Array(_I64, 1, "C"),
+        types.Array(_I64, 1, "C"),
+        types.Array(_F64, 1, "C"),
+        _F64,
+        _I64,
+        types.Array(_F64, 2, "C"),
+        _F64,
+        _F64,
+        types.Array(_F64, 2, "C"),
+        _F64,
+        _F64,
+        _F64,
+    ),
+)
+
+
+def compile_kernels() -> None:
+    """Compile the CPU voxeliser for the argument types :func:`voxelize_cm` passes into numba's
+    on-disk cache, so that a new process's first voxelisation loads the machine code instead of
+    compiling it."""
+    for args in _VOXELIZE_LINK_ARGS:
+        _voxelize_link.compile(args)
 
 
 def voxelize_cm(

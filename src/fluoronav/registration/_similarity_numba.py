@@ -12,9 +12,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
 
-__all__ = ["patch_grad_ncc_cost"]
+__all__ = ["PATCH_GRAD_NCC_ARGS", "patch_grad_ncc_cost"]
 
 # reassociation (vectorised sums) without assuming finite values: the non-finite check must stand
 _FASTMATH = {"nsz", "arcp", "contract", "reassoc"}
@@ -231,3 +231,27 @@ def patch_grad_ncc_cost(  # pragma: no cover - jitted
                     acc += w * (1.0 - ncc)
         out[b, v] = acc / weight_total[v]
     return out
+
+
+_F32 = types.float32
+_F64 = types.float64
+
+#: the argument types :class:`fluoronav.registration.similarity.PatchGradNCC` passes for float32
+#: images (the registrations' renderers make float32 images)
+PATCH_GRAD_NCC_ARGS = (
+    (
+        types.Array(_F32, 4, "C"),
+        types.Array(_F32, 3, "C"),
+        types.Array(_F32, 4, "C"),
+        types.Array(_F64, 4, "C"),
+        types.Array(_F64, 4, "C"),
+        types.Array(_F64, 3, "C"),
+        types.Array(_F64, 4, "C"),
+        types.Array(_F64, 1, "C"),
+        types.Array(_F32, 1, "C"),
+        types.int64,
+        types.int64,
+        _F64,
+        _F64,
+    ),
+)

@@ -44,6 +44,7 @@ __all__ = [
     "NCC",
     "GradNCC",
     "PatchGradNCC",
+    "compile_kernels",
     "grad_ncc",
     "ncc",
     "patch_grad_ncc",
@@ -51,6 +52,16 @@ __all__ = [
 ]
 
 _EPS_REL = 1e-10
+
+
+def compile_kernels() -> None:
+    """Compile the CPU patch gradient NCC for the argument types :class:`PatchGradNCC` passes into
+    numba's on-disk cache, so that a new process's first cost loads the machine code instead of
+    compiling it."""
+    from fluoronav.registration._similarity_numba import PATCH_GRAD_NCC_ARGS, patch_grad_ncc_cost
+
+    for args in PATCH_GRAD_NCC_ARGS:
+        patch_grad_ncc_cost.compile(args)
 
 
 # ----- filtering ----------------------------------------------------------------------------------

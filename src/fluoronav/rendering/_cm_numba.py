@@ -12,9 +12,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
 
-__all__ = ["render_links"]
+__all__ = ["RENDER_LINKS_ARGS", "render_links"]
 
 _BIG = 1e30
 
@@ -205,3 +205,25 @@ def render_links(  # pragma: no cover - jitted
                     if t_len > 0.0:
                         # the rotation keeps lengths: |d| is the camera-frame direction's length
                         img[r, c] += scale * t_len * math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+_F64 = types.float64
+
+#: the argument types :mod:`fluoronav.rendering.cm` passes to :func:`render_links`
+RENDER_LINKS_ARGS = (
+    (
+        types.Array(types.float32, 3, "C"),
+        types.Array(_F64, 4, "C"),
+        types.Array(types.int64, 3, "C"),
+        types.Array(_F64, 4, "C"),
+        types.Array(types.boolean, 2, "C"),
+        types.Array(_F64, 3, "C"),
+        types.int64,
+        types.Array(_F64, 2, "C"),
+        types.Array(_F64, 3, "C"),
+        _F64,
+        _F64,
+        _F64,
+        _F64,
+    ),
+)

@@ -20,10 +20,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
 from scipy import ndimage
 
-__all__ = ["empty_space_distance", "march_rays"]
+__all__ = ["MARCH_RAYS_ARGS", "empty_space_distance", "march_rays"]
 
 #: distances are clipped here (uint8)
 _MAX_SKIP_DISTANCE = 255
@@ -201,3 +201,15 @@ def march_rays(
                             gx = fx if di == 1 else 1.0 - fx
                             acc += gz * gy * gx * flat[k * sk + j * sj + i]
             out[c, v, u] = acc * h
+
+
+_F32_3 = types.Array(types.float32, 3, "C")
+_F64_3 = types.Array(types.float64, 3, "C")
+_F64_2 = types.Array(types.float64, 2, "C")
+
+#: the argument types :mod:`fluoronav.rendering.ct` passes to :func:`march_rays`: a float32 volume
+#: and image, with an empty-space map (uint8, the volume's shape) or without (the empty uint8 array)
+MARCH_RAYS_ARGS = tuple(
+    (_F32_3, _F64_3, _F64_3, _F64_2, types.float64, _F32_3, types.Array(types.uint8, ndim, "C"))
+    for ndim in (3, 1)
+)

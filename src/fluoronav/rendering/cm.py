@@ -26,7 +26,7 @@ from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.geometry import Region, link_table, region_z_range_mm
 from fluoronav.manipulator.kinematics import CMKinematics
 
-__all__ = ["CMRenderer"]
+__all__ = ["CMRenderer", "compile_kernels"]
 
 logger = logging.getLogger(__name__)
 
@@ -110,6 +110,15 @@ def chord_lengths_torch(
         n1 = torch.where((sd.abs() < 1e-12) & (so <= cut), torch.full_like(n1, -_BIG), n1)
         total = total - (_overlap(o0, o1, n0, n1) - _overlap(i0, i1, n0, n1))
     return total.clamp_min(0.0)
+
+
+def compile_kernels() -> None:
+    """Compile the CPU link renderer for the argument types this module passes into numba's on-disk
+    cache, so that a new process's first render loads the machine code instead of compiling it."""
+    from fluoronav.rendering._cm_numba import RENDER_LINKS_ARGS, render_links
+
+    for args in RENDER_LINKS_ARGS:
+        render_links.compile(args)
 
 
 class CMRenderer:

@@ -35,9 +35,9 @@ import torch.nn.functional as F  # noqa: N812
 from fluoronav.anatomy.volume import MU_WATER_PER_MM, Volume, hu_to_mu
 from fluoronav.device import resolve_device
 from fluoronav.geometry.camera import Camera
-from fluoronav.rendering._ct_numba import empty_space_distance, march_rays
+from fluoronav.rendering._ct_numba import MARCH_RAYS_ARGS, empty_space_distance, march_rays
 
-__all__ = ["DEFAULT_STEP_VOXELS", "CTRenderer", "mipmap_factors", "render_line_integrals"]
+__all__ = ["DEFAULT_STEP_VOXELS", "CTRenderer", "compile_kernels", "mipmap_factors", "render_line_integrals"]
 
 logger = logging.getLogger(__name__)
 
@@ -223,6 +223,13 @@ def _march_torch(
 
 
 # ----- public API -------------------------------------------------------------------------------
+def compile_kernels() -> None:
+    """Compile the CPU ray march for the argument types this module passes into numba's on-disk
+    cache, so that a new process's first render loads the machine code instead of compiling it."""
+    for args in MARCH_RAYS_ARGS:
+        march_rays.compile(args)
+
+
 class _Pyramid:
     """The volume and its lazily built 2× box-downsampled versions, keyed by per-axis factors, with
     each one's empty-space distance (numba backend) when ``skip_empty``."""

@@ -10,9 +10,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
 
-__all__ = ["binned_tube_chords"]
+__all__ = ["BINNED_TUBE_CHORDS_ARGS", "binned_tube_chords"]
 
 
 @njit(cache=True, inline="always")
@@ -84,3 +84,20 @@ def binned_tube_chords(
                         ox, oy, oz, dx, dy, dz, r_in, z0, z1
                     )
             out[r, c] = acc * inv_n
+
+
+_F64 = types.float64
+
+#: the argument types :mod:`fluoronav.simulation.xray` passes to :func:`binned_tube_chords`
+BINNED_TUBE_CHORDS_ARGS = (
+    (
+        types.Array(_F64, 2, "C"),
+        types.Array(_F64, 1, "C"),
+        _F64,
+        _F64,
+        _F64,
+        _F64,
+        types.int64,
+        types.Array(_F64, 2, "C"),
+    ),
+)

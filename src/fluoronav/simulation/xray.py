@@ -34,14 +34,14 @@ from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.geometry import voxelize_cm
 from fluoronav.rendering.cm import CMRenderer
 from fluoronav.rendering.ct import CTRenderer, render_line_integrals
-from fluoronav.simulation._tube_numba import binned_tube_chords
+from fluoronav.simulation._tube_numba import BINNED_TUBE_CHORDS_ARGS, binned_tube_chords
 from fluoronav.simulation.materials import MM_PER_CM, decompose_hu, get_material
 from fluoronav.simulation.physics import XrayPhysics
 from fluoronav.simulation.scene import Scene
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SimulatedImage", "SimulationConfig", "XraySimulator", "envelope_config"]
+__all__ = ["SimulatedImage", "SimulationConfig", "XraySimulator", "compile_kernels", "envelope_config"]
 
 #: CT materials rendered (air is left out: outside the body it is not in the CT, inside it is < 1 %)
 RENDERED_CT_MATERIALS = ("adipose", "soft_tissue", "bone_cortical")
@@ -109,6 +109,13 @@ def tube_chord_mm(
     lo = torch.maximum(torch.minimum(s1, s2), t1)
     hi = torch.minimum(torch.maximum(s1, s2), t2)
     return torch.where(hit, (hi - lo).clamp_min(0.0), torch.zeros_like(a))
+
+
+def compile_kernels() -> None:
+    """Compile the shaft's CPU chord kernel for the argument types this module passes into numba's
+    on-disk cache, so that a new process's first image loads the machine code instead of compiling it."""
+    for args in BINNED_TUBE_CHORDS_ARGS:
+        binned_tube_chords.compile(args)
 
 
 @dataclass(frozen=True, eq=False)
