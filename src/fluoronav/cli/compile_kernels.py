@@ -1,7 +1,7 @@
 """Compile fluoronav's CPU kernels into numba's on-disk cache: ``python -m fluoronav.cli.compile_kernels``.
 
 ``make`` runs this after it installs, so that the first command after an install (``fluoronav
-demo`` among them) loads the kernels' machine code instead of compiling it (about 25 s on 2 cores).
+demo`` among them) loads the kernels' machine code instead of compiling it (about 20 s on 2 cores).
 Each kernel is compiled for the argument types its module passes (``compile_kernels`` of that
 module); where the cache is already there it loads in a fraction of a second.
 """
