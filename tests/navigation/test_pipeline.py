@@ -74,7 +74,7 @@ def test_navigate_command_bad_case_is_one_line_and_exit_2(tmp_path: Path, make_n
 def test_navigation_cm_settings_are_the_cmaes_levels() -> None:
     """The navigation keeps CMA-ES at both CM levels, first registration and verification alike:
     the verification's refusals rose with the faster multi-view settings (docstring)."""
-    from fluoronav.registration.cm_config import default_cm_levels
+    from fluoronav.registration.cm.config import default_cm_levels
 
     cfg = navigation_cm_config()
     assert cfg.levels == default_cm_levels()

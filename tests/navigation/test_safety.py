@@ -16,7 +16,7 @@ import fluoronav.navigation.checks as checks
 from fluoronav.navigation.checks import register_cm_checked
 from fluoronav.navigation.result import NavigationRefused, StageRecord
 from fluoronav.navigation.safety import SafetyConfig, judge_cm_views, judge_motion
-from fluoronav.registration.diagnostics import CMViewDiagnostics
+from fluoronav.registration.cm.diagnostics import CMViewDiagnostics
 
 GOOD = {"landmark_residual_mm": 0.4, "edge_ncc": 0.9}
 

@@ -5,8 +5,8 @@ The problem is a simulated phantom case as ``fluoronav demo`` makes it (seed :da
 768² physics-simulated views, the shipped detector), without its verification views:
 
 - ``register_bone_view_s``: the pelvis registered to the case's first view with the navigation
-  pipeline's preset (:data:`~fluoronav.registration.bone_presets.PELVIS_LINEARIZED_PRESET`);
-  ``_reference``: the CMA-ES ladder (:data:`~fluoronav.registration.bone_presets.PELVIS_CMAES_PRESET`)
+  pipeline's preset (:data:`~fluoronav.registration.bone.presets.PELVIS_LINEARIZED_PRESET`);
+  ``_reference``: the CMA-ES ladder (:data:`~fluoronav.registration.bone.presets.PELVIS_CMAES_PRESET`)
   without empty-space skipping and with the similarity's torch ops, the settings of 0.1.0.
 - ``navigate_s``: :func:`~fluoronav.navigation.pipeline.navigate` from detection through the robot
   command on the three views with the default settings; ``_reference``: the pelvis, femur and CM of
@@ -32,7 +32,7 @@ from fluoronav.navigation.pipeline import navigate
 from fluoronav.navigation.result import NavigationConfig
 from fluoronav.navigation.simulated import SimulationConfig, run_simulated_navigation
 from fluoronav.registration.bone import BoneView, register_pelvis
-from fluoronav.registration.bone_presets import PELVIS_CMAES_PRESET, BoneRegistrationConfig, femur_config
+from fluoronav.registration.bone.presets import PELVIS_CMAES_PRESET, BoneRegistrationConfig, femur_config
 
 __all__ = ["BENCH_SEED", "run"]
 

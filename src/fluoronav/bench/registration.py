@@ -23,10 +23,10 @@ import torch
 
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.registration.case import CMCase, simulate_cm_case
-from fluoronav.registration.centerline_single import centerline_initialize
-from fluoronav.registration.cm_config import CMRegistrationConfig, default_cm_levels
-from fluoronav.registration.cm_problem import CMProblem
-from fluoronav.registration.cm_result import cm_pose_errors
+from fluoronav.registration.centerline.single import centerline_initialize
+from fluoronav.registration.cm.config import CMRegistrationConfig, default_cm_levels
+from fluoronav.registration.cm.problem import CMProblem
+from fluoronav.registration.cm.result import cm_pose_errors
 from fluoronav.rendering.cm import CMRenderer
 
 __all__ = ["REFERENCE_CONFIG", "evaluate_cm_registration", "run", "summarize"]

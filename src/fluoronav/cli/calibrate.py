@@ -338,7 +338,7 @@ def run_calibration(
 def _overlays(res: Any, out: Path) -> None:
     import cv2  # heavy: cv2
 
-    from fluoronav.registration.cm_overlays import edge_mask, to_uint8  # lazy: fast --help
+    from fluoronav.registration.cm.overlays import edge_mask, to_uint8  # lazy: fast --help
 
     for name, img, drr in zip(res.view_names, res.roi_images, res.roi_drrs, strict=True):
         rgb = np.repeat(to_uint8(img)[..., None], 3, axis=-1)

@@ -23,7 +23,7 @@ from fluoronav.registration.cm import (
     register_cm,
     register_cm_multistart,
 )
-from fluoronav.registration.diagnostics import cm_view_diagnostics
+from fluoronav.registration.cm.diagnostics import cm_view_diagnostics
 
 log = logging.getLogger(__name__)
 

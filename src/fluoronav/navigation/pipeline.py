@@ -77,7 +77,7 @@ from fluoronav.registration.bone import (
     register_pelvis_per_view,
     views_in_ct_frame,
 )
-from fluoronav.registration.centerline_init import (
+from fluoronav.registration.centerline import (
     MultiViewInitResult,
     centerline_initialize_multiview,
     multiview_start_poses,

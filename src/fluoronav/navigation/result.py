@@ -21,14 +21,14 @@ from fluoronav.navigation.case import CaseView
 from fluoronav.navigation.planning import Plan
 from fluoronav.navigation.safety import SafetyConfig
 from fluoronav.registration.bone import BoneRegistrationResult
-from fluoronav.registration.bone_presets import (
+from fluoronav.registration.bone.presets import (
     PELVIS_LINEARIZED_PRESET,
     PELVIS_REFINE_PRESET,
     BoneRegistrationConfig,
 )
-from fluoronav.registration.centerline_init import MultiViewInitResult
+from fluoronav.registration.centerline import MultiViewInitResult
 from fluoronav.registration.cm import CMRegistrationResult
-from fluoronav.registration.cm_config import CMRegistrationConfig, default_cm_levels
+from fluoronav.registration.cm.config import CMRegistrationConfig, default_cm_levels
 
 __all__ = [
     "NavigationConfig",
@@ -58,7 +58,7 @@ class NavigationConfig:
         pelvis: the per-view pelvis registration's levels (its ``device`` is replaced by ``device``):
             CMA-ES to ~96 px, then the linearised refinement at ~128 and ~256 px.
         femur: the femur registration's levels; None: the multi-view preset
-            (:func:`~fluoronav.registration.bone_presets.femur_config`).
+            (:func:`~fluoronav.registration.bone.presets.femur_config`).
         verify_pelvis_refine: the verification views' second pelvis registration, from the first,
             with the femur (placed by the first registration) left out of the similarity; None:
             none (in views centred on the hip the femoral head pulled the pelvis 1.5–2 mm along

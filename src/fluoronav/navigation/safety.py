@@ -1,7 +1,7 @@
 """The checks a registration must pass before the robot may act on it.
 
 A surgical navigation must know when it is wrong. Each CM registration is checked per view
-(:mod:`fluoronav.registration.diagnostics`): the registered landmarks against the detected ones and
+(:mod:`fluoronav.registration.cm.diagnostics`): the registered landmarks against the detected ones and
 the registered CM's outline against the image. A view that fails is left out and the CM registered
 again without it while enough views remain; otherwise the navigation refuses. The verification's CM
 is also checked against the robot's own account of the move: the first registration moved by the

@@ -30,11 +30,11 @@ from fluoronav.errors import InputError, read_json_object
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.carm import orbit_camera
 from fluoronav.geometry.dicom import camera_from_dicom
-from fluoronav.registration.background import CTBackground
-from fluoronav.registration.centerline_single import centerline_initialize
-from fluoronav.registration.cm_config import CM_COARSE_LEVEL, CMRegistrationConfig, default_cm_levels
-from fluoronav.registration.cm_roll_scan import roll_scan_initialization
-from fluoronav.registration.cm_views import CMView
+from fluoronav.registration.centerline.single import centerline_initialize
+from fluoronav.registration.cm.background import CTBackground
+from fluoronav.registration.cm.config import CM_COARSE_LEVEL, CMRegistrationConfig, default_cm_levels
+from fluoronav.registration.cm.roll_scan import roll_scan_initialization
+from fluoronav.registration.cm.views import CMView
 
 __all__ = [
     "WORKFLOWS",

@@ -41,7 +41,7 @@ from fluoronav.registration.bone import (
     views_from_images,
     views_in_ct_frame,
 )
-from fluoronav.registration.centerline_init import (
+from fluoronav.registration.centerline import (
     centerline_initialize,
     centerline_initialize_multiview,
     depth_range_about,

@@ -17,7 +17,7 @@ from fluoronav.errors import InputError, RegistrationFailure
 from fluoronav.geometry import carm_camera
 from fluoronav.geometry.rotations import euler_to_matrix
 from fluoronav.manipulator import CMKinematics
-from fluoronav.registration.centerline_init import (
+from fluoronav.registration.centerline import (
     CenterlineInitConfig,
     centerline_cost,
     centerline_initialize,
@@ -269,7 +269,7 @@ def _multiview_scene(
 
 
 def test_multiview_init_recovers_pose_and_resolves_the_mirror() -> None:
-    from fluoronav.registration.centerline_init import centerline_initialize_multiview, mirror_about_chord
+    from fluoronav.registration.centerline import centerline_initialize_multiview, mirror_about_chord
 
     rng = np.random.default_rng(4)
     kin = CMKinematics()
@@ -312,7 +312,7 @@ def test_multiview_init_recovers_pose_and_resolves_the_mirror() -> None:
 def test_multiview_init_two_views_trusts_the_confident_landmark(bad_view: int) -> None:
     """Two views, A of one detected on B (the 2-view case of a 20-trial study): no vote is possible;
     the more confident view's A at the model's chord length from B recovers the pose."""
-    from fluoronav.registration.centerline_init import centerline_initialize_multiview
+    from fluoronav.registration.centerline import centerline_initialize_multiview
 
     kin = CMKinematics()
     cams, cp, W, lms, cls = _multiview_scene(
@@ -354,7 +354,7 @@ def test_shaft_width_gives_the_depth_on_a_physics_image() -> None:
     one view's centreline alone cannot tell depth from tilt (docs/registration.md)."""
     from fluoronav.manipulator.config import CMConfig
     from fluoronav.registration.case import simulate_cm_case
-    from fluoronav.registration.centerline_init import measure_shaft_depth, shaft_depth_residual
+    from fluoronav.registration.centerline import measure_shaft_depth, shaft_depth_residual
 
     case = simulate_cm_case("single-view", seed=3, image_size=384, rotation_deg=5.0, translation_mm=5.0)
     view = case.views[0]
@@ -385,7 +385,7 @@ def test_shaft_width_gives_the_depth_on_a_physics_image() -> None:
 
 
 def test_turn_about_chord_keeps_the_landmarks_and_composes() -> None:
-    from fluoronav.registration.centerline_init import mirror_about_chord, turn_about_chord
+    from fluoronav.registration.centerline import mirror_about_chord, turn_about_chord
 
     W = np.eye(4)
     W[:3, :3] = euler_to_matrix("xyz", torch.tensor([10.0, -20.0, 30.0], dtype=torch.float64)).numpy()
@@ -405,7 +405,7 @@ def test_multiview_init_prediction_keeps_two_wrong_views_from_outvoting_a_right_
     """Three views, A of two of them detected at one wrong 3D point 12 mm away (they agree with
     each other, so the vote keeps them): with the CM's expected landmarks (1.5 mm off, as after a
     move), those two are left out and A lies on the right view's ray nearest the prediction."""
-    from fluoronav.registration.centerline_init import centerline_initialize_multiview
+    from fluoronav.registration.centerline import centerline_initialize_multiview
 
     kin = CMKinematics()
     cams, cp, W, lms, cls = _multiview_scene(

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from fluoronav.registration.cm import CMRegistrationResult
+from fluoronav.registration.cm.result import CMRegistrationResult
 from fluoronav.registration.similarity import grad_ncc
 
 __all__ = ["CMViewDiagnostics", "cm_view_diagnostics", "edge_ncc"]

@@ -21,34 +21,34 @@ one :class:`~fluoronav.rendering.cm.CMRenderer` call per generation.
 Cost: Σ_views patch gradient NCC (authors: patch radius round(41/4) = 10 px at 4×, stride 5 for the
 CM) + the landmark reprojection prior (eqs. 2/4) with σ in full-detector pixels (authors: 100). An
 optional static background per view (the anatomy rendered once at the registered bone pose) is added
-to the CM DRR; see :mod:`fluoronav.registration.background`.
+to the CM DRR; see :mod:`fluoronav.registration.cm.background`.
 
 The parts, one job each (all names are importable from here):
 
-- :mod:`~fluoronav.registration.cm_config`: levels and :class:`CMRegistrationConfig`;
-- :mod:`~fluoronav.registration.cm_views`: :class:`CMView` and the ROIs per level;
-- :mod:`~fluoronav.registration.cm_problem`: :class:`CMProblem` and :func:`register_cm`;
-- :mod:`~fluoronav.registration.cm_result`: :class:`CMRegistrationResult`, :func:`cm_pose_errors`;
-- :mod:`~fluoronav.registration.cm_multistart`: :func:`register_cm_multistart`;
-- :mod:`~fluoronav.registration.cm_roll_scan`: :func:`roll_scan` about the A→B chord;
-- :mod:`~fluoronav.registration.cm_overlays`: :func:`save_overlays`.
+- :mod:`~fluoronav.registration.cm.config`: levels and :class:`CMRegistrationConfig`;
+- :mod:`~fluoronav.registration.cm.views`: :class:`CMView` and the ROIs per level;
+- :mod:`~fluoronav.registration.cm.problem`: :class:`CMProblem` and :func:`register_cm`;
+- :mod:`~fluoronav.registration.cm.result`: :class:`CMRegistrationResult`, :func:`cm_pose_errors`;
+- :mod:`~fluoronav.registration.cm.multistart`: :func:`register_cm_multistart`;
+- :mod:`~fluoronav.registration.cm.roll_scan`: :func:`roll_scan` about the A→B chord;
+- :mod:`~fluoronav.registration.cm.overlays`: :func:`save_overlays`.
 """
 
 from __future__ import annotations
 
-from fluoronav.registration.cm_config import (
+from fluoronav.registration.cm.config import (
     CM_COARSE_LEVEL,
     CM_FINE_LEVEL,
     DEFAULT_CM_MU_PER_MM,
     CMRegistrationConfig,
     default_cm_levels,
 )
-from fluoronav.registration.cm_multistart import register_cm_multistart
-from fluoronav.registration.cm_overlays import edge_mask, save_overlays, to_uint8
-from fluoronav.registration.cm_problem import CMProblem, Workflow, register_cm
-from fluoronav.registration.cm_result import CMRegistrationResult, cm_pose_errors
-from fluoronav.registration.cm_roll_scan import RollScanResult, roll_scan, roll_scan_initialization
-from fluoronav.registration.cm_views import BackgroundFn, CMView, ViewROI, view_roi
+from fluoronav.registration.cm.multistart import register_cm_multistart
+from fluoronav.registration.cm.overlays import edge_mask, save_overlays, to_uint8
+from fluoronav.registration.cm.problem import CMProblem, Workflow, register_cm
+from fluoronav.registration.cm.result import CMRegistrationResult, cm_pose_errors
+from fluoronav.registration.cm.roll_scan import RollScanResult, roll_scan, roll_scan_initialization
+from fluoronav.registration.cm.views import BackgroundFn, CMView, ViewROI, view_roi
 
 # the former private names of the overlay helpers, still imported by ``fluoronav.cli.calibrate``
 

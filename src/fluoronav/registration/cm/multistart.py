@@ -9,10 +9,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from fluoronav.registration.cm_config import CMRegistrationConfig
-from fluoronav.registration.cm_problem import cm_workflow, register_cm
-from fluoronav.registration.cm_result import CMRegistrationResult
-from fluoronav.registration.cm_views import CMView
+from fluoronav.registration.cm.config import CMRegistrationConfig
+from fluoronav.registration.cm.problem import cm_workflow, register_cm
+from fluoronav.registration.cm.result import CMRegistrationResult
+from fluoronav.registration.cm.views import CMView
 
 __all__ = ["SCREEN_ITERATIONS", "register_cm_multistart"]
 
@@ -37,7 +37,7 @@ def register_cm_multistart(
     """Register from several start poses: screen every start on the first level, finish the best.
 
     Use it with the centreline initialisation's alternatives and their mirrors
-    (:func:`~fluoronav.registration.centerline_init.mirror_about_chord`): a single view hardly tells
+    (:func:`~fluoronav.registration.centerline.mirror_about_chord`): a single view hardly tells
     the roll about the A→B chord apart, and a wrong basin cannot be left by a local optimiser.
 
     Screening runs the first (coarsest, cheapest) level from every start for at most
@@ -47,7 +47,7 @@ def register_cm_multistart(
 
     Args:
         views, initial_control_points_deg, base_from_cm, config, seed: as
-            :func:`~fluoronav.registration.cm_problem.register_cm`.
+            :func:`~fluoronav.registration.cm.problem.register_cm`.
         starts_world_from_cm: S ≥ 1 start poses (4, 4) in the world frame.
         screen_iterations: generation budget of the screening; with a single start there is none.
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fluoronav.geometry.camera import Camera
-from fluoronav.registration.fill import harmonic_fill
+from fluoronav.registration.bone.fill import harmonic_fill
 
 __all__ = ["BoneView", "static_view_composite", "views_from_images"]
 
@@ -26,7 +26,7 @@ class BoneView:
 
     ``mask``: optional (H, W) bool, True on the pixels the similarity may use (e.g. False on a
     metal instrument the bone DRR does not contain). The masked pixels are filled from the others
-    (:func:`~fluoronav.registration.fill.harmonic_fill`) before binning, so the instrument's edge
+    (:func:`~fluoronav.registration.bone.fill.harmonic_fill`) before binning, so the instrument's edge
     does not reach the used pixels through the filters; a working pixel is used when at least half
     of it is.
     """

@@ -11,12 +11,12 @@ import numpy as np
 import torch
 
 from fluoronav.detection.centerline import resample_polyline
-from fluoronav.registration.centerline_cost import centerline_cost
-from fluoronav.registration.centerline_geometry import turn_about_chord
-from fluoronav.registration.centerline_single import CenterlineInitConfig
-from fluoronav.registration.cm_config import CMRegistrationConfig
-from fluoronav.registration.cm_problem import CMProblem
-from fluoronav.registration.cm_views import CMView
+from fluoronav.registration.centerline.cost import centerline_cost
+from fluoronav.registration.centerline.geometry import turn_about_chord
+from fluoronav.registration.centerline.single import CenterlineInitConfig
+from fluoronav.registration.cm.config import CMRegistrationConfig
+from fluoronav.registration.cm.problem import CMProblem
+from fluoronav.registration.cm.views import CMView
 
 __all__ = [
     "CENTERLINE_SAMPLING",

@@ -16,8 +16,8 @@ from fluoronav.errors import InputError, RegistrationFailure
 from fluoronav.geometry.camera import Camera, triangulate_points_robust
 from fluoronav.geometry.transforms import make_transform
 from fluoronav.manipulator import CMConfig, CMKinematics
-from fluoronav.registration.centerline_cost import centerline_cost, checked_array
-from fluoronav.registration.centerline_geometry import cm_basis, normalize
+from fluoronav.registration.centerline.cost import centerline_cost, checked_array
+from fluoronav.registration.centerline.geometry import cm_basis, normalize
 
 __all__ = [
     "MultiViewInitConfig",
@@ -102,7 +102,7 @@ def centerline_initialize_multiview(
     A and B triangulate (:func:`~fluoronav.geometry.camera.triangulate_points`), which removes the
     depth ambiguity of a single view; the one remaining DoF, the roll θ about the chord, is scanned
     on ``n_theta`` values and scored by the centreline cost
-    (:func:`~fluoronav.registration.centerline_cost.centerline_cost`) averaged over all views, where
+    (:func:`~fluoronav.registration.centerline.cost.centerline_cost`) averaged over all views, where
     the mirror ambiguity of one view is resolved by the others. A sits on the triangulated A, the
     model chord points at the triangulated B.
 

@@ -305,7 +305,7 @@ def test_roll_scan_recovers_the_roll_about_the_chord(single_case) -> None:
     """Turned 100° about its A→B chord (A and B stay on their rays), the CM is turned back to within
     one scan step (10°) by the image score; the other start, the truth turned 100°, does not win."""
     from fluoronav.manipulator.kinematics import CMKinematics
-    from fluoronav.registration.centerline_init import roll_about_axis_deg, turn_about_chord
+    from fluoronav.registration.centerline import roll_about_axis_deg, turn_about_chord
     from fluoronav.registration.cm import roll_scan
 
     case = single_case

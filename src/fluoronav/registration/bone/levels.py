@@ -28,8 +28,8 @@ from torch.nn import functional as tnf
 
 from fluoronav.anatomy.volume import MU_WATER_PER_MM, Volume, hu_to_mu
 from fluoronav.geometry.camera import CIOS_FUSION, Camera
-from fluoronav.registration.bone_presets import BoneLevel
-from fluoronav.registration.bone_views import BoneView
+from fluoronav.registration.bone.presets import BoneLevel
+from fluoronav.registration.bone.views import BoneView
 from fluoronav.registration.engine import SimilarityFactory, default_similarity
 from fluoronav.registration.levels import LevelConfig, patch_radius_for
 from fluoronav.registration.roi import area_downsample

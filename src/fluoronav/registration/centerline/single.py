@@ -1,6 +1,6 @@
 """Single-view centreline initialisation of the CM pose (Gao et al., IEEE TBME 69(1), 2022, sec. II-B).
 
-See :mod:`fluoronav.registration.centerline_init` for the method; this module holds its settings
+See :mod:`fluoronav.registration.centerline` for the method; this module holds its settings
 (:class:`CenterlineInitConfig`), the search (:func:`centerline_initialize`) and the depth range about
 an anatomical anchor (:func:`depth_range_about`).
 """
@@ -21,10 +21,10 @@ from fluoronav.detection.centerline import resample_polyline
 from fluoronav.errors import InputError, RegistrationFailure
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator import CMConfig, CMKinematics
-from fluoronav.registration.centerline_cost import centerline_cost, checked_array
-from fluoronav.registration.centerline_geometry import normalize, poses_from_depth_theta, roll_of_pose
-from fluoronav.registration.centerline_joint_fit import JointFitConfig, joint_fit
-from fluoronav.registration.shaft_depth import (
+from fluoronav.registration.centerline.cost import centerline_cost, checked_array
+from fluoronav.registration.centerline.geometry import normalize, poses_from_depth_theta, roll_of_pose
+from fluoronav.registration.centerline.joint_fit import JointFitConfig, joint_fit
+from fluoronav.registration.centerline.shaft_depth import (
     SHAFT_DEPTH_SIGMA_FRACTION,
     measure_shaft_depth,
     shaft_depth_residual,
@@ -64,7 +64,7 @@ class CenterlineInitConfig:
         n_starts: number of grid local minima refined.
         refine_iterations: compass-search iterations (3 × 3 stencil, step halved on failure).
         joint_refine: polish the refined minima by the 11-DoF least-squares fit
-            (:mod:`~fluoronav.registration.centerline_joint_fit`); needs ``refine``.
+            (:mod:`~fluoronav.registration.centerline.joint_fit`); needs ``refine``.
         joint_fit: priors and solver settings of that fit.
         n_model_points: points on the model centreline A → B.
         n_extracted_points: the extracted centreline is resampled to this many points by arc length.
@@ -105,7 +105,7 @@ class CenterlineInitResult:
         camera_from_cm: (4, 4) float64 pose of the CM base frame in the camera (source) frame, mm.
         depth_mm: d_A, camera-frame z of landmark A.
         theta_deg: roll θ about the chord A→B in [0, 360) (see
-            :mod:`~fluoronav.registration.centerline_init` for θ = 0).
+            :mod:`~fluoronav.registration.centerline` for θ = 0).
         branch: ``"near"`` or ``"far"`` root for B on its ray.
         cost_px: centreline cost of the returned pose (pixels).
         grid_cost_px: best cost of the sampled grid, before refinement (pixels).

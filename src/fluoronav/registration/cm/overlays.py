@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from fluoronav.registration.cm_result import CMRegistrationResult
+from fluoronav.registration.cm.result import CMRegistrationResult
 
 __all__ = ["EDGE_FRACTION", "edge_mask", "save_overlays", "to_uint8"]
 

@@ -1,7 +1,7 @@
 """Joint refinement of a centreline initialisation: all 11 DoF (pose and control points) fitted to the
 centreline with the landmarks and the FBG control points as Gaussian priors.
 
-The grid search of :func:`~fluoronav.registration.centerline_init.centerline_initialize` pins A and B
+The grid search of :func:`~fluoronav.registration.centerline.centerline_initialize` pins A and B
 exactly on the detected landmarks' rays and the chord at the FBG shape's length, so 3 px of landmark
 noise or 0.5° of FBG error moves the best (d_A, θ) far along the depth valley; this robust
 least-squares fit (soft-L1 loss, point-to-polyline distances both ways) polishes each refined minimum,
@@ -20,8 +20,8 @@ from scipy.optimize import least_squares
 from fluoronav.geometry.camera import project_points
 from fluoronav.geometry.rotations import rotvec_to_matrix
 from fluoronav.manipulator import CMKinematics
-from fluoronav.registration.centerline_cost import fixed_points_to_polylines, point_to_fixed_polyline
-from fluoronav.registration.shaft_depth import ShaftDepthCue, shaft_depth_residual
+from fluoronav.registration.centerline.cost import fixed_points_to_polylines, point_to_fixed_polyline
+from fluoronav.registration.centerline.shaft_depth import ShaftDepthCue, shaft_depth_residual
 
 __all__ = ["JointFitConfig", "joint_fit"]
 

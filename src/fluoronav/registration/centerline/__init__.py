@@ -46,46 +46,50 @@ construction, so the symmetric term penalises a projected model that is too shor
 
 The parts, one job each (all names are importable from here):
 
-- :mod:`~fluoronav.registration.centerline_geometry`: poses from (d_A, θ, branch), turns about the
+- :mod:`~fluoronav.registration.centerline.geometry`: poses from (d_A, θ, branch), turns about the
   chord, roll errors;
-- :mod:`~fluoronav.registration.centerline_cost`: the centreline cost;
-- :mod:`~fluoronav.registration.shaft_depth`: the shaft's depth from its width, a depth cue;
-- :mod:`~fluoronav.registration.centerline_joint_fit`: the 11-DoF joint refinement;
-- :mod:`~fluoronav.registration.centerline_single`: the single-view search
+- :mod:`~fluoronav.registration.centerline.cost`: the centreline cost;
+- :mod:`~fluoronav.registration.centerline.shaft_depth`: the shaft's depth from its width, a depth cue;
+- :mod:`~fluoronav.registration.centerline.joint_fit`: the 11-DoF joint refinement;
+- :mod:`~fluoronav.registration.centerline.single`: the single-view search
   (:class:`CenterlineInitConfig`, :func:`centerline_initialize`);
-- :mod:`~fluoronav.registration.centerline_multiview`: the multi-view initialisation;
-- :mod:`~fluoronav.registration.centerline_eval`: synthetic scenes and the accuracy on them.
+- :mod:`~fluoronav.registration.centerline.multiview`: the multi-view initialisation;
+- :mod:`~fluoronav.registration.centerline.evaluate`: synthetic scenes and the accuracy on them.
 """
 
 from __future__ import annotations
 
-from fluoronav.registration.centerline_cost import centerline_cost, polyline_distance_cost
-from fluoronav.registration.centerline_eval import (
+from fluoronav.registration.centerline.cost import centerline_cost, polyline_distance_cost
+from fluoronav.registration.centerline.evaluate import (
     CenterlineScene,
     evaluate_centerline_init,
     synthetic_centerline_scene,
 )
-from fluoronav.registration.centerline_geometry import (
+from fluoronav.registration.centerline.geometry import (
     mirror_about_chord,
     poses_from_depth_theta,
     roll_about_axis_deg,
     turn_about_chord,
 )
-from fluoronav.registration.centerline_joint_fit import JointFitConfig
-from fluoronav.registration.centerline_multiview import (
+from fluoronav.registration.centerline.joint_fit import JointFitConfig
+from fluoronav.registration.centerline.multiview import (
     MultiViewInitConfig,
     MultiViewInitResult,
     centerline_initialize_multiview,
     multiview_start_poses,
 )
-from fluoronav.registration.centerline_single import (
+from fluoronav.registration.centerline.shaft_depth import (
+    ShaftDepthCue,
+    measure_shaft_depth,
+    shaft_depth_residual,
+)
+from fluoronav.registration.centerline.single import (
     ANATOMY_DEPTH_WINDOW_MM,
     CenterlineInitConfig,
     CenterlineInitResult,
     centerline_initialize,
     depth_range_about,
 )
-from fluoronav.registration.shaft_depth import ShaftDepthCue, measure_shaft_depth, shaft_depth_residual
 
 __all__ = [
     "ANATOMY_DEPTH_WINDOW_MM",

@@ -14,9 +14,9 @@ import pytest
 
 from fluoronav.navigation.safety import SafetyConfig, judge_cm_views
 from fluoronav.registration.case import simulate_cm_case
-from fluoronav.registration.centerline_init import mirror_about_chord
+from fluoronav.registration.centerline import mirror_about_chord
 from fluoronav.registration.cm import CMRegistrationConfig, CMView, register_cm
-from fluoronav.registration.diagnostics import cm_view_diagnostics, edge_ncc
+from fluoronav.registration.cm.diagnostics import cm_view_diagnostics, edge_ncc
 from fluoronav.registration.levels import CM_SIGMA, LevelConfig
 
 HOLD = CMRegistrationConfig(

@@ -19,8 +19,8 @@ from fluoronav.detection.centerline import resample_polyline
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.carm import carm_camera
 from fluoronav.manipulator import CMConfig, CMKinematics
-from fluoronav.registration.centerline_geometry import roll_about_axis_deg
-from fluoronav.registration.centerline_single import (
+from fluoronav.registration.centerline.geometry import roll_about_axis_deg
+from fluoronav.registration.centerline.single import (
     CenterlineInitConfig,
     centerline_initialize,
     depth_range_about,
@@ -132,7 +132,7 @@ def evaluate_centerline_init(
     """Run the initialiser on ``n`` random synthetic scenes and summarise its errors.
 
     ``scene_options`` go to :func:`synthetic_centerline_scene`, ``config`` to
-    :func:`~fluoronav.registration.centerline_single.centerline_initialize`. ``depth_window_mm``:
+    :func:`~fluoronav.registration.centerline.single.centerline_initialize`. ``depth_window_mm``:
     search the depth within this distance of the isocentre (the scenes' nominal CM position, as the
     femoral head in the studies).
 

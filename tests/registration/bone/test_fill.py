@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fluoronav.registration.fill import harmonic_fill
+from fluoronav.registration.bone.fill import harmonic_fill
 
 
 def test_linear_ramp_is_reproduced_inside_and_known_pixels_kept():

@@ -21,9 +21,9 @@ from fluoronav.detection.tube_profile import fit_tube_profile
 from fluoronav.geometry.transforms import params_from_transform
 from fluoronav.manipulator.config import with_shaft
 from fluoronav.manipulator.kinematics import CMKinematics
-from fluoronav.registration.cm_config import CMRegistrationConfig
-from fluoronav.registration.cm_result import CMRegistrationResult
-from fluoronav.registration.cm_views import CMView, ViewROI, landmark_center, view_roi
+from fluoronav.registration.cm.config import CMRegistrationConfig
+from fluoronav.registration.cm.result import CMRegistrationResult
+from fluoronav.registration.cm.views import CMView, ViewROI, landmark_center, view_roi
 from fluoronav.registration.engine import PriorFn, Registration
 from fluoronav.registration.levels import LevelConfig
 from fluoronav.registration.parameterization import (

@@ -1,7 +1,7 @@
 """Geometry of the CM's A→B chord: candidate poses from (depth, roll, branch), turns about the chord
 and the roll error about it (Gao et al., IEEE TBME 69(1), 2022, sec. II-B).
 
-Conventions (see :mod:`fluoronav.registration.centerline_init`): ``depth_mm`` (d_A) is the
+Conventions (see :mod:`fluoronav.registration.centerline`): ``depth_mm`` (d_A) is the
 camera-frame z of landmark A, ``theta_deg`` (θ) the roll of the CM about the chord A→B, θ = 0 where
 the CM's x axis (the normal of its bending plane) is along ``r_A × (B3D − A3D)``; ``branch`` 0 / 1
 is the near / far root of B on its ray.

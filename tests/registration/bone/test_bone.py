@@ -37,7 +37,7 @@ from fluoronav.registration.bone import (
     views_from_images,
     views_in_ct_frame,
 )
-from fluoronav.registration.bone_levels import box_downsample
+from fluoronav.registration.bone.levels import box_downsample
 from fluoronav.registration.levels import LevelConfig
 from fluoronav.registration.trace import RegistrationTrace
 from fluoronav.rendering.ct import render_line_integrals
@@ -385,9 +385,9 @@ def test_femur_multi_view_joint(volume, simulator):
 
 def test_bone_volume_and_level_renderers_are_built_once_per_ct(volume):
     """The registrations of a navigation share each bone's excess-μ volume and level renderers."""
-    from fluoronav.registration.bone_levels import BoneLevelData, shared_level_renderers
-    from fluoronav.registration.bone_presets import PELVIS_LINEARIZED_PRESET
-    from fluoronav.registration.bone_views import BoneView
+    from fluoronav.registration.bone.levels import BoneLevelData, shared_level_renderers
+    from fluoronav.registration.bone.presets import PELVIS_LINEARIZED_PRESET
+    from fluoronav.registration.bone.views import BoneView
 
     mu, w = bone_excess_mu(volume, ["pelvis"])
     mu2, w2 = bone_excess_mu(volume, ["pelvis"])

@@ -1,0 +1,88 @@
+"""Intensity-based 2D/3D registration of the pelvis and the femur (single and multi-view).
+
+Pelvis (the fiducial relating the C-arm views; Gao et al., IEEE TBME 69(1), 2022, sec. II-C): 6 DoF
+(:class:`RigidAboutPoint`, rotation about the pelvis centre, axes of the first view's camera) of the
+label-masked pelvis DRR against the whole image with patch gradient NCC, as xReg does. Femur: 3 DoF
+rotation about the femoral head (:class:`RotationAboutPoint`) after the pelvis; the moving image is
+the static pelvis DRR at the registered pose (rendered once per level) plus the femur DRR.
+
+The DRR volume of a bone is its attenuation in excess of soft tissue (:func:`bone_excess_mu`). Every
+level renders the whole CMA-ES population and all views in one call (P·V cameras) of a
+box-downsampled copy of the cropped volume at a binned working image (the ROI is the whole image,
+binned): :mod:`~fluoronav.registration.bone.levels`. The levels are data
+(:mod:`~fluoronav.registration.bone.presets`: :func:`pelvis_config`, :func:`femur_config`; a femur
+in one view from a grid of tilted starts; ``authors=True`` gives the authors' σ and population 50).
+
+Instruments: a view's ``mask`` leaves the CM and its shaft out of the similarity
+(:mod:`~fluoronav.registration.bone.views`).
+
+Multi-view: ``register_pelvis`` with several views optimises one ``world_from_patient`` against all
+of them (joint); :func:`register_pelvis_per_view` registers each view alone and returns each view's
+``camera_from_patient``, from which ``relative_view_poses`` gives ``camera_k_from_camera_0``.
+"""
+
+from __future__ import annotations
+
+from fluoronav.registration.bone.levels import (
+    TISSUE_HU,
+    bone_excess_mu,
+)
+from fluoronav.registration.bone.presets import (
+    FEMUR_AUTHORS_PRESET,
+    FEMUR_MULTI_VIEW_PRESET,
+    FEMUR_ONE_VIEW_PRESET,
+    FEMUR_TILT_START_DEG,
+    FEMUR_TILT_STARTS,
+    PELVIS_AUTHORS_PRESET,
+    PELVIS_CMAES_PRESET,
+    PELVIS_LINEARIZED_PRESET,
+    PELVIS_PRESET,
+    PELVIS_REFINE_PRESET,
+    BoneLevel,
+    BoneRegistrationConfig,
+    femur_config,
+    pelvis_config,
+)
+from fluoronav.registration.bone.register import (
+    BoneRegistrationResult,
+    bone_footprints,
+    register_femur,
+    register_pelvis,
+    register_pelvis_per_view,
+    relative_view_poses,
+    views_in_ct_frame,
+)
+from fluoronav.registration.bone.views import (
+    BoneView,
+    static_view_composite,
+    views_from_images,
+)
+
+__all__ = [
+    "FEMUR_AUTHORS_PRESET",
+    "FEMUR_MULTI_VIEW_PRESET",
+    "FEMUR_ONE_VIEW_PRESET",
+    "FEMUR_TILT_STARTS",
+    "FEMUR_TILT_START_DEG",
+    "PELVIS_AUTHORS_PRESET",
+    "PELVIS_CMAES_PRESET",
+    "PELVIS_LINEARIZED_PRESET",
+    "PELVIS_PRESET",
+    "PELVIS_REFINE_PRESET",
+    "TISSUE_HU",
+    "BoneLevel",
+    "BoneRegistrationConfig",
+    "BoneRegistrationResult",
+    "BoneView",
+    "bone_excess_mu",
+    "bone_footprints",
+    "femur_config",
+    "pelvis_config",
+    "register_femur",
+    "register_pelvis",
+    "register_pelvis_per_view",
+    "relative_view_poses",
+    "static_view_composite",
+    "views_from_images",
+    "views_in_ct_frame",
+]
