@@ -34,6 +34,22 @@ class RegistrationFailure(FluoronavError):
     """A registration or calibration that did not converge; carries the reason."""
 
 
+class RegistrationRefused(FluoronavError):
+    """A registration that failed its checks; nothing may act on it.
+
+    Args:
+        stage: the stage that refused (e.g. ``"cm"``).
+        check: the check that failed (e.g. ``"edge_ncc"``).
+        detail: what was measured against which threshold, as a short sentence.
+        view: the view concerned, or "".
+    """
+
+    def __init__(self, stage: str, check: str, detail: str, view: str = "") -> None:
+        self.stage, self.check, self.view, self.detail = stage, check, view, detail
+        where = f"stage {stage}" + (f", view {view}" if view else "")
+        super().__init__(f"{where}, check {check}: {detail}")
+
+
 def read_json_object(path: str | Path, *, what: str) -> dict[str, Any]:
     """Read a JSON file that must hold an object; every problem is an :class:`InputError`.
 

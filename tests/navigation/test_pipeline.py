@@ -6,6 +6,7 @@ is tested end to end in test_demo.py (slow).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -14,8 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import fluoronav.navigation.pipeline as pipeline
+from fluoronav.errors import RegistrationRefused
 from fluoronav.navigation.case import write_navigation_case
-from fluoronav.navigation.pipeline import NavigationConfig, _band_mask, navigate
+from fluoronav.navigation.pipeline import NavigationConfig, NavigationRefused, _band_mask, _refusals, navigate
 from fluoronav.navigation.result import navigation_cm_config
 
 
@@ -80,3 +83,39 @@ def test_navigation_cm_settings_are_the_cmaes_levels() -> None:
     assert cfg.levels == default_cm_levels()
     for workflow in ("single-view", "multi-view"):
         assert [lv.optimizer for lv in cfg.levels_for(workflow)] == ["cmaes", "cmaes"]
+
+
+def test_a_registration_refusal_is_the_navigations_its_stage_named_as_the_pipelines() -> None:
+    with pytest.raises(NavigationRefused) as err, _refusals("verify_"):
+        raise RegistrationRefused("cm", "edge_ncc", "NCC 0.10 (at least 0.7)", view="AP (verify)")
+    assert (
+        err.value.stage == "verify_cm" and err.value.check == "edge_ncc" and err.value.view == "AP (verify)"
+    )
+    assert str(err.value) == "stage verify_cm, view AP (verify), check edge_ncc: NCC 0.10 (at least 0.7)"
+
+
+def test_navigate_registers_the_detected_views_as_one_set(
+    monkeypatch: pytest.MonkeyPatch, make_no_cm_case
+) -> None:
+    """The views with the case's landmarks go to ``register_view_set`` with the pipeline's settings
+    (one device) and no prior; its stages are the pipeline's, and its refusal the navigation's."""
+    case = make_no_cm_case(n_views=2, size=64)
+    lm = np.array([[20.0, 30.0], [40.0, 34.0]])
+    case = dataclasses.replace(case, views=tuple(dataclasses.replace(v, landmarks_px=lm) for v in case.views))
+    seen: dict = {}
+
+    def register(views, volume, **kw):
+        seen.update(views=views, **kw)
+        with kw["recorder"]("cm"):
+            raise RegistrationRefused("cm", "edge_ncc", "NCC 0.10", view="view1")
+
+    monkeypatch.setattr(pipeline, "register_view_set", register)
+    events: list[tuple[str, str]] = []
+    res = navigate(case, NavigationConfig(device="cpu", seed=3), on_stage=lambda n, e: events.append((n, e)))
+    assert [v.name for v in seen["views"]] == ["view0", "view1"]
+    assert all(v.detection is not None and v.detection.source == "case" for v in seen["views"])
+    assert seen["settings"] == NavigationConfig(device="cpu", seed=3).view_set_settings(verification=False)
+    assert seen.get("prior") is None and seen["side"] == case.side
+    assert res.status == "refused" and res.reason == "stage cm, view view1, check edge_ncc: NCC 0.10"
+    assert res.stages["cm"].passed is False and res.joints_target_deg is None
+    assert events == [("detect", "start"), ("detect", "done"), ("cm", "start"), ("cm", "done")]

@@ -30,7 +30,7 @@ from fluoronav.bench.registration import REFERENCE_CONFIG
 from fluoronav.geometry import se3
 from fluoronav.navigation.pipeline import navigate
 from fluoronav.navigation.result import NavigationConfig
-from fluoronav.navigation.simulated import SimulationConfig, run_simulated_navigation
+from fluoronav.navigation.simulated import SimulatedNavigationConfig, run_simulated_navigation
 from fluoronav.registration.bone import BoneView, register_pelvis
 from fluoronav.registration.bone.presets import PELVIS_CMAES_PRESET, BoneRegistrationConfig, femur_config
 
@@ -53,7 +53,7 @@ def _reference(preset: BoneRegistrationConfig) -> BoneRegistrationConfig:
 def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
     """Seconds of one pelvis view and of one navigation, each with its 0.1.0 reference (one repeat:
     a navigation takes minutes at the reference settings; ``quick`` changes nothing)."""
-    sim = run_simulated_navigation(SimulationConfig(seed=BENCH_SEED, device=device), until="case")
+    sim = run_simulated_navigation(SimulatedNavigationConfig(seed=BENCH_SEED, device=device), until="case")
     case = replace(sim.artifacts["case"], verification=None)
     truth = sim.truth
     out: dict[str, float] = {}

@@ -20,7 +20,11 @@ Stages, each timed and recorded with its diagnostics (:class:`StageRecord`):
 With verification views (the images after the move): ``verify_detect``, ``verify_pelvis``,
 ``verify_femur``, ``verify_cm`` (the CM registered from the plan on the re-registered femur) and
 ``correct``: one corrective command from the verification joints that slides the registered CM so
-that its tip meets the plan (:func:`~fluoronav.navigation.navigate.tip_correction_target`).
+that its tip meets the plan (:func:`~fluoronav.navigation.targeting.tip_correction_target`).
+
+Stages 2–4 are :func:`~fluoronav.registration.view_set.register_view_set`, for the verification
+with the first registration and the robot's kinematics as its prior
+(:class:`~fluoronav.registration.view_set.ViewSetPrior`).
 
 A stage that cannot go on (fewer than two views with a CM, the target out of the robot's reach)
 ends the run with status ``"refused"`` and a reason naming the stage, the view and the check; no
@@ -38,51 +42,38 @@ import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import torch
 
 from fluoronav.detection.centerline import extract_centerline
-from fluoronav.detection.instrument import instrument_masks
-from fluoronav.geometry import se3
-from fluoronav.geometry.camera import Camera
+from fluoronav.errors import RegistrationRefused
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.manipulator.robot import wrap_deg
 from fluoronav.navigation.case import CaseView, NavigationCase
-from fluoronav.navigation.checks import motion_consistency, predicted_femur_from_cm, register_cm_checked
-from fluoronav.navigation.navigate import (
-    UnreachableTarget,
-    femur_from_cm_registered,
-    robot_target,
-    tip_correction_target,
-)
 from fluoronav.navigation.planning import planned_femur_from_cm
 from fluoronav.navigation.result import (
     NavigationConfig,
     NavigationRefused,
     NavigationResult,
-    Registration,
     StageRecord,
     ViewDetection,
-    navigation_cm_config,
 )
-from fluoronav.registration.bone import (
-    BoneRegistrationResult,
-    BoneView,
-    bone_footprints,
-    femur_config,
-    register_femur,
-    register_pelvis_per_view,
-    views_in_ct_frame,
+from fluoronav.navigation.targeting import (
+    UnreachableTarget,
+    femur_from_cm_registered,
+    predicted_femur_from_cm,
+    robot_target,
+    tip_correction_target,
 )
-from fluoronav.registration.centerline import (
-    MultiViewInitResult,
-    centerline_initialize_multiview,
-    multiview_start_poses,
+from fluoronav.registration.view_set import (
+    FluoroView,
+    StageRecorder,
+    ViewSetPrior,
+    ViewSetRegistration,
+    register_view_set,
 )
-from fluoronav.registration.cm import CMRegistrationResult, CMView
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +84,6 @@ __all__ = [
     "NavigationConfig",
     "NavigationRefused",
     "NavigationResult",
-    "Registration",
     "StageRecord",
     "ViewDetection",
     "navigate",
@@ -106,8 +96,8 @@ VERIFY_STAGES = ("verify_detect", "verify_pelvis", "verify_femur", "verify_cm", 
 
 #: ``on_event(kind, data)``: what the pipeline tells a listener (e.g. a live link to a viewer) as
 #: soon as it is known. Kinds and data: "views" (``prefix``, ``views``: the case's views of that
-#: set), "registration" (``prefix``, ``registration``: a :class:`Registration`), "plan" (``plan``,
-#: ``ct_from_femur``, ``femur_from_cm_target``), "status" (``status``, ``reason``; at the end of
+#: set), "registration" (``prefix``, ``registration``: a :class:`ViewSetRegistration`), "plan"
+#: (``plan``, ``ct_from_femur``, ``femur_from_cm_target``), "status" (``status``, ``reason``; at the end of
 #: :func:`navigate` and of :func:`verify`). ``prefix`` is "" for the first images and "verify_"
 #: for the verification's.
 EventCallback = Callable[[str, dict[str, Any]], None]
@@ -145,6 +135,10 @@ class _Stages:
             rec.seconds = time.perf_counter() - t0
             if self.on_stage is not None:
                 self.on_stage(name, "done")
+
+    def within(self, prefix: str) -> StageRecorder:
+        """The recorder of a registration's stages, named ``prefix + stage``."""
+        return lambda name: self(prefix + name)
 
 
 @functools.lru_cache(maxsize=2)
@@ -213,62 +207,16 @@ def detect_views(
     return out, diag
 
 
-def _bone_views(views: Sequence[CaseView], detections: Sequence[ViewDetection | None]) -> list[BoneView]:
-    """The views for the bone registrations, the CM and its shaft left out of the similarity."""
-    instruments = instrument_masks(
-        [None if d is None else d.mask for d in detections],
-        [None if d is None else d.centerline_px for d in detections],
-        [v.image for v in views],
-    )
-    return [
-        BoneView(np.asarray(v.image, np.float32), v.camera, None if m is None else ~_as_bool(m))
-        for v, m in zip(views, instruments, strict=True)
-    ]
-
-
-def _cm_views(
-    views: Sequence[CaseView], cameras_ct: Sequence[Camera], landmarks: Sequence[np.ndarray | None], tag: str
-) -> list[CMView]:
-    return [
-        CMView(np.asarray(v.image, np.float32), c, landmarks_px=lm, name=f"{v.name}{tag}")
-        for v, c, lm in zip(views, cameras_ct, landmarks, strict=True)
-    ]
-
-
-def _register(
-    case: NavigationCase,
-    views: Sequence[CaseView],
-    stage: _Stages,
-    config: NavigationConfig,
-    *,
-    prefix: str,
-    seed: int,
-    initial_ct_from_cm: Callable[[np.ndarray], np.ndarray] | None,
-    initial_control_points_deg: np.ndarray,
-    recovery_ct_from_cm: Callable[[np.ndarray], np.ndarray] | None = None,
-    motion_check: Callable[[np.ndarray, CMRegistrationResult], dict[str, float]] | None = None,
-    ct_from_femur_prior: np.ndarray | None = None,
-    expected_ct_from_cm: Callable[[np.ndarray], np.ndarray] | None = None,
-) -> Registration:
-    """Detection, pelvis per view, femur, CM in one set of views.
-
-    ``initial_ct_from_cm``: None for the multi-view centreline initialisation, else a function of the
-    registered ``ct_from_femur`` giving the CM start (verification: the plan on the new femur);
-    ``recovery_ct_from_cm`` likewise, a second start tried where the first fails its checks;
-    ``motion_check(ct_from_femur, cm)``: a further check of the CM against the robot's kinematics.
-    ``ct_from_femur_prior``: the femur of an earlier registration (verification: the first); the
-    femur starts there, and each view's pelvis is registered a second time with the femur's
-    footprint left out (``config.verify_pelvis_refine``).
-    ``expected_ct_from_cm``: a function of the registered ``ct_from_femur`` giving where the CM is
-    expected (verification: where the robot's kinematics put it); detected landmarks far from its
-    landmarks are left out of their triangulation.
-    """
+def _detect(
+    stage: _Stages, views: Sequence[CaseView], config: NavigationConfig, *, prefix: str, need: int
+) -> list[FluoroView]:
+    """The ``detect`` stage of one set of views: each view with the CM found in it; refuses where
+    fewer than ``need`` views have one."""
     with stage(f"{prefix}detect") as rec:
         stage.emit("views", prefix=prefix, views=tuple(views))
         detections, rec.diagnostics["views"] = detect_views(views, config=config)
         seen = [k for k, d in enumerate(detections) if d is not None]
         rec.diagnostics["views_detected"] = len(seen)
-        need = config.min_views if initial_ct_from_cm is None else 1
         if len(seen) < need:
             missing = ", ".join(v.name for v, d in zip(views, detections, strict=True) if d is None)
             raise NavigationRefused(
@@ -277,139 +225,18 @@ def _register(
                 f"the CM was found in {len(seen)} of {len(views)} views, {need} needed",
                 view=missing,
             )
-    bone_views = _bone_views(views, detections)
-    with stage(f"{prefix}pelvis") as rec:
-        pelvis = register_pelvis_per_view(
-            bone_views,
-            case.volume,
-            initial_world_from_patient=np.eye(4),
-            config=replace(config.pelvis, device=config.device),
-            seed=seed + 2,
-        )
-        rec.diagnostics["views"] = {
-            v.name: {"cost": float(r.cost), "converged": bool(r.converged), "reason": r.reason}
-            for v, r in zip(views, pelvis, strict=True)
-        }
-        if ct_from_femur_prior is not None and config.verify_pelvis_refine is not None:
-            pelvis = _pelvis_without_femur(
-                case, bone_views, pelvis, ct_from_femur_prior, config, seed=seed + 4, record=rec.diagnostics
-            )
-    views_ct = views_in_ct_frame(bone_views, pelvis)
-    cams_ct = [bv.camera for bv in views_ct]
-    with stage(f"{prefix}femur") as rec:
-        femur = register_femur(
-            views_ct,
-            case.volume,
-            side=case.side,
-            world_from_patient=np.eye(4),
-            config=replace(config.femur or femur_config(views=len(views_ct)), device=config.device),
-            seed=seed + 3,
-            initial_world_from_femur=ct_from_femur_prior,
-        )
-        rec.diagnostics.update(cost=float(femur.cost), converged=bool(femur.converged), reason=femur.reason)
-    with stage(f"{prefix}cm") as rec:
-        init: MultiViewInitResult | None = None
-        lm_views: list[np.ndarray | None] = [None if d is None else d.landmarks_px for d in detections]
-        if len(seen) >= 2:
-            # landmarks triangulated over the views; one that disagrees with the others (a
-            # detection of A where the CM leaves the image, say) gives way to the consensus, in the
-            # registration's ROI and landmark prior as in its start
-            init = centerline_initialize_multiview(
-                [cams_ct[k] for k in seen],
-                np.stack([detections[k].landmarks_px for k in seen]),  # type: ignore[union-attr]
-                [detections[k].centerline_px for k in seen],  # type: ignore[union-attr]
-                initial_control_points_deg,
-                config=case.cm_config,
-                landmark_confidence=np.stack([detections[k].confidence for k in seen]),  # type: ignore[union-attr]
-                landmark_prior_world=None
-                if expected_ct_from_cm is None
-                else se3.apply(
-                    expected_ct_from_cm(femur.world_from_bone),
-                    CMKinematics(case.cm_config)
-                    .landmarks_cm(torch.as_tensor(initial_control_points_deg, dtype=torch.float64))
-                    .numpy(),
-                ),
-            )
-            for i, k in enumerate(seen):
-                lm_views[k] = init.landmarks_px[i]
-            rec.diagnostics["init_cost_px"] = float(init.cost_px)
-            rec.diagnostics["landmarks_replaced"] = int((~np.asarray(init.landmark_inliers)).sum())
-        if initial_ct_from_cm is None:
-            assert init is not None  # detection needs two views for the first registration
-            tries = [multiview_start_poses(init, max_starts=config.max_cm_starts)]
-        else:
-            tries = [[initial_ct_from_cm(femur.world_from_bone)]]
-        if recovery_ct_from_cm is not None:  # a second start, tried only where the first fails
-            tries.append([recovery_ct_from_cm(femur.world_from_bone)])
-        tag = f" ({prefix.rstrip('_')})" if prefix else ""
-        verification = ct_from_femur_prior is not None
-        cm_settings = (config.verify_cm if verification else config.cm) or navigation_cm_config()
-        cm = register_cm_checked(
-            _cm_views(views, cams_ct, lm_views, tag),
-            lm_views,
-            tries,
-            rec,
-            stage_name=f"{prefix}cm",
-            initial_control_points_deg=initial_control_points_deg,
-            cm_config=cm_settings.with_(device=config.device, cm_config=case.cm_config),
-            safety=config.safety,
-            seed=seed + 5,
-            motion_check=None
-            if motion_check is None
-            else functools.partial(motion_check, femur.world_from_bone),
-        )
-    reg = Registration(
-        views=tuple(views),
-        detections=tuple(detections),
-        pelvis=tuple(pelvis),
-        cameras_ct=tuple(cams_ct),
-        femur=femur,
-        cm=cm,
-        cm_init=init,
-    )
-    stage.emit("registration", prefix=prefix, registration=reg)
-    return reg
+    return [FluoroView(v.name, v.image, v.camera, d) for v, d in zip(views, detections, strict=True)]
 
 
-def _pelvis_without_femur(
-    case: NavigationCase,
-    bone_views: Sequence[BoneView],
-    pelvis: Sequence[BoneRegistrationResult],
-    ct_from_femur: np.ndarray,
-    config: NavigationConfig,
-    *,
-    seed: int,
-    record: dict[str, Any],
-) -> list[BoneRegistrationResult]:
-    """Each view's pelvis again, from its first result, with the femur's footprint (the femur at
-    ``ct_from_femur``, seen through that result's camera) left out of the similarity."""
-    assert config.verify_pelvis_refine is not None
-    cams = [r.camera_from_bone[0] for r in pelvis]
-    head = np.asarray(case.volume.landmarks_world[f"femoral_head_{case.side}"], np.float64)
-    femur = bone_footprints(
-        [v.camera for v in bone_views],
-        case.volume,
-        f"femur_{case.side}",
-        np.stack([c @ ct_from_femur for c in cams]),
-        margin_mm=config.femur_margin_mm,
-        center_bone_mm=head,
-    )
-    views = [
-        BoneView(v.image, v.camera, ~f if v.mask is None else (_as_bool(v.mask) & ~f))
-        for v, f in zip(bone_views, femur, strict=True)
-    ]
-    again = register_pelvis_per_view(
-        views,
-        case.volume,
-        initial_world_from_patient=np.stack([r.world_from_bone for r in pelvis]),
-        config=replace(config.verify_pelvis_refine, device=config.device),
-        seed=seed,
-    )
-    for name, f, r in zip(record["views"], femur, again, strict=True):
-        record["views"][name].update(
-            femur_left_out=float(f.mean()), cost_without_femur=float(r.cost), reason_without_femur=r.reason
-        )
-    return again
+@contextmanager
+def _refusals(prefix: str) -> Iterator[None]:
+    """A registration's refusal as the navigation's, its stage named as the pipeline's."""
+    try:
+        yield
+    except RegistrationRefused as exc:
+        if isinstance(exc, NavigationRefused):
+            raise
+        raise NavigationRefused(f"{prefix}{exc.stage}", exc.check, exc.detail, view=exc.view) from exc
 
 
 def _stage_seed(seed: int, k: int) -> int:
@@ -419,7 +246,7 @@ def _stage_seed(seed: int, k: int) -> int:
 
 def _command(
     case: NavigationCase,
-    reg: Registration,
+    reg: ViewSetRegistration,
     joints_deg: np.ndarray,
     femur_from_cm_target: np.ndarray,
     config: NavigationConfig,
@@ -472,16 +299,19 @@ def navigate(
         else np.asarray(case.fbg_control_points_deg, np.float64)
     )
     try:
-        first = _register(
-            case,
-            case.views,
-            stage,
-            cfg,
-            prefix="",
-            seed=_stage_seed(cfg.seed, 0),
-            initial_ct_from_cm=None,
-            initial_control_points_deg=cp0,
-        )
+        views = _detect(stage, case.views, cfg, prefix="", need=cfg.min_views)
+        with _refusals(""):
+            first = register_view_set(
+                views,
+                case.volume,
+                side=case.side,
+                cm_config=case.cm_config,
+                initial_control_points_deg=cp0,
+                settings=cfg.view_set_settings(verification=False),
+                seed=_stage_seed(cfg.seed, 0),
+                recorder=stage.within(""),
+            )
+        stage.emit("registration", prefix="", registration=first)
         res.first = first
         with stage("plan") as rec:
             plan = case.plan
@@ -539,27 +369,31 @@ def verify(
     first = result.first
     # where the robot's kinematics say the CM went: a second start, the gate of the detected landmarks
     # and a check of the verification
-    predicted = predicted_femur_from_cm(case, first, case.verification.joints_deg)
-
-    def kinematic_ct_from_cm(ct_from_femur: np.ndarray) -> np.ndarray:
-        return ct_from_femur @ predicted
-
+    predicted = predicted_femur_from_cm(
+        case.robot,
+        case.joints_deg,
+        case.verification.joints_deg,
+        ee_from_cm=case.ee_from_cm,
+        femur_from_cm=femur_from_cm_registered(first.ct_from_femur, first.ct_from_cm),
+    )
+    prior = ViewSetPrior(first.ct_from_femur, target, predicted, cfg.safety.max_motion_tip_mm)
     kin = CMKinematics(case.cm_config)
     try:
-        ver = _register(
-            case,
-            case.verification.views,
-            stage,
-            cfg,
-            prefix="verify_",
-            seed=_stage_seed(cfg.seed, 1),
-            initial_ct_from_cm=lambda ct_from_femur: ct_from_femur @ target,
-            initial_control_points_deg=np.asarray(result.first.cm.control_points_deg),
-            recovery_ct_from_cm=kinematic_ct_from_cm,
-            motion_check=functools.partial(motion_consistency, case, first),
-            ct_from_femur_prior=first.ct_from_femur,
-            expected_ct_from_cm=kinematic_ct_from_cm,
-        )
+        views = _detect(stage, case.verification.views, cfg, prefix="verify_", need=1)
+        with _refusals("verify_"):
+            ver = register_view_set(
+                views,
+                case.volume,
+                side=case.side,
+                cm_config=case.cm_config,
+                initial_control_points_deg=np.asarray(first.cm.control_points_deg),
+                settings=cfg.view_set_settings(verification=True),
+                seed=_stage_seed(cfg.seed, 1),
+                prior=prior,
+                name="verify",
+                recorder=stage.within("verify_"),
+            )
+        stage.emit("registration", prefix="verify_", registration=ver)
         result.verification = ver
         with stage("correct") as rec:
             tip_cm = kin.tip_cm(torch.as_tensor(ver.cm.control_points_deg, dtype=torch.float64)).numpy()

@@ -26,8 +26,9 @@ from fluoronav.geometry import se3
 from fluoronav.htmlpage import Section, figure_png, html_page
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.case import NavigationCase
-from fluoronav.navigation.pipeline import NavigationResult, Registration
+from fluoronav.navigation.pipeline import NavigationResult
 from fluoronav.registration.bone import bone_excess_mu
+from fluoronav.registration.view_set import ViewSetRegistration
 from fluoronav.rendering.ct import render_line_integrals
 
 log = logging.getLogger(__name__)
@@ -59,7 +60,7 @@ def _box(points: np.ndarray, shape: tuple[int, ...], margin: float) -> tuple[int
     return r0, r1, c0, c1
 
 
-def _detection_figure(reg: Registration, true_landmarks: Sequence[np.ndarray] | None) -> bytes:
+def _detection_figure(reg: ViewSetRegistration, true_landmarks: Sequence[np.ndarray] | None) -> bytes:
     n = len(reg.views)
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.2), squeeze=False)
     for k, (ax, view, det) in enumerate(zip(axes[0], reg.views, reg.detections, strict=True)):
@@ -96,7 +97,7 @@ def _detection_figure(reg: Registration, true_landmarks: Sequence[np.ndarray] | 
     return figure_png(fig)
 
 
-def _cm_overlay_figure(reg: Registration, title: str) -> bytes:
+def _cm_overlay_figure(reg: ViewSetRegistration, title: str) -> bytes:
     """Fig. 12 style: edges of the registered CM DRR (green) on each view's ROI."""
     cm = reg.cm
     k = len(cm.view_names)
@@ -113,7 +114,7 @@ def _cm_overlay_figure(reg: Registration, title: str) -> bytes:
     return figure_png(fig)
 
 
-def _femur_overlay_figure(reg: Registration, case: NavigationCase) -> bytes:
+def _femur_overlay_figure(reg: ViewSetRegistration, case: NavigationCase) -> bytes:
     """Edges of the femur DRR at the registered pose (green) on each whole view."""
     mu, w_idx = bone_excess_mu(case.volume, [f"femur_{case.side}"])
     size = 256

@@ -14,27 +14,23 @@ from typing import Any
 import numpy as np
 
 from fluoronav import __version__
-from fluoronav.errors import FluoronavError
+from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
-from fluoronav.geometry.camera import Camera
-from fluoronav.navigation.case import CaseView
 from fluoronav.navigation.planning import Plan
 from fluoronav.navigation.safety import SafetyConfig
-from fluoronav.registration.bone import BoneRegistrationResult
 from fluoronav.registration.bone.presets import (
     PELVIS_LINEARIZED_PRESET,
     PELVIS_REFINE_PRESET,
     BoneRegistrationConfig,
 )
-from fluoronav.registration.centerline import MultiViewInitResult
-from fluoronav.registration.cm import CMRegistrationResult
 from fluoronav.registration.cm.config import CMRegistrationConfig, default_cm_levels
+from fluoronav.registration.stages import StageRecord
+from fluoronav.registration.view_set import ViewDetection, ViewSetRegistration, ViewSetSettings
 
 __all__ = [
     "NavigationConfig",
     "NavigationRefused",
     "NavigationResult",
-    "Registration",
     "StageRecord",
     "ViewDetection",
     "navigation_cm_config",
@@ -86,107 +82,38 @@ class NavigationConfig:
     cm: CMRegistrationConfig | None = None
     verify_cm: CMRegistrationConfig | None = None
 
+    def view_set_settings(self, *, verification: bool) -> ViewSetSettings:
+        """The settings of the registration of one set of views: the first images, or (``verification``)
+        the images after the move."""
+        return ViewSetSettings(
+            device=self.device,
+            pelvis=self.pelvis,
+            femur=self.femur,
+            pelvis_refine=self.verify_pelvis_refine,
+            femur_margin_mm=self.femur_margin_mm,
+            cm=(self.verify_cm if verification else self.cm) or navigation_cm_config(),
+            max_cm_starts=self.max_cm_starts,
+            cm_checks=self.safety.cm_checks(),
+        )
+
 
 def navigation_cm_config() -> CMRegistrationConfig:
     """The pipeline's CM registration settings: the CMA-ES levels (:func:`default_cm_levels`) for the
     first registration and the verification, whatever the number of views.
 
     Not the multi-view workflow's linearised 2× level, nor a coarse population of 25: with them the
-    first registration's tip was as good (0.13–0.16 mm mean in two navigation studies), but on the
-    first four trials of a navigation study (seed 9741) the verification then refused three, which
-    all passed with these levels: the verification leans on the first registration's whole pose
-    (the kinematic prediction, its landmark gate and second start), not only its tip."""
+    first registration's tip is as good but the verification refuses more often (docs/validation.md):
+    the verification leans on the first registration's whole pose (the kinematic prediction, its
+    landmark gate and second start), not only its tip."""
     return CMRegistrationConfig(levels=default_cm_levels())
 
 
-class NavigationRefused(FluoronavError):
+class NavigationRefused(RegistrationRefused):
     """A stage could not go on; no robot command may be given.
 
     Args:
         stage: the stage that refused; check: the check that failed; view: the view concerned or "".
     """
-
-    def __init__(self, stage: str, check: str, detail: str, view: str = "") -> None:
-        self.stage, self.check, self.view, self.detail = stage, check, view, detail
-        where = f"stage {stage}" + (f", view {view}" if view else "")
-        super().__init__(f"{where}, check {check}: {detail}")
-
-
-@dataclass
-class StageRecord:
-    """One stage's record: wall time, whether its checks passed, and its diagnostics (JSON-ready)."""
-
-    seconds: float = 0.0
-    passed: bool = True
-    diagnostics: dict[str, Any] = field(default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"seconds": self.seconds, "passed": self.passed, **self.diagnostics}
-
-
-@dataclass(frozen=True, eq=False)
-class ViewDetection:
-    """The CM found in one view.
-
-    Attributes:
-        landmarks_px: (2, 2) A, B (u, v) in the view's pixels.
-        centerline_px: (P, 2) ordered A → B.
-        mask: (rows, cols) bool CM region.
-        confidence: (2,) the detector's confidence of A and B (1 for given landmarks).
-        source: "detector" or "case".
-    """
-
-    landmarks_px: np.ndarray
-    centerline_px: np.ndarray
-    mask: np.ndarray
-    confidence: np.ndarray
-    source: str
-
-
-@dataclass(frozen=True, eq=False)
-class Registration:
-    """Bones and CM registered in one set of views (the first images, or the verification's).
-
-    Attributes:
-        views: the case's views; detections: per view, None where no CM was usable.
-        pelvis: per-view pelvis registrations; cameras_ct: each view's camera placed by it
-            (``camera_from_world`` = ``carm_k_from_ct``).
-        femur: the femur registration (``world_from_bone`` = ``ct_from_femur``).
-        cm: the CM registration in the CT frame; cm_init: the multi-view centreline
-            initialisation it started from (None when it started from a given pose).
-    """
-
-    views: tuple[CaseView, ...]
-    detections: tuple[ViewDetection | None, ...]
-    pelvis: tuple[BoneRegistrationResult, ...]
-    cameras_ct: tuple[Camera, ...]
-    femur: BoneRegistrationResult
-    cm: CMRegistrationResult
-    cm_init: MultiViewInitResult | None = None
-
-    @property
-    def ct_from_femur(self) -> np.ndarray:
-        return np.asarray(self.femur.world_from_bone, np.float64)
-
-    @property
-    def ct_from_cm(self) -> np.ndarray:
-        return np.asarray(self.cm.world_from_cm[0], np.float64)
-
-    @property
-    def tip_ct_mm(self) -> np.ndarray:
-        return np.asarray(self.cm.tip_world[0], np.float64)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The contract's pose keys (CT frame, LPS mm)."""
-        return {
-            "ct_from_cm": self.ct_from_cm.tolist(),
-            "control_points_deg": np.asarray(self.cm.control_points_deg).tolist(),
-            "tip_ct_mm": self.tip_ct_mm.tolist(),
-            "ct_from_femur": self.ct_from_femur.tolist(),
-            "carm_from_ct": {
-                v.name: c.camera_from_world.tolist() for v, c in zip(self.views, self.cameras_ct, strict=True)
-            },
-        }
 
 
 @dataclass
@@ -202,12 +129,12 @@ class NavigationResult:
     status: str = "ok"
     reason: str = ""
     stages: dict[str, StageRecord] = field(default_factory=dict)
-    first: Registration | None = None
+    first: ViewSetRegistration | None = None
     plan: Plan | None = None
     femur_from_cm_target: np.ndarray | None = None
     rbase_from_ee_target: np.ndarray | None = None
     joints_target_deg: np.ndarray | None = None
-    verification: Registration | None = None
+    verification: ViewSetRegistration | None = None
     correction_femur_from_cm_target: np.ndarray | None = None
     rbase_from_ee_correction: np.ndarray | None = None
     joints_correction_deg: np.ndarray | None = None

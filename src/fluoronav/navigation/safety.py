@@ -1,25 +1,26 @@
-"""The checks a registration must pass before the robot may act on it.
+"""The checks a registration must pass before the robot may act on it: their thresholds.
 
 A surgical navigation must know when it is wrong. Each CM registration is checked per view
-(:mod:`fluoronav.registration.cm.diagnostics`): the registered landmarks against the detected ones and
+(:mod:`fluoronav.registration.cm.checks`): the registered landmarks against the detected ones and
 the registered CM's outline against the image. A view that fails is left out and the CM registered
 again without it while enough views remain; otherwise the navigation refuses. The verification's CM
 is also checked against the robot's own account of the move: the first registration moved by the
-nominal kinematics between the two joint readings must agree with what the verification images show
-(:func:`fluoronav.navigation.pipeline.motion_consistency`); where it does not, a second start from
-that prediction is tried, and a verification that still fails gives no corrective command.
+nominal kinematics between the two joint readings
+(:func:`fluoronav.navigation.targeting.predicted_femur_from_cm`) must agree with what the
+verification images show; where it does not, a second start from that prediction is tried, and a
+verification that still fails gives no corrective command.
 
-The thresholds live in :class:`SafetyConfig`; docs/navigation.md ("Checks") gives the data they
-were chosen on.
+The thresholds live in :class:`SafetyConfig`; docs/validation.md ("The checks' thresholds") gives
+the data they were chosen on.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
-__all__ = ["SafetyConfig", "ViewVerdict", "judge_cm_views", "judge_motion"]
+from fluoronav.registration.cm.checks import MAX_MOTION_TIP_MM, CMCheckConfig
+
+__all__ = ["SafetyConfig"]
 
 
 @dataclass(frozen=True)
@@ -35,69 +36,15 @@ class SafetyConfig:
         min_views: views that must pass for a CM registration to stand.
     """
 
-    max_landmark_residual_mm: float = 2.0
-    min_edge_ncc: float = 0.7
-    max_motion_tip_mm: float = 3.0
-    min_views: int = 2
+    max_landmark_residual_mm: float = CMCheckConfig.max_landmark_residual_mm
+    min_edge_ncc: float = CMCheckConfig.min_edge_ncc
+    max_motion_tip_mm: float = MAX_MOTION_TIP_MM
+    min_views: int = CMCheckConfig.min_views
 
-
-@dataclass(frozen=True)
-class ViewVerdict:
-    """A view's checks: ``passed``, and the failed ``check`` with its ``detail`` otherwise."""
-
-    view: str
-    passed: bool
-    check: str = ""
-    detail: str = ""
-
-
-def judge_cm_views(
-    names: Sequence[str], diagnostics: Sequence[Mapping[str, Any]], config: SafetyConfig
-) -> list[ViewVerdict]:
-    """Per view: does the CM registration agree with it (landmark residual, edge NCC)?
-
-    Args:
-        names: the views' names.
-        diagnostics: per view ``{"landmark_residual_mm": float | None, "edge_ncc": float}``.
-        config: thresholds.
-    """
-    out = []
-    for name, d in zip(names, diagnostics, strict=True):
-        res = d.get("landmark_residual_mm")
-        if res is not None and res > config.max_landmark_residual_mm:
-            out.append(
-                ViewVerdict(
-                    name,
-                    False,
-                    "landmark_residual",
-                    f"registered landmarks {res:.2f} mm from the detected ones "
-                    f"(at most {config.max_landmark_residual_mm:g} mm)",
-                )
-            )
-        elif float(d["edge_ncc"]) < config.min_edge_ncc:
-            out.append(
-                ViewVerdict(
-                    name,
-                    False,
-                    "edge_ncc",
-                    f"the registered CM's outline matches the image with NCC {float(d['edge_ncc']):.2f} "
-                    f"(at least {config.min_edge_ncc:g})",
-                )
-            )
-        else:
-            out.append(ViewVerdict(name, True))
-    return out
-
-
-def judge_motion(motion: Mapping[str, float], config: SafetyConfig) -> ViewVerdict | None:
-    """None where the verification agrees with the robot's kinematics, else the failed check."""
-    tip = float(motion["motion_tip_mm"])
-    if tip <= config.max_motion_tip_mm:
-        return None
-    return ViewVerdict(
-        "",
-        False,
-        "robot_motion",
-        f"the CM the images show is {tip:.1f} mm from where the robot's kinematics put it "
-        f"(at most {config.max_motion_tip_mm:g} mm)",
-    )
+    def cm_checks(self) -> CMCheckConfig:
+        """The per-view thresholds of a CM registration."""
+        return CMCheckConfig(
+            max_landmark_residual_mm=self.max_landmark_residual_mm,
+            min_edge_ncc=self.min_edge_ncc,
+            min_views=self.min_views,
+        )

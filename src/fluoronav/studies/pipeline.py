@@ -30,33 +30,41 @@ from fluoronav import __version__
 from fluoronav.anatomy.io import resolve_ct
 from fluoronav.anatomy.volume import Volume
 from fluoronav.detection.centerline import extract_centerline
-from fluoronav.detection.instrument import instrument_masks
 from fluoronav.errors import FluoronavError, InputError
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.bone import (
+    PELVIS_PRESET,
     register_femur,
     register_pelvis,
-    register_pelvis_per_view,
     static_view_composite,
     views_from_images,
-    views_in_ct_frame,
 )
 from fluoronav.registration.centerline import (
     centerline_initialize,
-    centerline_initialize_multiview,
     depth_range_about,
     mirror_about_chord,
-    multiview_start_poses,
     roll_about_axis_deg,
 )
 from fluoronav.registration.cm import (
     CMRegistrationConfig,
+    CMRegistrationResult,
     CMView,
     register_cm,
     register_cm_multistart,
     roll_scan_initialization,
 )
 from fluoronav.registration.metrics import cm_errors, point_error_mm, relative_error_mm
+from fluoronav.registration.view_set import (
+    FluoroView,
+    ViewDetection,
+    ViewSetBones,
+    ViewSetSeeds,
+    ViewSetSettings,
+    bone_views,
+    register_view_set,
+    register_view_set_bones,
+    register_view_set_cm,
+)
 from fluoronav.runner import CsvLog, finish_row, mark_failed, new_row, run_tasks
 from fluoronav.simulation.articulated import anatomy_and_simulator
 from fluoronav.simulation.protocol import sample_trial, simulate_trial_images
@@ -125,9 +133,11 @@ def _detector(device: str) -> Any:
     return Detector.load(None, device=device)
 
 
-def _has_labels(volume: Volume) -> bool:
+def _with_bones(volume: Volume, cfg: StudyConfig) -> bool:
+    """Bones are registered (the centreline study's depth search too is centred on the femoral head)."""
     return (
-        volume.label_value("pelvis") is not None
+        cfg.register_bones
+        and volume.label_value("pelvis") is not None
         and volume.label_value("femur_left") is not None
         and "entry_left" in volume.landmarks_world
     )
@@ -138,38 +148,27 @@ def _full_to_image_px(uv_full: np.ndarray, binning: int) -> np.ndarray:
     return (np.asarray(uv_full, np.float64) + 0.5) / binning - 0.5
 
 
-def _landmarks_and_centerline(
-    images: list[Any], trial: Any, cfg: StudyConfig, binning: int
-) -> tuple[list[np.ndarray | None], list[np.ndarray | None], list[np.ndarray], list[np.ndarray | None]]:
-    """Per image: landmarks (2, 2) and centreline, or None where the detector found no CM or one cut
-    by the image border (:attr:`~fluoronav.detection.detector.Detection.usable`), the
-    landmarks' confidences (2,) (1 for oracle landmarks, 0 where nothing was found), and the CM
-    segmentation (None where nothing was found)."""
-    lms: list[np.ndarray | None] = []
-    cls: list[np.ndarray | None] = []
-    confs: list[np.ndarray] = []
-    masks: list[np.ndarray | None] = []
+def _detect(images: list[Any], trial: Any, cfg: StudyConfig, binning: int) -> list[FluoroView]:
+    """Per image a view named ``view<k>`` with the CM found in it: landmarks (2, 2), centreline,
+    confidences (2,) (1 for oracle landmarks) and segmentation; no detection where the detector found
+    no CM or one cut by the image border (:attr:`~fluoronav.detection.detector.Detection.usable`)."""
+    views: list[FluoroView] = []
     for i, sim in enumerate(images):
         if cfg.oracle_landmarks:
             lm = _full_to_image_px(trial.oracle_landmarks_px[i], binning)
-            mask = sim.mask.astype(bool)
-            cl = None
-            confs.append(np.ones(2))
+            mask, cl, conf, source = sim.mask.astype(bool), None, np.ones(2), "oracle"
         else:
             det = _detector(cfg.device).detect(sim.image, pixel_spacing_mm=sim.camera.pixel_spacing_mm)
-            confs.append(np.asarray(det.landmark_confidence, dtype=np.float64))
             if not det.usable:  # no CM, or a CM cut by the image border (a landmark at the cut)
                 # the view still counts in the registration (ROI at the initial pose's projection);
                 # the initialisation needs view 0 (one-view workflows) or two views (multi-view)
-                lms.append(None)
-                cls.append(None)
-                masks.append(None)
+                views.append(FluoroView(f"view{i}", sim.image, sim.camera))
                 continue
-            lm, mask, cl = det.landmarks_px, det.mask, det.centerline_px
-        masks.append(mask)
-        lms.append(lm)
-        cls.append(cl if cl is not None else extract_centerline(mask, lm[0], lm[1]))
-    return lms, cls, confs, masks
+            lm, mask, cl, source = det.landmarks_px, det.mask, det.centerline_px, "detector"
+            conf = np.asarray(det.landmark_confidence, dtype=np.float64)
+        cl = cl if cl is not None else extract_centerline(mask, lm[0], lm[1])
+        views.append(FluoroView(f"view{i}", sim.image, sim.camera, ViewDetection(lm, cl, mask, conf, source)))
+    return views
 
 
 def _theta_error_deg(camera_from_cm: np.ndarray, images: list[Any], trial: Any) -> float:
@@ -185,53 +184,277 @@ def _theta_error_deg(camera_from_cm: np.ndarray, images: list[Any], trial: Any) 
 
 
 class _TrialFailure(FluoronavError):
-    pass
+    """A trial that cannot go on (the CM not found where the workflow needs it)."""
 
 
-def _register_bones(
-    images: list[Any],
-    trial: Any,
-    volume: Volume,
-    cfg: StudyConfig,
-    seed: int,
-    instruments: list[np.ndarray | None] | None = None,
-) -> dict[str, Any]:
-    """Pelvis (per view, and the view geometry), then femur, with the instrument (``instruments``:
-    per image True on the CM and its shaft, or None) left out of the similarity. Returns cameras and
-    the entry estimate."""
-    views = views_from_images(images, instruments)
-    if cfg.workflow == "multi-cm":
-        # one static C-arm view: every image shows the same anatomy and the CM elsewhere
-        views = [static_view_composite(views)]
-    pelvis = register_pelvis_per_view(
-        views, volume, initial_world_from_patient=trial.initial_world_from_patient, seed=seed
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Simulated:
+    """A trial's truth, its simulated images and the CM found in each (``views``)."""
+
+    volume: Volume
+    trial: Any
+    images: list[Any]
+    views: list[FluoroView]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Bones:
+    """The bones registered in a trial: the views' cameras (CT frame in the multi-view workflow),
+    the femoral entry and head estimates (world frame of the cameras) and the run time."""
+
+    cameras: tuple[Any, ...]
+    entry_world_est: np.ndarray
+    head_world_est: np.ndarray
+    seconds: float
+
+    @classmethod
+    def of(cls, bones: ViewSetBones, trial: Any) -> _Bones:
+        world_from_femur = bones.femur.world_from_bone
+        return cls(
+            bones.cameras,
+            (world_from_femur @ np.append(trial.entry_ct, 1.0))[:3],
+            (world_from_femur @ np.append(trial.femoral_head_ct, 1.0))[:3],
+            sum(p.seconds for p in bones.pelvis) + bones.femur.seconds,
+        )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Estimate:
+    """The CM estimate in view 0's true C-arm frame, its control points, the estimated frames'
+    ``world_est_from_world`` and the bones (None when not registered)."""
+
+    carm_from_cm: np.ndarray
+    control_points_deg: np.ndarray
+    world_est_from_world: np.ndarray
+    bones: _Bones | None
+
+
+def _view_set_settings(cfg: StudyConfig) -> ViewSetSettings:
+    """The studies' registrations: the library's pelvis and femur presets, the CM registration's
+    default levels, unchecked (a study measures every registration against the truth)."""
+    return ViewSetSettings(
+        device=cfg.device, pelvis=PELVIS_PRESET, pelvis_refine=None, cm=CMRegistrationConfig(), cm_checks=None
     )
-    out: dict[str, Any] = {
-        "pelvis_seconds": sum(p.seconds for p in pelvis),
-        "pelvis_converged": all(p.converged for p in pelvis),
-    }
-    if cfg.workflow == "multi-view":
-        # work in the CT frame: camera_k_from_ct estimated by each view's pelvis registration
-        femur_views = views_in_ct_frame(views, pelvis)
-        cams = [v.camera for v in femur_views]
-        world_from_patient = np.eye(4)
+
+
+def _seeds(bone_seed: int, cm_seed: int = 0) -> ViewSetSeeds:
+    return ViewSetSeeds(pelvis=bone_seed, femur=bone_seed + 1, pelvis_refine=bone_seed + 2, cm=cm_seed)
+
+
+def _simulate(cfg: StudyConfig, rng: np.random.Generator) -> _Simulated:
+    """The phantom, the trial's truth (§III-B), its physics-simulated images and the CM found in each."""
+    phantom_seed = 1000 * cfg.seed + int(rng.integers(cfg.n_phantoms))
+    volume, simulator = _anatomy(cfg.ct, phantom_seed, cfg.image_size, cfg.device)
+    protocol_wf = "single-view" if cfg.workflow == "centerline" else cfg.workflow
+    trial = sample_trial(protocol_wf, volume, rng)
+    images = simulate_trial_images(trial, simulator, seed=int(rng.integers(2**31)), image_size=cfg.image_size)
+    binning = max(1, round(trial.cameras[0].cols / images[0].camera.cols))
+    return _Simulated(volume, trial, images, _detect(images, trial, cfg, binning))
+
+
+def _register_multi_view(
+    sim: _Simulated, cfg: StudyConfig, rng: np.random.Generator, row: dict[str, Any]
+) -> _Estimate:
+    """The multi-view workflow (centreline start): bones and CM in the CT frame of the
+    pelvis-estimated views (:func:`~fluoronav.registration.view_set.register_view_set`), or the CM
+    alone in the true cameras' frame where no bones are registered."""
+    bone_seed = int(rng.integers(2**31)) if _with_bones(sim.volume, cfg) else None
+    found = [k for k, v in enumerate(sim.views) if v.detection is not None]
+    row["views_detected"] = len(found)
+    if len(found) < 2:
+        raise _TrialFailure(f"the detector found the CM in {len(found)} of {len(sim.views)} views (need 2)")
+    cm_seed = int(rng.integers(2**31))
+    tr, settings = sim.trial, _view_set_settings(cfg)
+    bones: _Bones | None = None
+    if bone_seed is not None:
+        vs = register_view_set(
+            sim.views,
+            sim.volume,
+            side=tr.side,
+            cm_config=tr.cm_config,
+            initial_control_points_deg=tr.initial_control_points_deg,
+            settings=settings,
+            seed=_seeds(bone_seed, cm_seed),
+            initial_world_from_pelvis=tr.initial_world_from_patient,
+        )
+        bones = _Bones.of(ViewSetBones(vs.pelvis, vs.cameras_ct, vs.femur), tr)
+        res, init = vs.cm, vs.cm_init
+        cams = list(vs.cameras_ct)
     else:
-        cams = [s.camera for s in images]
-        world_from_patient = pelvis[0].world_from_bone
-        femur_views = views
-    femur = register_femur(
-        femur_views, volume, side=trial.side, world_from_patient=world_from_patient, seed=seed + 1
+        cams = [s.camera for s in sim.images]
+        res, init = register_view_set_cm(
+            sim.views,
+            cams,
+            cm_config=tr.cm_config,
+            initial_control_points_deg=tr.initial_control_points_deg,
+            settings=settings,
+            seed=cm_seed,
+        )
+    assert init is not None  # two views with a CM
+    # landmarks that disagreed with the other views were replaced by the triangulated consensus
+    row["landmark_outliers"] = int((~init.landmark_inliers).sum())
+    # the CM was registered in the CT frame of the pelvis-estimated views
+    world_est_from_world = np.linalg.inv(cams[0].camera_from_world) @ sim.images[0].camera.camera_from_world
+    return _cm_estimate(row, sim, res, world_est_from_world, bones)
+
+
+def _cm_estimate(
+    row: dict[str, Any],
+    sim: _Simulated,
+    res: CMRegistrationResult,
+    world_est_from_world: np.ndarray,
+    bones: _Bones | None,
+) -> _Estimate:
+    """A CM registration's row entries and its estimate in view 0's true C-arm frame."""
+    row["seconds_registration"] = res.seconds
+    if not res.success:
+        row["status"] = "failed"
+        row["reason"] = res.reason
+    # C-arm frame of view 0 (true camera), mapping the estimate through the estimated frames
+    carm_from_cm_est = (
+        sim.images[0].camera.camera_from_world @ np.linalg.inv(world_est_from_world) @ res.world_from_cm[0]
     )
-    entry_ct = np.append(trial.entry_ct, 1.0)
-    entry_world_est = (femur.world_from_bone @ entry_ct)[:3]
-    out.update(
-        cameras=cams,
-        entry_world_est=entry_world_est,
-        head_world_est=(femur.world_from_bone @ np.append(trial.femoral_head_ct, 1.0))[:3],
-        femur_seconds=femur.seconds,
-        femur_converged=femur.converged,
+    row["est_control_points_deg"] = np.round(res.control_points_deg, 4).tolist()
+    return _Estimate(carm_from_cm_est, res.control_points_deg, world_est_from_world, bones)
+
+
+def _register_bones(sim: _Simulated, cfg: StudyConfig, seed: int) -> _Bones:
+    """Pelvis, then femur (:func:`~fluoronav.registration.view_set.register_view_set_bones`) with
+    the CM and its shaft left out of the similarity: in the CT frame of the pelvis-estimated views
+    (multi-view), or in the known C-arm view's world frame (one view; multiple-CM: one static view
+    whose images show the same anatomy and the CM elsewhere)."""
+    views = bone_views(sim.views)
+    if cfg.workflow == "multi-cm":
+        views = [static_view_composite(views)]
+    bones = register_view_set_bones(
+        views,
+        sim.volume,
+        side=sim.trial.side,
+        settings=_view_set_settings(cfg),
+        seeds=_seeds(seed),
+        initial_world_from_pelvis=sim.trial.initial_world_from_patient,
+        in_ct_frame=cfg.workflow == "multi-view",
     )
-    return out
+    return _Bones.of(bones, sim.trial)
+
+
+def _centerline_start(
+    sim: _Simulated, cfg: StudyConfig, cams: list[Any], bones: _Bones | None, seed: int, row: dict[str, Any]
+) -> Any:
+    """The centreline initialisation in the first (AP) view, its depth within reach of the femoral
+    head, turned to the best image score about the chord (``cfg.roll_scan``)."""
+    tr, view = sim.trial, sim.views[0]
+    assert view.detection is not None
+    lm, cl = view.detection.landmarks_px, view.detection.centerline_px
+    depth_range = None if bones is None else depth_range_about(cams[0], bones.head_world_est)
+    init = centerline_initialize(
+        cams[0],
+        lm,
+        cl,
+        tr.initial_control_points_deg,
+        depth_range_mm=depth_range,
+        seed=seed,
+        image=sim.images[0].image,
+    )
+    row["theta_centerline_deg"] = _theta_error_deg(init.camera_from_cm, sim.images, tr)
+    if cfg.roll_scan:
+        scan = roll_scan_initialization(
+            CMView(sim.images[0].image, cams[0], landmarks_px=lm),
+            init,
+            cl,
+            tr.initial_control_points_deg,
+            config=CMRegistrationConfig(device=cfg.device, cm_config=tr.cm_config),
+        )
+        T_scan = cams[0].camera_from_world @ scan.world_from_cm
+        # A is the CM origin: its depth is the pose's z; θ in the init's own convention is not
+        # defined for a turned alternative (the study measures θ against the truth)
+        init = dataclasses.replace(
+            init, camera_from_cm=T_scan, depth_mm=float(T_scan[2, 3]), theta_deg=float("nan")
+        )
+    return init
+
+
+def _register_one_view(
+    sim: _Simulated, cfg: StudyConfig, rng: np.random.Generator, row: dict[str, Any], t0: float
+) -> _Estimate:
+    """The workflows that start from one view (single-view, multiple-CM, the centreline study) and
+    the multi-view workflow from a perturbed truth."""
+    tr, images = sim.trial, sim.images
+    bones = _register_bones(sim, cfg, int(rng.integers(2**31))) if _with_bones(sim.volume, cfg) else None
+    cams, world_est_from_world = [s.camera for s in images], np.eye(4)
+    if cfg.workflow == "multi-view":  # the CM is registered in the CT frame of the pelvis-estimated views
+        cams = list(bones.cameras) if bones is not None else cams
+        world_est_from_world = np.linalg.inv(cams[0].camera_from_world) @ images[0].camera.camera_from_world
+    row["views_detected"] = sum(v.detection is not None for v in sim.views)
+    if sim.views[0].detection is None:
+        raise _TrialFailure("detector found no usable CM in image 0 (none, or cut by the border)")
+    init_seed = int(rng.integers(2**31))  # drawn either way: the trial's later draws stay put
+    init = None
+    if cfg.init != "perturbed" or cfg.workflow == "centerline":
+        init = _centerline_start(sim, cfg, cams, bones, init_seed, row)
+    if cfg.workflow == "centerline":
+        assert init is not None
+        carm0_true = images[0].camera.camera_from_world @ tr.world_from_cm[0]
+        row["depth_mm"] = abs(init.depth_mm - carm0_true[2, 3])
+        row["theta_deg"] = _theta_error_deg(init.camera_from_cm, images, tr)
+        row["seconds_registration"] = time.perf_counter() - t0
+        return _Estimate(init.camera_from_cm, tr.initial_control_points_deg, world_est_from_world, bones)
+    lms = [None if v.detection is None else v.detection.landmarks_px for v in sim.views]
+    views = [
+        CMView(v.image, c, landmarks_px=lm, name=v.name)
+        for v, c, lm in zip(sim.views, cams, lms, strict=True)
+    ]
+    base_from_cm = tr.world_from_cm if cfg.workflow == "multi-cm" else None
+    cm_seed = int(rng.integers(2**31))
+    if init is None:  # perturbed
+        res = register_cm(
+            views,
+            initial_control_points_deg=tr.initial_control_points_deg,
+            initial_world_from_cm=world_est_from_world @ tr.initial_world_from_cm[0],
+            base_from_cm=base_from_cm,
+            config=CMRegistrationConfig(device=cfg.device),
+            seed=cm_seed,
+        )
+    else:
+        res = register_cm_multistart(
+            views,
+            cm_start_poses(init, cams[0], tr.initial_control_points_deg, tr.cm_config),
+            initial_control_points_deg=tr.initial_control_points_deg,
+            base_from_cm=base_from_cm,
+            config=CMRegistrationConfig(device=cfg.device),
+            seed=cm_seed,
+        )
+    return _cm_estimate(row, sim, res, world_est_from_world, bones)
+
+
+def _record_errors(row: dict[str, Any], sim: _Simulated, est: _Estimate) -> None:
+    """The paper's metrics of the estimate against the truth (view 0's true C-arm frame)."""
+    tr, cam0 = sim.trial, sim.images[0].camera.camera_from_world
+    carm0_true = cam0 @ tr.world_from_cm[0]
+    errs = cm_errors(
+        carm_from_cm_est=est.carm_from_cm,
+        carm_from_cm_true=carm0_true,
+        control_points_est_deg=est.control_points_deg,
+        control_points_true_deg=tr.control_points_deg,
+        config=tr.cm_config,
+    )
+    row.update(errs)
+    # the estimate in the true world frame (view 0's true camera maps it there)
+    row["est_world_from_cm"] = np.round(np.linalg.inv(cam0) @ est.carm_from_cm, 5).tolist()
+    if est.bones is None:
+        return
+    entry_true_c = (cam0 @ np.append(tr.entry_world, 1.0))[:3]
+    entry_est_c = (
+        cam0 @ np.linalg.inv(est.world_est_from_world) @ np.append(est.bones.entry_world_est, 1.0)
+    )[:3]
+    kin = CMKinematics(tr.cm_config)
+    cps = torch.as_tensor(np.stack([est.control_points_deg, tr.control_points_deg]), dtype=torch.float64)
+    tips = kin.tip_cm(cps).numpy()
+    tip_est = (est.carm_from_cm @ np.append(tips[0], 1.0))[:3]
+    tip_true = (carm0_true @ np.append(tips[1], 1.0))[:3]
+    row["entry_mm"] = point_error_mm(entry_est_c, entry_true_c)
+    row["relative_mm"] = relative_error_mm(entry_est_c, tip_est, entry_true_c, tip_true)
+    row["seconds_bones"] = est.bones.seconds
 
 
 def cm_start_poses(
@@ -240,9 +463,9 @@ def cm_start_poses(
     """World-frame starts from a centreline initialisation: its best ``n_alternatives`` local minima
     and the mirror of each about the A→B chord (the roll a single centreline hardly fixes).
 
-    One by default: in a 20-trial single-view study (seed 5101) the second centreline minimum, often
-    at another depth, won the intensity screening in 6 of 20 trials and ended 60–230 mm off: one view
-    does not tell depth from tilt, at the centreline's nor at the 4× intensity level."""
+    One by default: a second centreline minimum, often at another depth, can win the intensity
+    screening and end far off (docs/validation.md): one view does not tell depth from tilt, at the
+    centreline's nor at the 4× intensity level."""
     alts = init.alternatives if init.alternatives is not None else init.camera_from_cm[None]
     poses = [init.camera_from_cm]
     for T in alts:
@@ -261,165 +484,14 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
     rng = np.random.default_rng(seed)
     row = new_row(trial_id, seed, cfg.workflow)
     try:
-        phantom_seed = 1000 * cfg.seed + int(rng.integers(cfg.n_phantoms))
-        volume, simulator = _anatomy(cfg.ct, phantom_seed, cfg.image_size, cfg.device)
-        protocol_wf = "single-view" if cfg.workflow == "centerline" else cfg.workflow
-        trial = sample_trial(protocol_wf, volume, rng)
-        images = simulate_trial_images(
-            trial, simulator, seed=int(rng.integers(2**31)), image_size=cfg.image_size
-        )
-        binning = max(1, round(trial.cameras[0].cols / images[0].camera.cols))
-        lms, cls, confs, cm_masks = _landmarks_and_centerline(images, trial, cfg, binning)
-        row["true_control_points_deg"] = np.round(trial.control_points_deg, 4).tolist()
-        row["true_world_from_cm"] = np.round(trial.world_from_cm[0], 5).tolist()
-        # the centreline study too: its depth search is centred on the registered femoral head
-        labelled = _has_labels(volume) and cfg.register_bones
-        bones = (
-            _register_bones(
-                images,
-                trial,
-                volume,
-                cfg,
-                seed=int(rng.integers(2**31)),
-                instruments=instrument_masks(cm_masks, cls, [im.image for im in images]),
-            )
-            if labelled
-            else None
-        )
-        cams = bones["cameras"] if bones is not None else [s.camera for s in images]
-        if cfg.workflow == "multi-view":
-            # the CM is registered in the CT frame of the pelvis-estimated views
-            world_est_from_world = (
-                np.linalg.inv(cams[0].camera_from_world) @ images[0].camera.camera_from_world
-            )
-        else:
-            world_est_from_world = np.eye(4)
-        found = [k for k, lm in enumerate(lms) if lm is not None]
-        row["views_detected"] = len(found)
+        sim = _simulate(cfg, rng)
+        row["true_control_points_deg"] = np.round(sim.trial.control_points_deg, 4).tolist()
+        row["true_world_from_cm"] = np.round(sim.trial.world_from_cm[0], 5).tolist()
         if cfg.workflow == "multi-view" and cfg.init != "perturbed":
-            if len(found) < 2:
-                raise _TrialFailure(f"the detector found the CM in {len(found)} of {len(lms)} views (need 2)")
-            init = None
-        elif lms[0] is None or cls[0] is None:
-            raise _TrialFailure("detector found no usable CM in image 0 (none, or cut by the border)")
+            est = _register_multi_view(sim, cfg, rng, row)
         else:
-            init_seed = int(rng.integers(2**31))  # drawn either way: the trial's later draws stay put
-            init = None
-            if cfg.init != "perturbed" or cfg.workflow == "centerline":
-                # centreline initialisation in the first (AP) view, depth within reach of the femoral head
-                depth_range = None if bones is None else depth_range_about(cams[0], bones["head_world_est"])
-                init = centerline_initialize(
-                    cams[0],
-                    lms[0],
-                    cls[0],
-                    trial.initial_control_points_deg,
-                    depth_range_mm=depth_range,
-                    seed=init_seed,
-                    image=images[0].image,
-                )
-                row["theta_centerline_deg"] = _theta_error_deg(init.camera_from_cm, images, trial)
-                if cfg.roll_scan:
-                    scan = roll_scan_initialization(
-                        CMView(images[0].image, cams[0], landmarks_px=lms[0]),
-                        init,
-                        cls[0],
-                        trial.initial_control_points_deg,
-                        config=CMRegistrationConfig(device=cfg.device, cm_config=trial.cm_config),
-                    )
-                    T_scan = cams[0].camera_from_world @ scan.world_from_cm
-                    # A is the CM origin: its depth is the pose's z; θ in the init's own convention is
-                    # not defined for a turned alternative (the study measures θ against the truth)
-                    init = dataclasses.replace(
-                        init, camera_from_cm=T_scan, depth_mm=float(T_scan[2, 3]), theta_deg=float("nan")
-                    )
-        carm0_true = images[0].camera.camera_from_world @ trial.world_from_cm[0]
-        if cfg.workflow == "centerline":
-            assert init is not None
-            carm_from_cm_est = init.camera_from_cm
-            cp_est = trial.initial_control_points_deg
-            true_depth = carm0_true[2, 3]
-            row["depth_mm"] = abs(init.depth_mm - true_depth)
-            row["theta_deg"] = _theta_error_deg(init.camera_from_cm, images, trial)
-            row["seconds_registration"] = time.perf_counter() - t0
-        else:
-            views = [
-                CMView(s.image, c, landmarks_px=lm, name=f"view{i}")
-                for i, (s, c, lm) in enumerate(zip(images, cams, lms, strict=True))
-            ]
-            base_from_cm = trial.world_from_cm if cfg.workflow == "multi-cm" else None
-            cm_seed = int(rng.integers(2**31))
-            if cfg.init == "perturbed":
-                res = register_cm(
-                    views,
-                    initial_control_points_deg=trial.initial_control_points_deg,
-                    initial_world_from_cm=world_est_from_world @ trial.initial_world_from_cm[0],
-                    base_from_cm=base_from_cm,
-                    config=CMRegistrationConfig(device=cfg.device),
-                    seed=cm_seed,
-                )
-            else:
-                if cfg.workflow == "multi-view":
-                    mv = centerline_initialize_multiview(
-                        [cams[k] for k in found],
-                        np.stack([np.asarray(lms[k]) for k in found]),
-                        [np.asarray(cls[k]) for k in found],
-                        trial.initial_control_points_deg,
-                        config=trial.cm_config,
-                        landmark_confidence=np.stack([confs[k] for k in found]),
-                    )
-                    starts = multiview_start_poses(mv)
-                    # landmarks that disagreed with the other views: the triangulated consensus
-                    for i, k in enumerate(found):
-                        views[k] = dataclasses.replace(views[k], landmarks_px=mv.landmarks_px[i])
-                    row["landmark_outliers"] = int((~mv.landmark_inliers).sum())
-                else:
-                    starts = cm_start_poses(init, cams[0], trial.initial_control_points_deg, trial.cm_config)
-                res = register_cm_multistart(
-                    views,
-                    starts,
-                    initial_control_points_deg=trial.initial_control_points_deg,
-                    base_from_cm=base_from_cm,
-                    config=CMRegistrationConfig(device=cfg.device),
-                    seed=cm_seed,
-                )
-            row["seconds_registration"] = res.seconds
-            if not res.success:
-                row["status"] = "failed"
-                row["reason"] = res.reason
-            # C-arm frame of view 0 (true camera), mapping the estimate through the estimated frames
-            carm_from_cm_est = (
-                images[0].camera.camera_from_world
-                @ np.linalg.inv(world_est_from_world)
-                @ res.world_from_cm[0]
-            )
-            cp_est = res.control_points_deg
-            row["est_control_points_deg"] = np.round(cp_est, 4).tolist()
-        errs = cm_errors(
-            carm_from_cm_est=carm_from_cm_est,
-            carm_from_cm_true=carm0_true,
-            control_points_est_deg=cp_est,
-            control_points_true_deg=trial.control_points_deg,
-            config=trial.cm_config,
-        )
-        row.update(errs)
-        # the estimate in the true world frame (view 0's true camera maps it there)
-        row["est_world_from_cm"] = np.round(
-            np.linalg.inv(images[0].camera.camera_from_world) @ carm_from_cm_est, 5
-        ).tolist()
-        if bones is not None:
-            cam0 = images[0].camera.camera_from_world
-            entry_true_c = (cam0 @ np.append(trial.entry_world, 1.0))[:3]
-            entry_est_c = (
-                cam0 @ np.linalg.inv(world_est_from_world) @ np.append(bones["entry_world_est"], 1.0)
-            )[:3]
-            kin = CMKinematics(trial.cm_config)
-            cps = torch.as_tensor(np.stack([cp_est, trial.control_points_deg]), dtype=torch.float64)
-            tips = kin.tip_cm(cps).numpy()
-            tip_est = (carm_from_cm_est @ np.append(tips[0], 1.0))[:3]
-            tip_true = (carm0_true @ np.append(tips[1], 1.0))[:3]
-            row["entry_mm"] = point_error_mm(entry_est_c, entry_true_c)
-            row["relative_mm"] = relative_error_mm(entry_est_c, tip_est, entry_true_c, tip_true)
-            row["seconds_bones"] = bones["pelvis_seconds"] + bones["femur_seconds"]
+            est = _register_one_view(sim, cfg, rng, row, t0)
+        _record_errors(row, sim, est)
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
         mark_failed(row, exc, trial_id)
     return finish_row(row, t0)

@@ -12,12 +12,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fluoronav.navigation.safety import SafetyConfig, judge_cm_views
-from fluoronav.registration.case import simulate_cm_case
 from fluoronav.registration.centerline import mirror_about_chord
 from fluoronav.registration.cm import CMRegistrationConfig, CMView, register_cm
+from fluoronav.registration.cm.case import cm_case_from_simulation
+from fluoronav.registration.cm.checks import CMCheckConfig, judge_cm_views
 from fluoronav.registration.cm.diagnostics import cm_view_diagnostics, edge_ncc
 from fluoronav.registration.levels import CM_SIGMA, LevelConfig
+from fluoronav.simulation.cm_case import simulate_cm_case
 
 HOLD = CMRegistrationConfig(
     levels=(
@@ -30,7 +31,7 @@ HOLD = CMRegistrationConfig(
 @pytest.fixture(scope="module")
 def cases():
     kw = dict(image_size=384, photons_per_pixel=None, rotation_deg=5.0, translation_mm=5.0)
-    return simulate_cm_case("multi-view", seed=4, **kw), simulate_cm_case("multi-view", seed=5, **kw)
+    return tuple(cm_case_from_simulation(simulate_cm_case("multi-view", seed=s, **kw)) for s in (4, 5))
 
 
 def _at(views: list[CMView], W: np.ndarray, cp: np.ndarray) -> list[dict]:
@@ -42,7 +43,7 @@ def _at(views: list[CMView], W: np.ndarray, cp: np.ndarray) -> list[dict]:
 
 
 def _judge(views: list[CMView], diags: list[dict]) -> list[bool]:
-    return [v.passed for v in judge_cm_views([v.name for v in views], diags, SafetyConfig())]
+    return [v.passed for v in judge_cm_views([v.name for v in views], diags, CMCheckConfig())]
 
 
 def test_the_true_pose_passes_every_check(cases) -> None:

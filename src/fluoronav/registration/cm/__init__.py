@@ -31,11 +31,22 @@ The parts, one job each (all names are importable from here):
 - :mod:`~fluoronav.registration.cm.result`: :class:`CMRegistrationResult`, :func:`cm_pose_errors`;
 - :mod:`~fluoronav.registration.cm.multistart`: :func:`register_cm_multistart`;
 - :mod:`~fluoronav.registration.cm.roll_scan`: :func:`roll_scan` about the A→B chord;
-- :mod:`~fluoronav.registration.cm.overlays`: :func:`save_overlays`.
+- :mod:`~fluoronav.registration.cm.overlays`: :func:`save_overlays`;
+- :mod:`~fluoronav.registration.cm.checks`: :func:`register_cm_checked`, the registration checked
+  view by view (:class:`CMCheckConfig`) and against a predicted pose (:class:`PredictedCMPose`).
 """
 
 from __future__ import annotations
 
+from fluoronav.registration.cm.checks import (
+    CMCheckConfig,
+    PredictedCMPose,
+    ViewVerdict,
+    judge_cm_views,
+    judge_motion,
+    motion_agreement,
+    register_cm_checked,
+)
 from fluoronav.registration.cm.config import (
     CM_COARSE_LEVEL,
     CM_FINE_LEVEL,
@@ -57,17 +68,24 @@ __all__ = [
     "CM_FINE_LEVEL",
     "DEFAULT_CM_MU_PER_MM",
     "BackgroundFn",
+    "CMCheckConfig",
     "CMProblem",
     "CMRegistrationConfig",
     "CMRegistrationResult",
     "CMView",
+    "PredictedCMPose",
     "RollScanResult",
     "ViewROI",
+    "ViewVerdict",
     "Workflow",
     "cm_pose_errors",
     "default_cm_levels",
     "edge_mask",
+    "judge_cm_views",
+    "judge_motion",
+    "motion_agreement",
     "register_cm",
+    "register_cm_checked",
     "register_cm_multistart",
     "roll_scan",
     "roll_scan_initialization",

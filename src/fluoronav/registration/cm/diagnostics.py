@@ -10,7 +10,7 @@ Two measures per view, both computable without the truth:
   on the CM in the image and drops where the outline lies beside it.
 
 A registration whose views disagree with the CM it found is the failure a navigation must not act
-on; the thresholds that decide it are the navigation's (:class:`fluoronav.navigation.safety.SafetyConfig`).
+on; the thresholds that decide it are :class:`~fluoronav.registration.cm.checks.CMCheckConfig`.
 """
 
 from __future__ import annotations

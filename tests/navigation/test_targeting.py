@@ -1,4 +1,5 @@
-"""Eq. 7 and eq. 8 in a_from_b naming: the robot target reproduces the plan under perfect registration."""
+"""Eq. 7 and eq. 8 in a_from_b naming: the robot target reproduces the plan under perfect registration;
+the kinematic prediction of the CM after a move."""
 
 from __future__ import annotations
 
@@ -8,14 +9,15 @@ from scipy.spatial.transform import Rotation
 
 from fluoronav.geometry import se3
 from fluoronav.manipulator.robot import UR10, RobotErrorModel
-from fluoronav.navigation.navigate import (
+from fluoronav.navigation.planning import plan_from_dict, planned_femur_from_cm
+from fluoronav.navigation.targeting import (
     UnreachableTarget,
     femur_from_cm_registered,
+    predicted_femur_from_cm,
     rbase_from_ee_target,
     robot_target,
     tip_correction_target,
 )
-from fluoronav.navigation.planning import plan_from_dict, planned_femur_from_cm
 
 EE_FROM_CM = se3.make(Rotation.from_rotvec([0.0, 0.15, -0.1]).as_matrix(), [4.0, -2.0, 210.0])
 RBASE_FROM_CARM = se3.make(Rotation.from_rotvec([1.3, -0.2, 0.4]).as_matrix(), [-700.0, 150.0, 450.0])
@@ -162,3 +164,23 @@ def test_tip_correction_slides_the_registered_cm_onto_the_planned_tip_without_ro
     # already on the target: no move
     T0 = tip_correction_target(T, tip_cm, target_tip)
     np.testing.assert_allclose(T0, T, atol=1e-9)
+
+
+def test_the_predicted_cm_after_a_move_is_where_the_robot_took_it() -> None:
+    """With a true hand-eye matrix and a femur that stays with the robot base, the CM registered before
+    the move, moved by the robot's motion, is the CM the robot's kinematics put there."""
+    femur_from_cm_tar, rbase_from_femur, q_regi, carm_from_cm, carm_from_femur = _scene(
+        np.array([3.0, -2.0, 4.0, 1.0, -3.0, 2.0])
+    )
+    femur_from_cm = femur_from_cm_registered(carm_from_femur, carm_from_cm)
+    pred = predicted_femur_from_cm(
+        UR10, q_regi, Q_TARGET_TRUE, ee_from_cm=EE_FROM_CM, femur_from_cm=femur_from_cm
+    )
+    after = se3.inv(rbase_from_femur) @ UR10.rbase_from_ee(Q_TARGET_TRUE) @ EE_FROM_CM
+    mm, deg = _pose_err(pred, after)
+    assert mm < 1e-9 and deg < 1e-9
+    mm, deg = _pose_err(pred, femur_from_cm_tar)  # the scene puts the target at Q_TARGET_TRUE
+    assert mm < 1e-9 and deg < 1e-9
+    # no move: the registered pose
+    same = predicted_femur_from_cm(UR10, q_regi, q_regi, ee_from_cm=EE_FROM_CM, femur_from_cm=femur_from_cm)
+    np.testing.assert_allclose(same, femur_from_cm, atol=1e-9)

@@ -1,4 +1,4 @@
-"""Navigation: registered poses → CM pose relative to the femur (eq. 7) → robot target (eq. 8).
+"""Targeting: registered poses → CM pose relative to the femur (eq. 7) → robot target (eq. 8).
 
 Frames: ``carm`` (C-arm camera), ``femur``, ``cm`` (CM base frame), ``ee`` (robot end effector),
 ``rbase`` (robot base). The femur and the robot base do not move relative to each other between
@@ -31,6 +31,7 @@ from fluoronav.manipulator.robot import IKFailure, SerialRobot
 __all__ = [
     "UnreachableTarget",
     "femur_from_cm_registered",
+    "predicted_femur_from_cm",
     "rbase_from_ee_target",
     "robot_target",
     "tip_correction_target",
@@ -58,6 +59,32 @@ def femur_from_cm_registered(carm_from_femur: np.ndarray, carm_from_cm: np.ndarr
     return se3.inv(F) @ C
 
 
+def predicted_femur_from_cm(
+    robot: SerialRobot,
+    joints_deg: np.ndarray,
+    joints_after_deg: np.ndarray,
+    *,
+    ee_from_cm: np.ndarray,
+    femur_from_cm: np.ndarray,
+) -> np.ndarray:
+    """Where the robot's kinematics put the CM after a move, in the femur frame: ``femur_from_cm``
+    (registered at ``joints_deg``, eq. 7) moved by the robot's motion to ``joints_after_deg``.
+
+    Args:
+        robot: the kinematic model the controller uses.
+        joints_deg, joints_after_deg: (n_joints,) the joint readings before and after the move.
+        ee_from_cm: (4, 4) hand-eye matrix.
+        femur_from_cm: (4, 4) the CM registered before the move, relative to the femur.
+
+    Returns:
+        (4, 4) the predicted ``femur_from_cm`` (the femur and the robot base do not move relative to
+        each other).
+    """
+    rbase_from_cm_1 = robot.rbase_from_ee(joints_deg) @ ee_from_cm
+    rbase_from_cm_2 = robot.rbase_from_ee(np.asarray(joints_after_deg, np.float64)) @ ee_from_cm
+    return np.asarray(femur_from_cm @ np.linalg.inv(rbase_from_cm_1) @ rbase_from_cm_2)
+
+
 def tip_correction_target(
     femur_from_cm_regi: np.ndarray, tip_cm_mm: np.ndarray, tip_target_femur_mm: np.ndarray
 ) -> np.ndarray:
@@ -67,8 +94,8 @@ def tip_correction_target(
     For a registration at a reached pose whose tip is reliable but whose base orientation is not:
     base pose and shape place the tip together, and a few degrees of base rotation can trade
     against the control points with the tip nearly unchanged. Rotating the CM to the plan's
-    orientation would turn such an error into the CM's axis (the demo, seed 0: 8° off the plan);
-    a translation corrects the tip and leaves the axis where the first move put it.
+    orientation would turn such an error into the CM's axis (docs/validation.md, demo seeds); a
+    translation corrects the tip and leaves the axis where the first move put it.
 
     Args:
         femur_from_cm_regi: (4, 4) registered CM pose relative to the femur (eq. 7).

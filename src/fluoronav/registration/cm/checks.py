@@ -1,0 +1,294 @@
+"""Whether a CM registration can be trusted: per-view verdicts, views left out, a second start, refusal.
+
+Every registration reports how much it can be trusted. A CM registration is checked in each view
+(:mod:`~fluoronav.registration.cm.diagnostics`): the registered landmarks against the detected ones
+and the registered CM's outline against the image. A view that fails is left out and the CM
+registered again without it while enough views remain. Where another account of the CM's pose is
+known (after the robot's move: where its kinematics put the CM, :class:`PredictedCMPose`), the
+registration must agree with it too; where it does not, the next start is tried. A registration
+that passes from no start raises :class:`~fluoronav.errors.RegistrationRefused`, naming the view
+and the check that failed last.
+
+The thresholds are :class:`CMCheckConfig` and :attr:`PredictedCMPose.max_tip_mm`; docs/validation.md
+("The checks' thresholds") gives the data they were chosen on.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from fluoronav.errors import RegistrationRefused
+from fluoronav.geometry import se3
+from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.registration.cm.config import CMRegistrationConfig
+from fluoronav.registration.cm.diagnostics import CMViewDiagnostics, cm_view_diagnostics
+from fluoronav.registration.cm.multistart import register_cm_multistart
+from fluoronav.registration.cm.problem import register_cm
+from fluoronav.registration.cm.result import CMRegistrationResult
+from fluoronav.registration.cm.views import CMView
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "MAX_MOTION_TIP_MM",
+    "CMCheckConfig",
+    "PredictedCMPose",
+    "ViewVerdict",
+    "judge_cm_views",
+    "judge_motion",
+    "motion_agreement",
+    "register_cm_checked",
+]
+
+#: how far (mm) the registered CM tip may lie from a predicted one: the robot's and the first
+#: registration's errors together
+MAX_MOTION_TIP_MM = 3.0
+
+
+@dataclass(frozen=True)
+class CMCheckConfig:
+    """Thresholds of the per-view checks of a CM registration.
+
+    Attributes:
+        max_landmark_residual_mm: a view's registered A or B may lie at most this far (mm at the
+            detector) from the detected one.
+        min_edge_ncc: a view's gradient NCC on the registered CM's outline must reach this.
+        min_views: views that must pass for a CM registration to stand.
+    """
+
+    max_landmark_residual_mm: float = 2.0
+    min_edge_ncc: float = 0.7
+    min_views: int = 2
+
+
+@dataclass(frozen=True, eq=False)
+class PredictedCMPose:
+    """Where another account puts the CM (after the robot's move: its kinematics), relative to a
+    registered reference (the femur), and how far the registration may be from it.
+
+    Attributes:
+        world_from_reference: (4, 4) the registered reference (``ct_from_femur``).
+        reference_from_cm: (4, 4) the predicted CM pose in the reference's frame
+            (``femur_from_cm``).
+        max_tip_mm: the registered CM tip (reference frame) may lie at most this far from the
+            predicted one.
+    """
+
+    world_from_reference: np.ndarray
+    reference_from_cm: np.ndarray
+    max_tip_mm: float = MAX_MOTION_TIP_MM
+
+    @property
+    def world_from_cm(self) -> np.ndarray:
+        """(4, 4) the predicted CM pose in the world frame."""
+        return np.asarray(self.world_from_reference @ self.reference_from_cm)
+
+
+@dataclass(frozen=True)
+class ViewVerdict:
+    """A view's checks: ``passed``, and the failed ``check`` with its ``detail`` otherwise."""
+
+    view: str
+    passed: bool
+    check: str = ""
+    detail: str = ""
+
+
+def judge_cm_views(
+    names: Sequence[str], diagnostics: Sequence[Mapping[str, Any]], config: CMCheckConfig
+) -> list[ViewVerdict]:
+    """Per view: does the CM registration agree with it (landmark residual, edge NCC)?
+
+    Args:
+        names: the views' names.
+        diagnostics: per view ``{"landmark_residual_mm": float | None, "edge_ncc": float}``.
+        config: thresholds.
+    """
+    out = []
+    for name, d in zip(names, diagnostics, strict=True):
+        res = d.get("landmark_residual_mm")
+        if res is not None and res > config.max_landmark_residual_mm:
+            out.append(
+                ViewVerdict(
+                    name,
+                    False,
+                    "landmark_residual",
+                    f"registered landmarks {res:.2f} mm from the detected ones "
+                    f"(at most {config.max_landmark_residual_mm:g} mm)",
+                )
+            )
+        elif float(d["edge_ncc"]) < config.min_edge_ncc:
+            out.append(
+                ViewVerdict(
+                    name,
+                    False,
+                    "edge_ncc",
+                    f"the registered CM's outline matches the image with NCC {float(d['edge_ncc']):.2f} "
+                    f"(at least {config.min_edge_ncc:g})",
+                )
+            )
+        else:
+            out.append(ViewVerdict(name, True))
+    return out
+
+
+def judge_motion(motion: Mapping[str, float], max_tip_mm: float) -> ViewVerdict | None:
+    """None where the registration agrees with the predicted pose (:func:`motion_agreement`), else
+    the failed check (``robot_motion``)."""
+    tip = float(motion["motion_tip_mm"])
+    if tip <= max_tip_mm:
+        return None
+    return ViewVerdict(
+        "",
+        False,
+        "robot_motion",
+        f"the CM the images show is {tip:.1f} mm from where the robot's kinematics put it "
+        f"(at most {max_tip_mm:g} mm)",
+    )
+
+
+def motion_agreement(
+    predicted: PredictedCMPose, cm: CMRegistrationResult, cm_config: CMConfig
+) -> dict[str, float]:
+    """Agreement of a CM registration with a predicted pose, in the reference's frame:
+    ``motion_tip_mm`` (tip distance) and ``motion_rotation_deg``.
+
+    Notes:
+        A verification registration that failed disagrees by far more than the robot's and the
+        first registration's errors.
+    """
+    reference = se3.as_transform_array(predicted.world_from_reference, "world_from_reference")
+    reg = se3.inv(reference) @ se3.as_transform_array(cm.world_from_cm[0], "world_from_cm")
+    pred = predicted.reference_from_cm
+    tip = CMKinematics(cm_config).tip_cm(torch.as_tensor(cm.control_points_deg, dtype=torch.float64)).numpy()
+    d = np.linalg.inv(pred) @ reg
+    c = (np.trace(d[:3, :3]) - 1.0) / 2.0
+    return {
+        "motion_tip_mm": float(np.linalg.norm(se3.apply(reg, tip) - se3.apply(pred, tip))),
+        "motion_rotation_deg": float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))),
+    }
+
+
+def register_cm_checked(
+    views: Sequence[CMView],
+    landmarks_px: Sequence[np.ndarray | None],
+    tries: Sequence[Sequence[np.ndarray]],
+    diagnostics: dict[str, Any],
+    *,
+    initial_control_points_deg: np.ndarray,
+    config: CMRegistrationConfig,
+    checks: CMCheckConfig,
+    seed: int,
+    predicted: PredictedCMPose | None = None,
+    stage: str = "cm",
+) -> CMRegistrationResult:
+    """The CM registered and checked (module docstring).
+
+    Args:
+        views: the CM views (their names name them in ``diagnostics`` and refusals).
+        landmarks_px: per view the detected (2, 2) A, B, or None.
+        tries: lists of world-frame start poses; the next list is tried only where the previous
+            failed its checks. Within a try, views that disagree with the registration are left
+            out and the CM registered again from where it was, while ``checks.min_views`` remain.
+        diagnostics: filled in place (JSON-ready): ``cost``, ``converged``, ``reason``, ``views``
+            (per view :class:`CMViewDiagnostics`), ``views_used``, ``tries``, the motion
+            agreement (:func:`motion_agreement`) and ``left_out`` (view → why).
+        initial_control_points_deg: (n_control_points,) the shape's start.
+        config: the CM registration's settings.
+        checks: thresholds.
+        seed: try t's seed is ``seed + t`` (``seed + 17 + t`` without a view).
+        predicted: where another account puts the CM; None: no such check.
+        stage: the stage named in refusals and log messages.
+
+    Raises:
+        RegistrationRefused: no try passed; the reason names the view and the check that failed
+            last.
+    """
+    names = [v.name for v in views]
+    spacing = [v.camera.pixel_spacing_mm for v in views]
+    left_out: dict[str, str] = {}
+    last: ViewVerdict | None = None
+    for t, starts in enumerate(tries):
+        use = list(range(len(views)))
+        cm = register_cm_multistart(
+            views,
+            starts,
+            initial_control_points_deg=initial_control_points_deg,
+            config=config,
+            seed=seed + t,
+        )
+        while True:
+            diags, verdicts, motion, moved = _judge(
+                cm,
+                [names[k] for k in use],
+                [landmarks_px[k] for k in use],
+                [spacing[k] for k in use],
+                checks,
+                predicted,
+                config.cm_config,
+            )
+            failed = [v for v in verdicts if not v.passed]
+            diagnostics.update(
+                cost=float(cm.cost),
+                converged=bool(cm.converged),
+                reason=cm.reason,
+                views={names[k]: d.to_dict() for k, d in zip(use, diags, strict=True)},
+                views_used=[names[k] for k in use],
+                tries=t + 1,
+                **(motion or {}),
+            )
+            if not failed and moved is None:
+                if left_out:
+                    diagnostics["left_out"] = left_out
+                return cm
+            last = failed[0] if failed else moved
+            if not failed or len(use) - len(failed) < checks.min_views:
+                break
+            for v in failed:
+                left_out[v.view] = f"{v.check}: {v.detail}"
+                log.warning("%s: view %s left out (%s: %s)", stage, v.view, v.check, v.detail)
+            use = [k for k, v in zip(use, verdicts, strict=True) if v.passed]
+            cm = register_cm(
+                [views[k] for k in use],
+                initial_control_points_deg=cm.control_points_deg,
+                initial_world_from_cm=cm.world_from_cm[0],
+                config=config,
+                seed=seed + 17 + t,
+            )
+        if t + 1 < len(tries):
+            log.warning(
+                "%s: %s failed (%s); trying the next start",
+                stage,
+                last.check if last else "",
+                last.detail if last else "",
+            )
+    assert last is not None
+    if left_out:
+        diagnostics["left_out"] = left_out
+    raise RegistrationRefused(stage, last.check, last.detail, view=last.view)
+
+
+def _judge(
+    cm: CMRegistrationResult,
+    names: list[str],
+    landmarks_px: list[np.ndarray | None],
+    spacing: list[float | None],
+    checks: CMCheckConfig,
+    predicted: PredictedCMPose | None,
+    cm_config: CMConfig,
+) -> tuple[list[CMViewDiagnostics], list[ViewVerdict], dict[str, float] | None, ViewVerdict | None]:
+    """A registration's per-view diagnostics and verdicts and, where every view passed and a pose is
+    predicted, its agreement with that pose (:func:`motion_agreement`) and the verdict on it."""
+    diags = cm_view_diagnostics(cm, landmarks_px, spacing)
+    verdicts = judge_cm_views(names, [d.to_dict() for d in diags], checks)
+    if predicted is None or not all(v.passed for v in verdicts):
+        return diags, verdicts, None, None
+    motion = motion_agreement(predicted, cm, cm_config)
+    return diags, verdicts, motion, judge_motion(motion, predicted.max_tip_mm)

@@ -1,0 +1,191 @@
+"""The CM registration's checks: thresholds, leaving a view out, recovery from a second start,
+agreement with a predicted pose, refusal.
+
+The registrations are stand-ins here (their diagnostics are given); that the diagnostics flag broken
+registrations of physics-simulated images is tested in test_diagnostics.py.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pytest
+
+import fluoronav.registration.cm.checks as checks
+from fluoronav.errors import RegistrationRefused
+from fluoronav.geometry import se3
+from fluoronav.manipulator.config import CMConfig
+from fluoronav.registration.cm.checks import (
+    CMCheckConfig,
+    PredictedCMPose,
+    judge_cm_views,
+    judge_motion,
+    motion_agreement,
+    register_cm_checked,
+)
+from fluoronav.registration.cm.diagnostics import CMViewDiagnostics
+
+GOOD: dict[str, Any] = {"landmark_residual_mm": 0.4, "edge_ncc": 0.9}
+
+
+def test_thresholds_decide_each_view() -> None:
+    cfg = CMCheckConfig(max_landmark_residual_mm=2.0, min_edge_ncc=0.5)
+    diags: list[dict[str, Any]] = [
+        GOOD,
+        {"landmark_residual_mm": 2.5, "edge_ncc": 0.9},
+        {"landmark_residual_mm": None, "edge_ncc": 0.2},
+    ]
+    v = judge_cm_views(["a", "b", "c"], diags, cfg)
+    assert [x.passed for x in v] == [True, False, False]
+    assert v[1].check == "landmark_residual" and "2.50 mm" in v[1].detail
+    assert v[2].check == "edge_ncc" and "0.20" in v[2].detail
+    assert judge_motion({"motion_tip_mm": 2.9}, 3.0) is None
+    m = judge_motion({"motion_tip_mm": 12.0}, 3.0)
+    assert m is not None and m.check == "robot_motion" and "12.0 mm" in m.detail
+
+
+@dataclass
+class _Reg:
+    """A stand-in CM registration: which views it used and which start it came from."""
+
+    views: list[str]
+    start: int
+    world_from_cm: np.ndarray = field(default_factory=lambda: np.eye(4)[None])
+    control_points_deg: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    cost: float = 1.0
+    converged: bool = True
+    reason: str = "converged"
+
+
+@dataclass
+class _View:
+    name: str
+    camera: Any = None
+
+
+class _Camera:
+    pixel_spacing_mm = 0.388
+
+
+@dataclass
+class _Config:
+    cm_config: CMConfig = field(default_factory=CMConfig)
+
+
+def _run(
+    monkeypatch: pytest.MonkeyPatch,
+    bad: dict[tuple[int, str], dict[str, Any]],
+    *,
+    tries: int = 1,
+    motion: dict[int, float] | None = None,
+) -> tuple[_Reg, dict[str, Any], list[list[str]]]:
+    """``bad[(start, view)]``: the diagnostics of that view in registrations from that start;
+    ``motion[start]``: the tip's distance from the predicted pose of registrations from that start."""
+    calls: list[list[str]] = []
+    views = [_View(n, _Camera()) for n in ("AP", "orbit +20", "orbit -15")]
+
+    def multistart(vs: list[_View], starts: list[np.ndarray], **kw: Any) -> _Reg:
+        calls.append([v.name for v in vs])
+        return _Reg([v.name for v in vs], int(starts[0][0, 3]))
+
+    def single(vs: list[_View], **kw: Any) -> _Reg:
+        calls.append([v.name for v in vs])
+        return _Reg([v.name for v in vs], int(kw["initial_world_from_cm"][0, 3]))
+
+    def diagnostics(cm: _Reg, lms: list[Any], ps: list[Any]) -> list[CMViewDiagnostics]:
+        return [CMViewDiagnostics(**bad.get((cm.start, n), GOOD)) for n in cm.views]
+
+    def agreement(predicted: PredictedCMPose, cm: _Reg, cm_config: CMConfig) -> dict[str, float]:
+        assert motion is not None
+        return {"motion_tip_mm": motion[cm.start], "motion_rotation_deg": 0.0}
+
+    monkeypatch.setattr(checks, "register_cm_multistart", multistart)
+    monkeypatch.setattr(checks, "register_cm", single)
+    monkeypatch.setattr(checks, "cm_view_diagnostics", diagnostics)
+    monkeypatch.setattr(checks, "motion_agreement", agreement)
+    starts = []
+    for t in range(tries):
+        s = np.eye(4)
+        s[0, 3] = t
+        starts.append([s])
+    diag: dict[str, Any] = {}
+    cm = register_cm_checked(
+        views,  # type: ignore[arg-type]
+        [np.zeros((2, 2))] * 3,
+        starts,
+        diag,
+        initial_control_points_deg=np.zeros(5),
+        config=_Config(),  # type: ignore[arg-type]
+        checks=CMCheckConfig(),
+        seed=0,
+        predicted=None if motion is None else PredictedCMPose(np.eye(4), np.eye(4), max_tip_mm=3.0),
+    )
+    return cm, diag, calls  # type: ignore[return-value]
+
+
+def test_every_view_agrees_nothing_is_left_out(monkeypatch: pytest.MonkeyPatch) -> None:
+    cm, diag, calls = _run(monkeypatch, {})
+    assert cm.views == ["AP", "orbit +20", "orbit -15"] and len(calls) == 1
+    assert "left_out" not in diag and diag["tries"] == 1 and "motion_tip_mm" not in diag
+
+
+def test_a_view_that_disagrees_is_left_out_and_the_cm_registered_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    cm, diag, calls = _run(monkeypatch, {(0, "orbit +20"): {"landmark_residual_mm": 0.3, "edge_ncc": 0.05}})
+    assert calls == [["AP", "orbit +20", "orbit -15"], ["AP", "orbit -15"]]
+    assert cm.views == ["AP", "orbit -15"]
+    assert diag["left_out"]["orbit +20"].startswith("edge_ncc")
+    assert diag["views_used"] == ["AP", "orbit -15"]
+
+
+def test_too_few_views_left_refuses_naming_the_view_and_check(monkeypatch: pytest.MonkeyPatch) -> None:
+    far = {"landmark_residual_mm": 9.0, "edge_ncc": 0.9}
+    with pytest.raises(RegistrationRefused) as err:
+        _run(monkeypatch, {(0, "AP"): far, (0, "orbit -15"): far})
+    assert err.value.stage == "cm" and err.value.check == "landmark_residual"
+    assert err.value.view == "AP"
+    assert str(err.value).startswith(
+        "stage cm, view AP, check landmark_residual: registered landmarks 9.00 mm"
+    )
+
+
+def test_a_failed_motion_check_recovers_from_the_second_start(monkeypatch: pytest.MonkeyPatch) -> None:
+    cm, diag, calls = _run(monkeypatch, {}, tries=2, motion={0: 14.0, 1: 0.8})
+    assert cm.start == 1 and len(calls) == 2
+    assert diag["tries"] == 2 and diag["motion_tip_mm"] == 0.8
+
+
+def test_motion_that_disagrees_from_every_start_refuses(monkeypatch: pytest.MonkeyPatch) -> None:
+    with pytest.raises(RegistrationRefused) as err:
+        _run(monkeypatch, {}, tries=2, motion={0: 14.0, 1: 9.5})
+    assert err.value.check == "robot_motion" and "9.5 mm" in err.value.detail
+
+
+def test_motion_agreement_is_measured_in_the_reference_frame() -> None:
+    """The registered pose relative to the reference against the predicted one: the tip's distance
+    and the rotation between them, whatever the reference's own pose."""
+    cfg = CMConfig()
+    cp = np.full(cfg.n_control_points, 4.0)
+    ct_from_femur = se3.make(
+        np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), [10.0, -20.0, 30.0]
+    )
+    femur_from_cm = se3.make(np.eye(3), [1.0, 2.0, 3.0])
+    shift = se3.make(np.eye(3), [0.0, 0.0, 2.5])  # 2.5 mm along the CM's own z
+
+    @dataclass
+    class _CM:
+        world_from_cm: np.ndarray
+        control_points_deg: np.ndarray
+
+    same = _CM((ct_from_femur @ femur_from_cm)[None], cp)
+    moved = _CM((ct_from_femur @ femur_from_cm @ shift)[None], cp)
+    predicted = PredictedCMPose(ct_from_femur, femur_from_cm)
+    a = motion_agreement(predicted, same, cfg)  # type: ignore[arg-type]
+    assert a["motion_tip_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert a["motion_rotation_deg"] == pytest.approx(0.0, abs=1e-5)
+    b = motion_agreement(predicted, moved, cfg)  # type: ignore[arg-type]
+    assert b["motion_tip_mm"] == pytest.approx(2.5, abs=1e-9)
+    assert judge_motion(b, 2.0) is not None and judge_motion(b, predicted.max_tip_mm) is None
