@@ -15,7 +15,8 @@ from fluoronav.cli.main import main
 from fluoronav.detection.model import DetectorConfig, DetectorNet
 from fluoronav.detection.train import save_model
 
-TINY = DetectorConfig(input_size=32, roi_size=32, channels=(4, 8, 16), roi_channels=(4, 8, 16))
+_VIEW = {"network": {"channels": (4, 8, 16)}, "sampler": {"size": 32}}
+TINY = DetectorConfig.model_validate({"coarse": _VIEW, "fine": _VIEW})
 
 
 @pytest.fixture()

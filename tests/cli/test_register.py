@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
+from fluoronav.cli.register_case import load_case, write_example_case
 from fluoronav.errors import InputError
-from fluoronav.registration.case import load_case, write_example_case
 
 
 @pytest.fixture(scope="module")

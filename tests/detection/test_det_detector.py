@@ -157,7 +157,7 @@ def test_sure_first_pass_sets_the_last_pass_tta(sure_confidence: float, last_tta
     assert last == (len(cfg.fine.sampler.scales), last_tta)
     with pytest.raises(ValueError, match="sure_tta"):
         tiny(fine={"passes": {"sure_tta": 3}})
-    assert DetectorConfig.from_dict({}).fine.passes.sure_tta is None  # files before it: passes.tta always
+    assert DetectorConfig().fine.passes.sure_tta is None  # unless set: passes.tta always
     with pytest.raises(ValueError, match="sure_confidence"):
         tiny(fine={"passes": {"sure_confidence": float("nan")}})
 
@@ -239,30 +239,30 @@ def test_scaled_view_keeps_the_centre() -> None:
         np.testing.assert_allclose(s.y0 + s.side / 2, v.y0 + v.side / 2, atol=0.5)
 
 
-def test_tta_setting_is_validated_and_old_files_read() -> None:
+def test_tta_setting_is_validated_and_the_extras_are_off_by_default() -> None:
     with pytest.raises(ValueError, match="first_tta"):
         tiny(fine={"passes": {"first_tta": 3}})
-    old = DetectorConfig.from_dict({})  # a model file of format 1 without any key
-    assert old.fine.passes.first_tta is None  # files before it: every pass as passes.tta
+    default = DetectorConfig()
+    assert default.fine.passes.first_tta is None  # unless set: every pass as passes.tta
     for bad in ((), (0.1,), (1.0, 5.0)):
         with pytest.raises(ValueError, match="scales"):
             tiny(fine={"sampler": {"scales": bad}})
     cfg = tiny(fine={"sampler": {"scales": (0.8, 1.0, 1.25)}})
     assert DetectorConfig.from_dict(cfg.to_dict()) == cfg
-    assert old.fine.sampler.scales == (1.0,)  # files before the ROI scales
-    assert old.fine.passes.max_passes == 0  # files before it: no extra passes
+    assert default.fine.sampler.scales == (1.0,)  # one ROI scale
+    assert default.fine.passes.max_passes == 0  # no extra passes
     with pytest.raises(ValueError, match="max_passes"):
         tiny(fine={"passes": {"max_passes": -1}})
     with pytest.raises(ValueError, match="tta"):
         tiny(fine={"passes": {"tta": 3}})
-    assert old.fine.decoder.min_separation_px == 0.0  # files before it: no constraint
-    assert old.fine.decoder.join_frac == 0.0  # files before it: the largest component
+    assert default.fine.decoder.min_separation_px == 0.0  # no constraint unless set
+    assert default.fine.decoder.join_frac == 0.0  # the largest component unless set
     with pytest.raises(ValueError, match="join_frac"):
         tiny(fine={"decoder": {"join_frac": -0.1}})
     for bad_sep in (-1.0, 128.0):
         with pytest.raises(ValueError, match="min_separation_px"):
             tiny(fine={"sampler": {"size": 128}, "decoder": {"min_separation_px": bad_sep}})
-    assert old.fine.decoder.support_px == 0.0  # files before it: no constraint
+    assert default.fine.decoder.support_px == 0.0  # no constraint unless set
     for bad_support in (-1.0, 128.0):
         with pytest.raises(ValueError, match="support_px"):
             tiny(fine={"sampler": {"size": 128}, "decoder": {"support_px": bad_support}})
@@ -362,19 +362,11 @@ def test_model_file_roundtrip_and_bad_files(tmp_path: Path) -> None:
     torch.save(blob, tmp_path / "mismatch.pt")
     with pytest.raises(InputError, match="do not match"):
         Detector.load(tmp_path / "mismatch.pt")
-    # a file of format 1 holds the flat configuration: read as the declared one
-    flat = {
-        "input_size": 64,
-        "roi_size": 64,
-        "channels": [4, 8, 16],
-        "roi_channels": [4, 8, 16],
-        "min_confidence": 0.2,
-        "heatmap": "gaussian",
-        "strip_channels": [4, 8],  # a stage this version does not have: its weights are left aside
-    }
-    state = {**blob["state_dict"], "strip.model.0.conv.weight": torch.zeros(4, 1, 3, 3)}
-    torch.save({**blob, "format_version": 1, "config": flat, "state_dict": state}, tmp_path / "flat.pt")
-    assert Detector.load(tmp_path / "flat.pt", device="cpu").config == TINY
+    # a file of format 1 (the flat configuration) is refused, naming the converter
+    flat = {"input_size": 64, "roi_size": 64, "channels": [4, 8, 16], "roi_channels": [4, 8, 16]}
+    torch.save({**blob, "format_version": 1, "config": flat}, tmp_path / "flat.pt")
+    with pytest.raises(InputError, match=r"format 1 .*convert_flat_detector\.py"):
+        Detector.load(tmp_path / "flat.pt")
 
 
 def test_missing_shipped_weights_say_how_to_train(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -548,8 +540,7 @@ def test_padding_settings_are_validated() -> None:
         tiny(coarse={"sampler": {"min_field_mm": -1.0}})
     with pytest.raises(ValueError, match="padded_min_confidence"):
         tiny(accept={"padded_min_confidence": 1.5})
-    # model files without the keys read as off
-    assert DetectorConfig.from_dict({"heatmap": "softmax"}).coarse.sampler.min_field_mm == 0.0
+    assert DetectorConfig().coarse.sampler.min_field_mm == 0.0  # off unless set
 
 
 def test_a_landmark_peaking_on_a_blob_apart_from_the_cm_is_taken_on_the_cm() -> None:
@@ -705,7 +696,7 @@ def test_second_look_is_off_by_default_and_never_adds_a_detection(monkeypatch: p
     # an image without a detection (landmarks below min_confidence) is not looked at again
     unsure = counted(Detector(oracle_net(with_settings(wide, accept={"min_confidence": 0.99})), device="cpu"))
     assert not unsure.detect(img).found and calls == [1]
-    assert not DetectorConfig.from_dict({"heatmap": "softmax"}).fine.hypotheses.wide_unfound  # unless asked
+    assert not DetectorConfig().fine.hypotheses.wide_unfound  # unless asked
     for bad, name in (
         ({"wide_factors": (0.8,)}, "wide_factors"),
         ({"wide_factors": (5.0,)}, "wide_factors"),
@@ -714,7 +705,7 @@ def test_second_look_is_off_by_default_and_never_adds_a_detection(monkeypatch: p
     ):
         with pytest.raises(ValueError, match=name):
             tiny(fine={"hypotheses": bad})
-    assert DetectorConfig.from_dict({"heatmap": "softmax"}).fine.hypotheses.wide_factors == ()
+    assert DetectorConfig().fine.hypotheses.wide_factors == ()
     two = tiny(fine={"hypotheses": {"wide_factors": (2,)}})
     assert DetectorConfig.from_dict(two.to_dict()).fine.hypotheses.wide_factors == (2.0,)
 
@@ -773,7 +764,7 @@ def test_split_coarse_mask_tries_each_landmarks_component_alone(
 
 
 def test_split_coarse_mask_is_off_by_default_and_round_trips(monkeypatch: pytest.MonkeyPatch) -> None:
-    off = DetectorConfig.from_dict({"heatmap": "softmax"})
+    off = DetectorConfig()
     assert not TINY.fine.hypotheses.coarse_split and not off.fine.hypotheses.coarse_split
     on = tiny(fine={"hypotheses": {"coarse_split": True}})
     assert DetectorConfig.from_dict(on.to_dict()).fine.hypotheses.coarse_split
@@ -867,12 +858,11 @@ def test_edge_check_settings_are_validated() -> None:
     ):
         with pytest.raises(ValueError, match=name):
             tiny(add=("edge",), edge=bad)
-    with pytest.raises(ValueError, match="min_edge_ratio"):
-        DetectorConfig(min_edge_ratio=-1.0)  # the flat setting of model files of format 1
-    # model files without the keys have no edge check; with them, they do
-    assert DetectorConfig.from_dict({"heatmap": "softmax"}).edge is None
-    cfg = DetectorConfig.from_dict({"heatmap": "softmax", "min_edge_ratio": 1.4})
-    assert "edge" in cfg.stages and cfg.edge is not None and cfg.edge.min_ratio == 1.4
+    # no edge check unless listed; listed, it round-trips
+    assert DetectorConfig().edge is None
+    cfg = tiny(add=("edge",), edge={"min_ratio": 1.4})
+    back = DetectorConfig.from_dict(cfg.to_dict())
+    assert "edge" in back.stages and back.edge is not None and back.edge.min_ratio == 1.4
 
 
 @pytest.mark.parametrize(
@@ -1018,10 +1008,7 @@ def test_free_end_setting_is_validated_and_off_by_default() -> None:
         tiny(add=("free_end",), free_end={"max_continuation": 1.5})
     with pytest.raises(ValueError, match="min_confidence"):
         tiny(add=("free_end",), free_end={"min_confidence": -0.1})
-    with pytest.raises(ValueError, match="free_end_max_continuation"):
-        DetectorConfig(free_end_max_continuation=-0.1)  # the flat setting of model files of format 1
-    # model files without the keys have no such check
-    cfg = DetectorConfig.from_dict({"heatmap": "softmax"})
+    cfg = DetectorConfig()  # no such check unless listed
     assert cfg.free_end is None and "free_end" not in cfg.stages
     assert Detector(empty_net(), device="cpu").free_end is None
 
@@ -1229,10 +1216,6 @@ def test_shaft_settings_are_validated_and_off_by_default() -> None:
     cfg = DetectorConfig()
     assert cfg.shaft is None and "shaft" not in cfg.stages
     assert DetectorNet(cfg).shaft is None
-    # format 1: a shaft network whose check is off is not run (its weights are left aside)
-    assert DetectorConfig.from_dict({"shaft_channels": [4, 8]}).shaft is None
-    flat = DetectorConfig.from_dict({"shaft_channels": [4, 8], "shaft_cut_min_mm": 5.0})
-    assert flat.shaft is not None and flat.shaft.network.channels == (4, 8)
 
 
 def test_precision_names_resolve_per_device(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -1298,10 +1281,4 @@ def test_bf16_stages_are_validated_and_round_trip() -> None:
         tiny(bf16_stages=("fine", "decoder"))
     config = tiny(bf16_stages=("coarse", "fine"))
     assert DetectorConfig.from_dict(config.to_dict()) == config
-    assert (
-        DetectorConfig.from_dict({"heatmap": "softmax"}).bf16_stages == ()
-    )  # older files: float32 everywhere
-    # a file's name of a network this version does not have is left aside
-    assert DetectorConfig.from_dict({"bf16_stages": ["fine", "strip"], "roi_size": 64}).bf16_stages == (
-        "fine",
-    )
+    assert DetectorConfig().bf16_stages == ()  # float32 everywhere unless listed

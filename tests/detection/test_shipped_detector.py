@@ -13,9 +13,10 @@ import pytest
 import torch
 
 from fluoronav.anatomy.phantom import hip_phantom
-from fluoronav.detection.config import DetectorConfig
+from fluoronav.detection.config import STAGE_ORDER, DetectorConfig
 from fluoronav.detection.detector import Detector, shipped_model_path
 from fluoronav.detection.evaluate import dice_score
+from fluoronav.detection.model import MODEL_FORMAT_VERSION
 from fluoronav.simulation.scene import SceneSampling, sample_scene
 from fluoronav.simulation.xray import SimulationConfig, XraySimulator
 
@@ -58,29 +59,33 @@ def test_shipped_detector_on_unseen_simulated_images() -> None:
         assert not det.detect(sim.simulate(scene, seed=k).image).found
 
 
+def test_shipped_model_file_holds_the_declared_configuration() -> None:
+    # format 2: the declared stages and their settings, read as they are (no flat form)
+    blob = torch.load(shipped_model_path(), map_location="cpu", weights_only=True)
+    assert blob["format_version"] == MODEL_FORMAT_VERSION == 2
+    cfg = DetectorConfig.model_validate(blob["config"])
+    assert blob["config"] == cfg.to_dict()
+    assert cfg.stages == STAGE_ORDER
+    assert cfg.fine.passes.sure_tta == 4 and cfg.fine.sampler.scales == (0.85, 1.0, 1.2)
+    assert cfg.fine.hypotheses.wide_factors == (2.2,) and cfg.fine.hypotheses.wide_unfound
+    assert cfg.accept.min_mask_mm2 == 28.3 and cfg.coarse.decoder.weak_mask_px == 1
+    assert cfg.tube is not None and cfg.tube.sampler.spacing_px == 32.0
+    assert cfg.shaft is not None and cfg.shaft.cut_min_mm == 5.0
+    assert cfg.shaft.network == cfg.tube.network and cfg.shaft.min_cm_logit == 2.0
+    assert cfg.edge is not None and cfg.edge.needed_ratio(0.1) == 2.2 and cfg.edge.needed_ratio(0.5) == 1.4
+    assert cfg.bf16_stages == ("fine",)
+    # the loaded detector runs that configuration, every network with its weights
+    assert Detector.load(device="cpu").config == cfg
+    assert {k.split(".", 1)[0] for k in blob["state_dict"]} == set(cfg.network_stages)
+
+
 def test_shipped_sidecar_describes_the_shipped_weights() -> None:
-    # detector.json is the model file without its weights, its configuration in the declared form:
-    # the stages the shipped model runs (the weights file holds the flat configuration of format 1)
+    # detector.json is the model file without its weights
     blob = torch.load(shipped_model_path(), map_location="cpu", weights_only=True)
     sidecar = json.loads(shipped_model_path().with_suffix(".json").read_text(encoding="utf-8"))
-    declared = DetectorConfig.from_dict(blob["config"])
-    assert sidecar["config"] == declared.to_dict()
-    assert DetectorConfig.from_dict(sidecar["config"]) == declared
-    assert sidecar["config"]["stages"] == [
-        "coarse",
-        "fine",
-        "refine",
-        "tube",
-        "ends",
-        "free_end",
-        "shaft",
-        "edge",
-    ]
-    assert sidecar["train"] == json.loads(json.dumps(blob["train"]))
-    for key in ("fluoronav_version", "normalization", "parameters", "metrics"):
-        assert sidecar[key] == json.loads(json.dumps(blob[key]))
-    # every network of the declared stages has its weights, and there are no others
-    assert {k.split(".", 1)[0] for k in blob["state_dict"]} == set(declared.network_stages)
+    assert set(sidecar) == set(blob) - {"state_dict"}
+    for key in sidecar:
+        assert sidecar[key] == json.loads(json.dumps(blob[key])), key
 
 
 @pytest.mark.cuda

@@ -18,7 +18,7 @@ import SimpleITK as sitk  # noqa: N813
 
 from fluoronav.navigation.demo import results_json, write_demo_outputs
 from fluoronav.navigation.pipeline import NavigationConfig, NavigationRefused, NavigationResult, StageRecord
-from fluoronav.navigation.simulated import SimulatedNavigation, SimulationConfig
+from fluoronav.navigation.simulated import SimulatedNavigation, SimulatedNavigationConfig
 
 
 def test_results_of_a_refused_run_say_so_and_carry_no_move() -> None:
@@ -26,7 +26,7 @@ def test_results_of_a_refused_run_say_so_and_carry_no_move() -> None:
     res.stages["detect"] = StageRecord(seconds=0.5)
     res.joints_target_deg = np.zeros(6)  # a command computed before the refusal is withdrawn
     res.refuse(NavigationRefused("detect", "views_with_cm", "the CM was found in 1 of 3 views", view="AP"))
-    run = SimulatedNavigation(config=SimulationConfig(seed=3), result=res)
+    run = SimulatedNavigation(config=SimulatedNavigationConfig(seed=3), result=res)
     run.errors["landmark_px"] = 0.7
     d = results_json(run)
     assert d["status"] == "refused"
@@ -38,7 +38,7 @@ def test_results_of_a_refused_run_say_so_and_carry_no_move() -> None:
 
 
 def test_a_run_without_a_pipeline_result_still_writes_results(tmp_path: Path) -> None:
-    run = SimulatedNavigation(config=SimulationConfig(seed=1))
+    run = SimulatedNavigation(config=SimulatedNavigationConfig(seed=1))
     run.timings_s["anatomy"] = 1.0
     written = write_demo_outputs(run, tmp_path)
     assert written == [tmp_path / "results.json"]

@@ -35,7 +35,7 @@ from fluoronav.navigation.igtl import (
     parse_address,
     ras_from_lps_transform,
 )
-from fluoronav.navigation.simulated import SimulationConfig, run_simulated_navigation
+from fluoronav.navigation.simulated import SimulatedNavigationConfig, run_simulated_navigation
 
 LOGGER = "fluoronav.navigation.igtl"
 D = np.diag([-1.0, -1.0, 1.0])  # ras_from_lps for points
@@ -428,7 +428,7 @@ def small_phantom_case(tmp_path_factory: pytest.TempPathFactory) -> Path:
     of navigation on two cores."""
     case_dir = tmp_path_factory.mktemp("phantom") / "case"
     run_simulated_navigation(
-        SimulationConfig(seed=21, image_size=384, orbit_deg=(20.0,), oracle_landmarks=True),
+        SimulatedNavigationConfig(seed=21, image_size=384, orbit_deg=(20.0,), oracle_landmarks=True),
         case_dir=case_dir,
         until="case",
     )

@@ -88,10 +88,10 @@ def test_calibration_bend_is_one_planar_c_bend_and_stays_in_view() -> None:
 
 def test_unknown_workflow_is_an_input_error(tmp_path) -> None:
     from fluoronav.errors import InputError
-    from fluoronav.studies.handeye_study import run_study
+    from fluoronav.studies.handeye_study import run_handeye_study
 
     with pytest.raises(InputError):
-        run_study(HandEyeStudyConfig(workflow="hand-eyes", trials=1, seed=0), tmp_path)
+        run_handeye_study(HandEyeStudyConfig(workflow="hand-eyes", trials=1, seed=0), tmp_path)
 
 
 @pytest.mark.slow
@@ -191,10 +191,12 @@ def test_navigation_views_see_the_cm_and_the_femoral_head(seed: int) -> None:
 
 def test_navigation_allows_open_loop_or_one_correction(tmp_path) -> None:
     from fluoronav.errors import InputError
-    from fluoronav.studies.handeye_study import run_study
+    from fluoronav.studies.handeye_study import run_handeye_study
 
     with pytest.raises(InputError, match="corrections"):
-        run_study(HandEyeStudyConfig(workflow="navigation", trials=1, seed=0, corrections=2), tmp_path)
+        run_handeye_study(
+            HandEyeStudyConfig(workflow="navigation", trials=1, seed=0, corrections=2), tmp_path
+        )
 
 
 @pytest.mark.slow
@@ -244,7 +246,7 @@ def test_summary_counts_refusals_apart_and_flags_unflagged_gross_failures() -> N
 def test_navigation_rows_take_the_final_tip_and_the_checks() -> None:
     from fluoronav.navigation.pipeline import NavigationConfig
     from fluoronav.navigation.result import NavigationResult, StageRecord
-    from fluoronav.navigation.simulated import SimulatedNavigation, SimulationConfig
+    from fluoronav.navigation.simulated import SimulatedNavigation, SimulatedNavigationConfig
     from fluoronav.studies.handeye_study import navigation_row
 
     res = NavigationResult(config=NavigationConfig())
@@ -264,7 +266,7 @@ def test_navigation_rows_take_the_final_tip_and_the_checks() -> None:
     res.stages["pelvis"] = StageRecord(
         seconds=5.0, diagnostics={"views": {"AP": {"cost": 0.5}, "B": {"cost": 0.6}}}
     )
-    run = SimulatedNavigation(config=SimulationConfig(), result=res)
+    run = SimulatedNavigation(config=SimulatedNavigationConfig(), result=res)
     run.errors.update(reposition_tip_mm=1.5, corrected_tip_mm=0.3, corrected_axis_deg=0.2, cm_tip_mm=0.25)
     row = navigation_row(run, HandEyeStudyConfig(workflow="navigation", trials=1, seed=0))
     assert row["reposition_open_loop_mm"] == 1.5 and row["reposition_tip_mm"] == 0.3 and row["tip_mm"] == 0.25

@@ -22,12 +22,14 @@ import numpy as np
 import torch
 
 from fluoronav.detection.centerline import extract_centerline
-from fluoronav.registration.case import CMCase, simulate_cm_case
 from fluoronav.registration.centerline.single import centerline_initialize
+from fluoronav.registration.cm.case import CMCase, cm_case_from_simulation
 from fluoronav.registration.cm.config import CMRegistrationConfig, default_cm_levels
 from fluoronav.registration.cm.problem import CMProblem
 from fluoronav.registration.cm.result import cm_pose_errors
 from fluoronav.rendering.cm import CMRenderer
+from fluoronav.simulation.cm_case import simulate_cm_case
+from fluoronav.simulation.xray import envelope_config
 
 __all__ = ["REFERENCE_CONFIG", "evaluate_cm_registration", "run", "summarize"]
 
@@ -81,7 +83,7 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
         ("register_single_view_s", "single-view"),
         ("register_multi_view_s", "multi-view"),
     ):
-        case = simulate_cm_case(workflow, seed=11, image_size=size)  # type: ignore[arg-type]
+        case = cm_case_from_simulation(simulate_cm_case(workflow, seed=11, image_size=size))  # type: ignore[arg-type]
         fast, tip = _time_registration(case, config, repeats)
         slow, tip_ref = _time_registration(case, reference, 1)
         tip_key = key.removesuffix("_s") + "_tip_mm"
@@ -119,13 +121,13 @@ def evaluate_cm_registration(
     cfg = config or CMRegistrationConfig()
     rows = []
     for i in range(n):
-        case = simulate_cm_case(
+        simulated = simulate_cm_case(
             workflow,  # type: ignore[arg-type]
             seed=seed + i,
             image_size=image_size,
             photons_per_pixel=photons_per_pixel,
-            background=background,
         )
+        case = cm_case_from_simulation(simulated, background=background)
         if init == "centerline":
             case = _centerline_init(case)
         prob = _problem(case, cfg)
@@ -158,8 +160,6 @@ def evaluate_cm_registration(
 
 def _centerline_init(case: CMCase) -> CMCase:
     """Replace the initial pose by the centreline initialisation of the first view (true mask)."""
-    from fluoronav.simulation.xray import envelope_config  # the physics simulator: heavy to import
-
     v = case.views[0]
     assert case.world_from_cm_true is not None and v.landmarks_px is not None
     env = CMRenderer(envelope_config(case.config.cm_config), mu_per_mm=1.0)

@@ -126,37 +126,15 @@ def _read_robot_poses(path: Path, robot_name: Any) -> np.ndarray:
     return _poses_from_rows(rows, robot_name, src)
 
 
-def load_calibration_case(path: str | Path) -> CalibrationCase:
-    """Read a calibration case file (module docstring).
-
-    Raises:
-        InputError: naming the file, for anything malformed or missing.
-    """
+def _calibration_views(
+    d: dict[str, Any], vlist: list[Any], root: Path, camera: Any, binning: int | None, src: str
+) -> tuple[list[Any], list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """The case's views → (CM views, robot poses given per view, tracker_from_marker and
+    tracker_from_tip_marker given per view)."""
+    from fluoronav.cli.register_case import detect_landmarks  # lazy: fast --help
     from fluoronav.detection.detector import load_image  # lazy: fast --help
-    from fluoronav.geometry.camera import Camera  # lazy: fast --help
-    from fluoronav.registration.case import detect_landmarks  # lazy: fast --help
     from fluoronav.registration.cm import CMView  # lazy: fast --help
 
-    p = Path(path)
-    src = str(p)
-    d = read_json_object(p, what="calibration case")
-    root = p.parent
-    if "camera" not in d:
-        raise InputError(src, "'camera' (the one C-arm camera file) is required")
-    cam_entry = d["camera"]
-    if not isinstance(cam_entry, (str, dict)) or cam_entry == "":
-        raise InputError(src, "'camera' must be a camera file name or a camera object")
-    camera = (
-        Camera.from_dict(cam_entry, source=f"{src} camera")
-        if isinstance(cam_entry, dict)
-        else Camera.load(root / str(cam_entry))
-    )
-    vlist = d.get("views")
-    if not isinstance(vlist, list) or not vlist:
-        raise InputError(src, "'views' must be a non-empty list")
-    binning = d.get("binning")
-    if binning is not None and (not isinstance(binning, int) or binning < 1):
-        raise InputError(src, "'binning' must be a positive integer")
     views, poses, t_os, t_ot = [], [], [], []
     for k, v in enumerate(vlist):
         if not isinstance(v, dict) or "image" not in v:
@@ -196,6 +174,50 @@ def load_calibration_case(path: str | Path) -> CalibrationCase:
             t_ot.append(
                 _array(v["tracker_from_tip_marker"], (4, 4), f"views[{k}].tracker_from_tip_marker", src)
             )
+    return views, poses, t_os, t_ot
+
+
+def _calibration_truth(g: Any, src: str) -> dict[str, np.ndarray]:
+    """``ground_truth`` → ``ee_from_cm`` (4, 4) and, when given, ``control_points_deg`` (5,)."""
+    if not isinstance(g, dict) or "ee_from_cm" not in g:
+        raise InputError(src, "'ground_truth' needs 'ee_from_cm'")
+    gt = {"ee_from_cm": _array(g["ee_from_cm"], (4, 4), "ground_truth.ee_from_cm", src)}
+    if g.get("control_points_deg") is not None:
+        gt["control_points_deg"] = _array(
+            g["control_points_deg"], (5,), "ground_truth.control_points_deg", src
+        )
+    return gt
+
+
+def load_calibration_case(path: str | Path) -> CalibrationCase:
+    """Read a calibration case file (module docstring).
+
+    Raises:
+        InputError: naming the file, for anything malformed or missing.
+    """
+    from fluoronav.geometry.camera import Camera  # lazy: fast --help
+
+    p = Path(path)
+    src = str(p)
+    d = read_json_object(p, what="calibration case")
+    root = p.parent
+    if "camera" not in d:
+        raise InputError(src, "'camera' (the one C-arm camera file) is required")
+    cam_entry = d["camera"]
+    if not isinstance(cam_entry, (str, dict)) or cam_entry == "":
+        raise InputError(src, "'camera' must be a camera file name or a camera object")
+    camera = (
+        Camera.from_dict(cam_entry, source=f"{src} camera")
+        if isinstance(cam_entry, dict)
+        else Camera.load(root / str(cam_entry))
+    )
+    vlist = d.get("views")
+    if not isinstance(vlist, list) or not vlist:
+        raise InputError(src, "'views' must be a non-empty list")
+    binning = d.get("binning")
+    if binning is not None and (not isinstance(binning, int) or binning < 1):
+        raise InputError(src, "'binning' must be a positive integer")
+    views, poses, t_os, t_ot = _calibration_views(d, vlist, root, camera, binning, src)
     if len({v.name for v in views}) != len(views):
         raise InputError(src, "view names must be unique")
     if d.get("robot_poses") is not None:
@@ -221,16 +243,7 @@ def load_calibration_case(path: str | Path) -> CalibrationCase:
         if d.get("tip_in_tip_marker_mm") is not None
         else None
     )
-    gt = None
-    if d.get("ground_truth") is not None:
-        g = d["ground_truth"]
-        if not isinstance(g, dict) or "ee_from_cm" not in g:
-            raise InputError(src, "'ground_truth' needs 'ee_from_cm'")
-        gt = {"ee_from_cm": _array(g["ee_from_cm"], (4, 4), "ground_truth.ee_from_cm", src)}
-        if g.get("control_points_deg") is not None:
-            gt["control_points_deg"] = _array(
-                g["control_points_deg"], (5,), "ground_truth.control_points_deg", src
-            )
+    gt = _calibration_truth(d["ground_truth"], src) if d.get("ground_truth") is not None else None
     return CalibrationCase(
         views=views,
         rbase_from_ee=A,

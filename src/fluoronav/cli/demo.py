@@ -38,11 +38,14 @@ def run(
     )
     from fluoronav.navigation.igtl import IGTLinkStreamer, chain_stage_callbacks  # lazy: fast --help
     from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES  # lazy: fast --help
-    from fluoronav.navigation.simulated import SIMULATION_STAGES, SimulationConfig  # lazy: fast --help
+    from fluoronav.navigation.simulated import (
+        SIMULATION_STAGES,
+        SimulatedNavigationConfig,
+    )  # lazy: fast --help
 
     link = IGTLinkStreamer(igtl) if igtl is not None else None  # a malformed address is bad input
     console = Console(stderr=True)
-    cfg = SimulationConfig(
+    cfg = SimulatedNavigationConfig(
         seed=seed,
         image_size=image_size,
         device=str(resolve_device(device)),

@@ -18,8 +18,8 @@ def run_case(case_path: Path, out: Path, *, seed: int = 0, device: str = "cpu") 
     Returns:
         the ``result.json`` content.
     """
+    from fluoronav.cli.register_case import load_case  # lazy: fast --help
     from fluoronav.device import resolve_device  # heavy: torch
-    from fluoronav.registration.case import load_case  # lazy: fast --help
     from fluoronav.registration.cm import cm_pose_errors, register_cm, save_overlays  # lazy: fast --help
 
     case = load_case(case_path)

@@ -17,8 +17,8 @@ outputs into landmarks and masks):
 - ``edge``: a detection needs an image edge along its mask's boundary.
 
 ``accept`` holds the rules a detection must pass after the fine stage (landmark confidences, mask
-area). :meth:`DetectorConfig.from_dict` also reads the flat configuration of model files of format 1
-(:mod:`fluoronav.detection.flat_config`), and the constructor takes its field names as keywords.
+area). Model files of format 1 held one flat dictionary of settings instead; fluoronav reads them
+no longer (``tools/convert_flat_detector.py`` converts one).
 """
 
 from __future__ import annotations
@@ -458,9 +458,6 @@ class DetectorConfig(_Frozen):
         accept: what a fine result needs to be a detection.
         coarse, fine, refine, tube, ends, free_end, shaft, edge: each stage's settings; a stage not in
             ``stages`` has none (None), a listed one without settings gets the defaults.
-
-    The constructor also takes the flat keywords of model files of format 1 (``DetectorConfig(
-    input_size=64, refine_channels=(8, 16))``; :mod:`fluoronav.detection.flat_config`).
     """
 
     stages: tuple[str, ...] = ("coarse", "fine")
@@ -481,10 +478,6 @@ class DetectorConfig(_Frozen):
     def _declare(cls, data: Any) -> Any:
         if not isinstance(data, dict):
             return data
-        from fluoronav.detection.flat_config import declared_from_flat, is_flat  # cycle: it imports config
-
-        if is_flat(data):
-            data = declared_from_flat(data, strict=True)
         data = dict(data)
         for name in data.get("stages", ()):
             if name in _STAGE_CLASSES and data.get(name) is None:
@@ -523,13 +516,7 @@ class DetectorConfig(_Frozen):
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> DetectorConfig:
-        """A config from :meth:`to_dict`'s form, or from a model file's flat configuration of format 1
-        (keys it does not know are left aside; see
-        :func:`~fluoronav.detection.flat_config.declared_from_flat`)."""
-        from fluoronav.detection.flat_config import declared_from_flat, is_flat  # cycle: it imports config
-
-        if is_flat(d) or not d:
-            return cls.model_validate(declared_from_flat(d, strict=False))
+        """A config from :meth:`to_dict`'s form (validated: an unknown key raises)."""
         return cls.model_validate(d)
 
 

@@ -10,9 +10,8 @@ gets its batch norms folded into its convolutions (:func:`fold_batch_norm`) and,
 convolution and its activation packed into one oneDNN call (:func:`pack_for_cpu`).
 
 A model file (``torch.save`` of a dict) holds ``format_version``, ``config`` (the declared
-configuration; format 1: the flat one, :mod:`fluoronav.detection.flat_config`), ``normalization``,
-``parameters``, the training record and ``state_dict``; a JSON sidecar holds the same without the
-weights.
+configuration), ``normalization``, ``parameters``, the training record and ``state_dict``; a JSON
+sidecar holds the same without the weights.
 """
 
 from __future__ import annotations
@@ -48,7 +47,8 @@ __all__ = [
     "sidecar_path",
 ]
 
-#: version of the model file layout: 2 holds the declared configuration, 1 the flat one
+#: version of the model file layout: 2 holds the declared configuration; 1 held a flat one, read no
+#: longer (``tools/convert_flat_detector.py`` converts it)
 MODEL_FORMAT_VERSION = 2
 
 SHIPPED_MODEL_NAME = "detector.pt"
@@ -258,9 +258,9 @@ def count_parameters(module: nn.Module, *, trainable_only: bool = True) -> int:
 def load_net(path: str | Path | None = None) -> DetectorNet:
     """The networks of a model file written by ``fluoronav train`` (None: the shipped weights), as
     trained (batch norms unfolded, train mode), validated: a missing, damaged or foreign file raises
-    :class:`~fluoronav.errors.InputError` naming it. The weights of networks that the configuration
-    does not list (a stage of format 1 switched off, or one this version does not have) are left
-    aside."""
+    :class:`~fluoronav.errors.InputError` naming it, and so does a file of format 1 (the flat
+    configuration; ``tools/convert_flat_detector.py`` converts it). The weights of networks that the
+    configuration does not list are left aside."""
     if path is None:
         path = shipped_model_path()
         if not path.is_file():
@@ -280,6 +280,12 @@ def load_net(path: str | Path | None = None) -> DetectorNet:
         raise InputError(path, "not a fluoronav detector model (no state_dict/config)")
     if int(blob.get("format_version", 0)) > MODEL_FORMAT_VERSION:
         raise InputError(path, f"model format {blob.get('format_version')} is newer than this fluoronav")
+    if int(blob.get("format_version", 0)) < MODEL_FORMAT_VERSION:
+        raise InputError(
+            path,
+            f"model format {blob.get('format_version', 0)} (a flat configuration) is read no longer; "
+            "convert it with tools/convert_flat_detector.py",
+        )
     try:
         net = DetectorNet(DetectorConfig.from_dict(blob["config"]))
         listed = net.config.network_stages

@@ -29,9 +29,19 @@ import numpy as np
 from fluoronav.anatomy.io import load_ct, resolve_ct, save_volume
 from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import InputError, read_json_object
-from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.robot import UR10, SerialRobot, robot_to_dict
+from fluoronav.navigation.case_io import (
+    keyed,
+    parse_cm_config,
+    parse_joints,
+    parse_robot,
+    parse_views,
+    require_file,
+    vector,
+    write_views,
+)
+from fluoronav.navigation.case_view import CaseView
 from fluoronav.navigation.planning import Plan, load_plan, plan_from_dict, save_plan
 
 __all__ = [
@@ -64,29 +74,6 @@ CASE_KEYS = (
 #: Keys the reader skips (free text for people); any key starting with ``_`` is skipped too.
 COMMENT_KEYS = ("description", "notes")
 _VERIFICATION_KEYS = ("joints_deg", "views")
-
-
-@dataclass(frozen=True, eq=False)
-class CaseView:
-    """One C-arm image of a navigation case.
-
-    Attributes:
-        name: unique within its list of views (the case file's ``name``; default ``view<k>``, and
-            ``verify<k>`` for verification views).
-        image: (rows, cols) float32 log image (bright = attenuating), as
-            :func:`fluoronav.detection.detector.load_image` reads it.
-        camera: intrinsics and the initial ``camera_from_ct`` (``camera_from_world`` with world = CT).
-        landmarks_px: (2, 2) landmarks A, B given with the case (u, v in this image's pixels); when
-            present the detector is not run on this view.
-        mask: (rows, cols) bool CM mask given with the case (with ``landmarks_px``); when absent with
-            given landmarks, the CM region is taken as a band about the segment A-B.
-    """
-
-    name: str
-    image: np.ndarray
-    camera: Camera
-    landmarks_px: np.ndarray | None = None
-    mask: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -138,8 +125,6 @@ class NavigationCase:
 # ----- reading ---------------------------------------------------------------------------------
 def _volume(d: dict[str, Any], src: str, root: Path) -> tuple[Volume, str]:
     """The CT with labels and landmarks → (volume, the ``ct`` value for messages)."""
-    from fluoronav.navigation.case_io import require_file  # cycle: case_io imports case
-
     ct = d.get("ct")
     if ct is None:
         raise InputError(src, "'ct': missing (give a CT file, a DICOM directory or \"phantom\")")
@@ -214,16 +199,6 @@ def load_navigation_case(path: str | Path) -> NavigationCase:
             key (and the other file at fault, where there is one). Unknown top-level keys are errors
             (except ``description``, ``notes`` and keys starting with ``_``).
     """
-    from fluoronav.navigation.case_io import (  # cycle: case_io imports case
-        keyed,
-        parse_cm_config,
-        parse_joints,
-        parse_robot,
-        parse_views,
-        require_file,
-        vector,
-    )
-
     p = Path(path)
     src = str(p)
     root = p.parent
@@ -348,8 +323,6 @@ def write_navigation_case(
             view with a mask but no landmarks.
         FileNotFoundError: ``ct_path`` does not exist.
     """
-    from fluoronav.navigation.case_io import write_views  # cycle: case_io imports case
-
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     d: dict[str, Any] = {}

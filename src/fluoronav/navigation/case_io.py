@@ -32,7 +32,7 @@ from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.dicom import camera_from_dicom
 from fluoronav.manipulator.config import CMConfig, load_cm_config
 from fluoronav.manipulator.robot import SerialRobot, load_robot
-from fluoronav.navigation.case import CaseView
+from fluoronav.navigation.case_view import CaseView
 
 __all__ = [
     "ROBOT_KEYS",

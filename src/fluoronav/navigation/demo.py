@@ -22,7 +22,11 @@ import numpy as np
 from fluoronav import __version__
 from fluoronav.navigation.outputs import write_outputs
 from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES, EventCallback
-from fluoronav.navigation.simulated import SimulatedNavigation, SimulationConfig, run_simulated_navigation
+from fluoronav.navigation.simulated import (
+    SimulatedNavigation,
+    SimulatedNavigationConfig,
+    run_simulated_navigation,
+)
 
 __all__ = ["ERROR_ROWS", "run_demo", "write_demo_outputs"]
 
@@ -55,7 +59,7 @@ ERROR_ROWS = (
 
 
 def run_demo(
-    config: SimulationConfig | None = None,
+    config: SimulatedNavigationConfig | None = None,
     *,
     out: Path,
     on_stage: Callable[[str, str], None] | None = None,

@@ -40,17 +40,24 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from fluoronav.anatomy.volume import Volume
 from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.carm import centre_on, orbit_camera
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.manipulator.robot import UR10
-from fluoronav.navigation import case as case_io
-from fluoronav.navigation.case import CaseView, NavigationCase, VerificationViews
+from fluoronav.navigation.case import (
+    CaseView,
+    NavigationCase,
+    VerificationViews,
+    load_navigation_case,
+    write_navigation_case,
+)
 from fluoronav.navigation.pipeline import EventCallback, NavigationConfig, NavigationResult, navigate, verify
-from fluoronav.navigation.planning import neck_entry_plan, planned_femur_from_cm
+from fluoronav.navigation.planning import Plan, neck_entry_plan, planned_femur_from_cm
+from fluoronav.navigation.targeting import robot_target
 from fluoronav.registration.metrics import axis_error_deg, cm_errors
-from fluoronav.simulation.articulated import anatomy_and_simulator
+from fluoronav.simulation.articulated import ArticulatedSimulator, anatomy_and_simulator
 from fluoronav.simulation.robot_scene import (
     HandEyeScenario,
     perturb_transform,
@@ -64,7 +71,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "SIMULATION_STAGES",
     "SimulatedNavigation",
-    "SimulationConfig",
+    "SimulatedNavigationConfig",
     "run_simulated_navigation",
 ]
 
@@ -73,7 +80,7 @@ SIMULATION_STAGES = ("anatomy", "scene", "simulate", "move", "verify_simulate", 
 
 
 @dataclass(frozen=True)
-class SimulationConfig:
+class SimulatedNavigationConfig:
     """Settings of a simulated navigation (recorded in ``results.json`` and study configs).
 
     Attributes:
@@ -111,7 +118,7 @@ class SimulatedNavigation:
     ``artifacts`` holds arrays for the report (not serialised).
     """
 
-    config: SimulationConfig
+    config: SimulatedNavigationConfig
     result: NavigationResult | None = None
     errors: dict[str, float] = field(default_factory=dict)
     truth: dict[str, Any] = field(default_factory=dict)
@@ -193,44 +200,49 @@ def _truth_poses(
     }
 
 
-def run_simulated_navigation(
-    config: SimulationConfig | None = None,
-    *,
-    ct: str = "phantom",
-    case_dir: Path | None = None,
-    navigation: NavigationConfig | None = None,
-    on_stage: Callable[[str, str], None] | None = None,
-    on_event: EventCallback | None = None,
-    until: Literal["case", "end"] = "end",
-) -> SimulatedNavigation:
-    """Simulate a case, navigate on it, move, verify and correct; measure everything (module docstring).
+@dataclass(frozen=True, eq=False)
+class _Scenario:
+    """The truth of a simulated navigation and what the case is made of (stages ``anatomy``, ``scene``)."""
 
-    Args:
-        config: the simulation (default :class:`SimulationConfig`).
-        ct: ``"phantom"`` or a labelled CT path (labels ``pelvis``, ``femur_left``; landmarks
-            ``femoral_head_left``, ``entry_left``).
-        case_dir: when given, the case is written there (``navigation.json`` and its files, the truth
-            to ``truth.json`` beside it) and read back before the pipeline runs on it.
-        navigation: the pipeline's settings (default: device and seed of ``config``).
-        on_stage: called with (stage name, "start" | "done") for the loop's and the pipeline's stages.
-        on_event: passed to the pipeline (:data:`fluoronav.navigation.pipeline.EventCallback`).
-        until: ``"case"`` stops once the first case is simulated (``artifacts["case"]``, the
-            truth in ``truth``), before the pipeline runs.
-    """
-    cfg = config or SimulationConfig()
-    nav_cfg = navigation or NavigationConfig(device=cfg.device, seed=cfg.seed)
-    rng_seed = abs(int(cfg.seed))
-    run = SimulatedNavigation(config=cfg)
-    T, E, A = _Timer(run.timings_s, on_stage), run.errors, run.artifacts
-    torch.manual_seed(rng_seed % 2**63)
-    rng = np.random.default_rng(rng_seed)
-    seeds = rng.integers(2**31, size=8)
+    config: SimulatedNavigationConfig
+    volume: Volume
+    simulator: ArticulatedSimulator
+    sc: HandEyeScenario
+    cp_true: np.ndarray
+    tip_cm: np.ndarray
+    q_regi: np.ndarray
+    W_regi: np.ndarray
+    cams: list[Camera]
+    names: list[str]
+    plan: Plan
+    ee_from_cm_used: np.ndarray
 
+    def simulate(self, world_from_cm: np.ndarray, cameras: list[Camera], seed: int) -> list[Any]:
+        """Physics images of the CM at ``world_from_cm`` (seeds ``seed + k``)."""
+        tr = self.sc.trial
+        return [
+            self.simulator.simulate(
+                cam,
+                world_from_patient=tr.world_from_patient,
+                world_from_femur=tr.world_from_femur,
+                cm=(world_from_cm, self.cp_true),
+                seed=seed + k,
+                image_size=self.config.image_size,
+                cm_config=self.sc.cm_config,
+            )
+            for k, cam in enumerate(cameras)
+        ]
+
+
+def _scenario(
+    cfg: SimulatedNavigationConfig, ct: str, T: _Timer, rng: np.random.Generator, scene_seed: int
+) -> _Scenario:
+    """Stages ``anatomy`` and ``scene``: the CT, the robot holding the CM, the C-arm views, the plan."""
     with T("anatomy"):
         phantom_seed = cfg.seed if cfg.phantom_seed is None else cfg.phantom_seed
         volume, simulator = anatomy_and_simulator(ct, phantom_seed, cfg.image_size, cfg.device)
     with T("scene"):
-        sc = sample_handeye_scenario(volume, np.random.default_rng(seeds[0]), n_poses=0)
+        sc = sample_handeye_scenario(volume, np.random.default_rng(scene_seed), n_poses=0)
         tr = sc.trial
         kin = CMKinematics(sc.cm_config)
         cp_true = np.asarray(sc.control_points_deg, np.float64)
@@ -243,100 +255,164 @@ def run_simulated_navigation(
         names = ["AP"] + [f"orbit {a:+g}" for a in cfg.orbit_deg]
         plan = neck_entry_plan(tr.entry_ct, tr.femoral_head_ct)
         ee_from_cm_used = perturb_transform(sc.ee_from_cm, rng, cfg.handeye_error_deg, cfg.handeye_error_mm)
+    return _Scenario(
+        cfg, volume, simulator, sc, cp_true, tip_cm, q_regi, W_regi, cams, names, plan, ee_from_cm_used
+    )
 
-    def simulate(world_from_cm: np.ndarray, cameras: list[Camera], seed: int) -> list[Any]:
-        return [
-            simulator.simulate(
-                cam,
-                world_from_patient=tr.world_from_patient,
-                world_from_femur=tr.world_from_femur,
-                cm=(world_from_cm, cp_true),
-                seed=seed + k,
-                image_size=cfg.image_size,
-                cm_config=sc.cm_config,
-            )
-            for k, cam in enumerate(cameras)
-        ]
 
+def _first_case(
+    s: _Scenario, run: SimulatedNavigation, rng: np.random.Generator, seed: int, case_dir: Path | None
+) -> tuple[NavigationCase, list[Any]]:
+    """Stage ``simulate``: the images with the robot at its working pose → (the case, the images);
+    the truth into ``run.truth``."""
+    cfg, tr = s.config, s.sc.trial
+    images = s.simulate(s.W_regi, s.cams, seed)
+    case = NavigationCase(
+        volume=s.volume,
+        plan=s.plan,
+        side=tr.side,
+        cm_config=s.sc.cm_config,
+        fbg_control_points_deg=np.asarray(tr.initial_control_points_deg, np.float64),
+        robot=UR10,
+        joints_deg=np.asarray(s.q_regi, np.float64),
+        ee_from_cm=s.ee_from_cm_used,
+        views=_views(images, s.names, tr.initial_world_from_patient, oracle=cfg.oracle_landmarks, rng=rng),
+    )
+    run.truth = _truth_poses(
+        tr.world_from_patient,
+        s.W_regi,
+        tr.world_from_femur,
+        s.cp_true,
+        s.tip_cm,
+        [i.camera for i in images],
+        s.names,
+    )
+    if case_dir is not None:
+        path = write_navigation_case(case, case_dir)
+        _write_truth(run, case_dir)
+        case = load_navigation_case(path)
+    return case, images
+
+
+def _move(
+    s: _Scenario, run: SimulatedNavigation, res: NavigationResult, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stage ``move``: the true robot to the commanded joints → (world_from_cm after the move, the
+    planned tip in the world, the planned pose in the world)."""
+    assert res.joints_target_deg is not None and res.plan is not None
+    tr, E = s.sc.trial, run.errors
+    W_after = s.sc.execute(res.joints_target_deg, rng=rng)
+    planned_tip_world = se3.apply(tr.world_from_femur, res.plan.tip_target_world_mm)
+    W_plan_true = tr.world_from_femur @ res.femur_from_cm_target
+    E["reposition_tip_mm"] = float(np.linalg.norm(se3.apply(W_after, s.tip_cm) - planned_tip_world))
+    E["reposition_axis_deg"] = axis_error_deg(W_after[:3, 2], W_plan_true[:3, 2])
+    E["joint_motion_deg"] = float(res.stages["robot"].diagnostics["joint_motion_deg"])
+    E["reposition_robot_mm"] = _robot_only_error(
+        s.sc, run, s.q_regi, s.W_regi, s.ee_from_cm_used, rng, s.tip_cm
+    )
+    return W_after, planned_tip_world, W_plan_true
+
+
+def _verification_case(
+    s: _Scenario,
+    run: SimulatedNavigation,
+    case: NavigationCase,
+    W_after: np.ndarray,
+    rng: np.random.Generator,
+    seed: int,
+    case_dir: Path | None,
+) -> tuple[NavigationCase, list[Any]]:
+    """Stage ``verify_simulate``: the C-arm aimed where the registrations put the femoral head and
+    the planned CM, images of the CM after the move → (the case with them, the images)."""
+    cfg, tr, res = s.config, s.sc.trial, run.result
+    assert res is not None and res.joints_target_deg is not None
+    first, target = res.first, res.femur_from_cm_target
+    assert first is not None and target is not None
+    carm_est_from_ct = first.cameras_ct[0].camera_from_world
+    centre_ct = se3.apply(first.ct_from_femur, verification_view_centre(target, tr.femoral_head_ct))
+    # where the person aims the C-arm, in the world (through the estimated AP C-arm frame)
+    centre = se3.apply(np.linalg.inv(s.cams[0].camera_from_world) @ carm_est_from_ct, centre_ct)
+    centre = centre + rng.uniform(-cfg.aim_error_mm, cfg.aim_error_mm, 3)
+    ap2 = centre_on(s.cams[0], centre)
+    cams2 = [ap2] + [orbit_camera(ap2, angle_deg=a, isocenter_world=centre) for a in cfg.orbit_deg]
+    images2 = s.simulate(W_after, cams2, seed)
+    names2 = [f"{n} after the move" for n in s.names]
+    views2 = _views(images2, names2, tr.initial_world_from_patient, oracle=cfg.oracle_landmarks, rng=rng)
+    case = dataclasses.replace(
+        case, verification=VerificationViews(np.asarray(res.joints_target_deg), views2)
+    )
+    run.truth["verification"] = _truth_poses(
+        tr.world_from_patient, W_after, tr.world_from_femur, s.cp_true, s.tip_cm, cams2, names2
+    )
+    if case_dir is not None:
+        path = write_navigation_case(case, case_dir, ct_path=_ct_path(case_dir))
+        _write_truth(run, case_dir)
+        case = load_navigation_case(path)
+    return case, images2
+
+
+def run_simulated_navigation(
+    config: SimulatedNavigationConfig | None = None,
+    *,
+    ct: str = "phantom",
+    case_dir: Path | None = None,
+    navigation: NavigationConfig | None = None,
+    on_stage: Callable[[str, str], None] | None = None,
+    on_event: EventCallback | None = None,
+    until: Literal["case", "end"] = "end",
+) -> SimulatedNavigation:
+    """Simulate a case, navigate on it, move, verify and correct; measure everything (module docstring).
+
+    Args:
+        config: the simulation (default :class:`SimulatedNavigationConfig`).
+        ct: ``"phantom"`` or a labelled CT path (labels ``pelvis``, ``femur_left``; landmarks
+            ``femoral_head_left``, ``entry_left``).
+        case_dir: when given, the case is written there (``navigation.json`` and its files, the truth
+            to ``truth.json`` beside it) and read back before the pipeline runs on it.
+        navigation: the pipeline's settings (default: device and seed of ``config``).
+        on_stage: called with (stage name, "start" | "done") for the loop's and the pipeline's stages.
+        on_event: passed to the pipeline (:data:`fluoronav.navigation.pipeline.EventCallback`).
+        until: ``"case"`` stops once the first case is simulated (``artifacts["case"]``, the
+            truth in ``truth``), before the pipeline runs.
+    """
+    cfg = config or SimulatedNavigationConfig()
+    nav_cfg = navigation or NavigationConfig(device=cfg.device, seed=cfg.seed)
+    rng_seed = abs(int(cfg.seed))
+    run = SimulatedNavigation(config=cfg)
+    T, E, A = _Timer(run.timings_s, on_stage), run.errors, run.artifacts
+    torch.manual_seed(rng_seed % 2**63)
+    rng = np.random.default_rng(rng_seed)
+    seeds = rng.integers(2**31, size=8)
+
+    s = _scenario(cfg, ct, T, rng, int(seeds[0]))
     with T("simulate"):
-        images = simulate(W_regi, cams, int(seeds[1]))
-        case = NavigationCase(
-            volume=volume,
-            plan=plan,
-            side=tr.side,
-            cm_config=sc.cm_config,
-            fbg_control_points_deg=np.asarray(tr.initial_control_points_deg, np.float64),
-            robot=UR10,
-            joints_deg=np.asarray(q_regi, np.float64),
-            ee_from_cm=ee_from_cm_used,
-            views=_views(images, names, tr.initial_world_from_patient, oracle=cfg.oracle_landmarks, rng=rng),
-        )
-        run.truth = _truth_poses(
-            tr.world_from_patient,
-            W_regi,
-            tr.world_from_femur,
-            cp_true,
-            tip_cm,
-            [i.camera for i in images],
-            names,
-        )
-        if case_dir is not None:
-            path = case_io.write_navigation_case(case, case_dir)
-            _write_truth(run, case_dir)
-            case = case_io.load_navigation_case(path)
-    A.update(volume=volume, scene=sc, images=images, names=names, case=case)
+        case, images = _first_case(s, run, rng, int(seeds[1]), case_dir)
+    A.update(volume=s.volume, scene=s.sc, images=images, names=s.names, case=case)
     if until == "case":
         return run
 
     res = navigate(case, nav_cfg, on_stage=on_stage, on_event=on_event)
     run.result = res
-    _first_errors(run, sc, images, W_regi, cp_true)
+    _first_errors(run, s.sc, images, s.W_regi, s.cp_true)
     if res.status != "ok" or res.joints_target_deg is None:
         return run
     with T("move"):
-        W_after = sc.execute(res.joints_target_deg, rng=rng)
-        planned_tip_world = se3.apply(tr.world_from_femur, res.plan.tip_target_world_mm)  # type: ignore[union-attr]
-        W_plan_true = tr.world_from_femur @ res.femur_from_cm_target
-        E["reposition_tip_mm"] = float(np.linalg.norm(se3.apply(W_after, tip_cm) - planned_tip_world))
-        E["reposition_axis_deg"] = axis_error_deg(W_after[:3, 2], W_plan_true[:3, 2])
-        E["joint_motion_deg"] = float(res.stages["robot"].diagnostics["joint_motion_deg"])
-        E["reposition_robot_mm"] = _robot_only_error(sc, run, q_regi, W_regi, ee_from_cm_used, rng, tip_cm)
+        W_after, planned_tip_world, W_plan_true = _move(s, run, res, rng)
     run.truth["world_from_cm_after"] = W_after.tolist()
     A.update(W_after=W_after, W_plan_true=W_plan_true)
     if not cfg.verify:
         return run
 
     with T("verify_simulate"):
-        first, target = res.first, res.femur_from_cm_target
-        assert first is not None and target is not None
-        carm_est_from_ct = first.cameras_ct[0].camera_from_world
-        centre_ct = se3.apply(first.ct_from_femur, verification_view_centre(target, tr.femoral_head_ct))
-        # where the person aims the C-arm, in the world (through the estimated AP C-arm frame)
-        centre = se3.apply(np.linalg.inv(cams[0].camera_from_world) @ carm_est_from_ct, centre_ct)
-        centre = centre + rng.uniform(-cfg.aim_error_mm, cfg.aim_error_mm, 3)
-        ap2 = centre_on(cams[0], centre)
-        cams2 = [ap2] + [orbit_camera(ap2, angle_deg=a, isocenter_world=centre) for a in cfg.orbit_deg]
-        images2 = simulate(W_after, cams2, int(seeds[2]))
-        names2 = [f"{n} after the move" for n in names]
-        views2 = _views(images2, names2, tr.initial_world_from_patient, oracle=cfg.oracle_landmarks, rng=rng)
-        case = dataclasses.replace(
-            case, verification=VerificationViews(np.asarray(res.joints_target_deg), views2)
-        )
-        run.truth["verification"] = _truth_poses(
-            tr.world_from_patient, W_after, tr.world_from_femur, cp_true, tip_cm, cams2, names2
-        )
-        if case_dir is not None:
-            path = case_io.write_navigation_case(case, case_dir, ct_path=_ct_path(case_dir))
-            _write_truth(run, case_dir)
-            case = case_io.load_navigation_case(path)
+        case, images2 = _verification_case(s, run, case, W_after, rng, int(seeds[2]), case_dir)
     A.update(images2=images2, case=case)
     verify(case, res, on_stage=on_stage, on_event=on_event)
-    _verification_errors(run, sc, images2, W_after)
+    _verification_errors(run, s.sc, images2, W_after)
     if res.status != "ok" or res.joints_correction_deg is None:
         return run
     with T("correct_move"):
-        W_final = sc.execute(res.joints_correction_deg, rng=rng)
-        E["corrected_tip_mm"] = float(np.linalg.norm(se3.apply(W_final, tip_cm) - planned_tip_world))
+        W_final = s.sc.execute(res.joints_correction_deg, rng=rng)
+        E["corrected_tip_mm"] = float(np.linalg.norm(se3.apply(W_final, s.tip_cm) - planned_tip_world))
         E["corrected_axis_deg"] = axis_error_deg(W_final[:3, 2], W_plan_true[:3, 2])
     run.truth["world_from_cm_corrected"] = W_final.tolist()
     A["W_final"] = W_final
@@ -448,8 +524,6 @@ def _robot_only_error(
     tip_cm: np.ndarray,
 ) -> float:
     """The first move's error with true registrations (the robot's and the hand-eye's share)."""
-    from fluoronav.navigation.navigate import robot_target
-
     res, tr = run.result, sc.trial
     assert res is not None and res.plan is not None
     plan_true = dataclasses.replace(res.plan, control_points_deg=sc.control_points_deg)

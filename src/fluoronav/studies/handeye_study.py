@@ -41,9 +41,9 @@ __all__ = [
     "HandEyeStudyConfig",
     "navigation_row",
     "run_handeye_or_navigation_study",
+    "run_handeye_study",
     "run_handeye_trial",
     "run_navigation_trial",
-    "run_study",
 ]
 
 log = logging.getLogger(__name__)
@@ -172,7 +172,7 @@ def _navigation_outcomes(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return {"unflagged_gross_failures": len(bad), "unflagged_gross_failure_trials": bad}
 
 
-def run_study(
+def run_handeye_study(
     cfg: HandEyeStudyConfig, out: Path, *, scheduler: str | None = None, workers: int | None = None
 ) -> dict[str, Any]:
     """Run (or resume) a hand-eye or navigation study into ``out``: trials.csv, summary.json,
@@ -268,4 +268,4 @@ def run_handeye_or_navigation_study(
         oracle_landmarks=oracle_landmarks,
         calibration_bend_deg=calibration_bend_deg,
     )
-    return run_study(cfg, Path(out), scheduler=scheduler, workers=workers)
+    return run_handeye_study(cfg, Path(out), scheduler=scheduler, workers=workers)

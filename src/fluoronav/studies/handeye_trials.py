@@ -48,7 +48,7 @@ from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker
 from fluoronav.errors import FluoronavError
 from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
-from fluoronav.navigation.simulated import SimulationConfig, run_simulated_navigation
+from fluoronav.navigation.simulated import SimulatedNavigationConfig, run_simulated_navigation
 from fluoronav.registration.cm import CMView
 from fluoronav.registration.metrics import cm_errors
 from fluoronav.runner import finish_row, mark_failed, new_row
@@ -405,7 +405,7 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
     torch.set_num_threads(1)
     row = new_row(trial_id, seed, cfg.workflow)
     try:
-        sim = SimulationConfig(
+        sim = SimulatedNavigationConfig(
             seed=seed,
             phantom_seed=1000 * cfg.seed,
             image_size=cfg.image_size,

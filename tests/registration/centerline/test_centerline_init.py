@@ -353,8 +353,8 @@ def test_shaft_width_gives_the_depth_on_a_physics_image() -> None:
     its depth within 15 mm, and the initialisation with the image lands within 15 mm in depth, where
     one view's centreline alone cannot tell depth from tilt (docs/registration.md)."""
     from fluoronav.manipulator.config import CMConfig
-    from fluoronav.registration.case import simulate_cm_case
     from fluoronav.registration.centerline import measure_shaft_depth, shaft_depth_residual
+    from fluoronav.simulation.cm_case import simulate_cm_case
 
     case = simulate_cm_case("single-view", seed=3, image_size=384, rotation_deg=5.0, translation_mm=5.0)
     view = case.views[0]

@@ -15,7 +15,6 @@ import torch
 from fluoronav.geometry.camera import CIOS_FUSION, Camera
 from fluoronav.geometry.carm import carm_camera_from_world
 from fluoronav.manipulator.config import CMConfig
-from fluoronav.registration.case import perturb_pose, simulate_cm_case
 from fluoronav.registration.cm import (
     CMProblem,
     CMRegistrationConfig,
@@ -26,14 +25,20 @@ from fluoronav.registration.cm import (
     save_overlays,
     view_roi,
 )
+from fluoronav.registration.cm.case import CMCase, cm_case_from_simulation
 from fluoronav.registration.levels import CM_SIGMA, LevelConfig
+from fluoronav.simulation.cm_case import perturb_pose, simulate_cm_case
 
 FAST_LEVELS = default_cm_levels(refine=False, popsize=30)
 
 
+def _case(workflow, **kw) -> CMCase:
+    return cm_case_from_simulation(simulate_cm_case(workflow, **kw))
+
+
 @pytest.fixture(scope="module")
 def single_case():
-    return simulate_cm_case(
+    return _case(
         "single-view", seed=3, image_size=384, photons_per_pixel=None, rotation_deg=5.0, translation_mm=5.0
     )
 
@@ -151,7 +156,7 @@ def test_single_view_recovers_pose(single_case, tmp_path) -> None:
 
 @pytest.mark.slow
 def test_single_view_recovers_pose_at_768() -> None:
-    case = simulate_cm_case(
+    case = _case(
         "single-view", seed=3, image_size=768, photons_per_pixel=None, rotation_deg=5.0, translation_mm=5.0
     )
     res = register_cm(
@@ -213,7 +218,7 @@ def test_pose_errors_of_a_known_perturbation() -> None:
 
 @pytest.mark.slow
 def test_multi_view_recovers_pose() -> None:
-    case = simulate_cm_case(
+    case = _case(
         "multi-view", seed=4, image_size=384, photons_per_pixel=None, rotation_deg=5.0, translation_mm=5.0
     )
     res = register_cm(
@@ -231,7 +236,7 @@ def test_multi_view_recovers_pose() -> None:
 @pytest.mark.parametrize("linearized", [False, True])
 def test_multi_view_finishes_at_768(linearized: bool) -> None:
     """The 2x finishing level on three 768² views: CMA-ES or the linearised one (the default)."""
-    case = simulate_cm_case(
+    case = _case(
         "multi-view", seed=4, image_size=768, photons_per_pixel=None, rotation_deg=5.0, translation_mm=5.0
     )
     levels = default_cm_levels(linearized=linearized)
@@ -259,7 +264,7 @@ def test_default_levels_by_workflow() -> None:
 
 @pytest.mark.slow
 def test_multi_cm_recovers_poses() -> None:
-    case = simulate_cm_case(
+    case = _case(
         "multi-cm", seed=5, image_size=384, photons_per_pixel=None, rotation_deg=5.0, translation_mm=5.0
     )
     assert case.base_from_cm is not None

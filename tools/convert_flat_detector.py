@@ -1,22 +1,34 @@
-"""The flat configuration of model files of format 1, mapped onto the declared stages.
+"""Convert a detector model file of format 1 (one flat dictionary of settings) to format 2 (the declared
+stages of :class:`fluoronav.detection.config.DetectorConfig`), which is the only format fluoronav reads.
 
-Model files of format 1 (the shipped ``detector.pt`` among them) hold one flat dictionary of
-settings; a missing key takes its default of :data:`FLAT_DEFAULTS` (for a file, ``heatmap`` defaults
-to ``"gaussian"``: files without the key predate the softmax heatmaps). :func:`declared_from_flat`
-maps it onto :class:`~fluoronav.detection.config.DetectorConfig`'s form: a stage is listed where its
-settings switch it on (a network stage where it has channels, a check where its threshold is above
-0); a network whose check is off (``shaft_channels`` with ``shaft_cut_min_mm`` 0) is not listed, and
-its weights are not loaded.
+A flat configuration maps onto the declared stages: a missing key takes its default of
+:data:`FLAT_DEFAULTS` (a file without ``heatmap`` predates the softmax heatmaps: ``"gaussian"``); a
+stage is listed where its settings switch it on (a network stage where it has channels, a check
+where its threshold is above 0); a network whose check is off (``shaft_channels`` with
+``shaft_cut_min_mm`` 0) is not listed. Keys of stages that fluoronav no longer has (:data:`RETIRED`)
+and the weights of networks not listed are left out. The weights of the listed networks are copied
+unchanged; the other entries (version, normalisation, training record, metrics) are kept, and the
+JSON sidecar (the file without its weights) is written beside the output.
+
+Run once per old model file::
+
+    python tools/convert_flat_detector.py OLD.pt NEW.pt
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
-from fluoronav.detection.config import NETWORK_STAGES, STAGE_ORDER
+import torch
 
-__all__ = ["FLAT_DEFAULTS", "declared_from_flat", "is_flat"]
+from fluoronav.detection.config import NETWORK_STAGES, STAGE_ORDER, DetectorConfig
+from fluoronav.detection.model import MODEL_FORMAT_VERSION, sidecar_path
+
+__all__ = ["FLAT_DEFAULTS", "RETIRED", "convert_model_file", "declared_from_flat", "is_flat"]
 
 #: the flat settings and their defaults
 FLAT_DEFAULTS: dict[str, Any] = {
@@ -83,7 +95,7 @@ FLAT_DEFAULTS: dict[str, Any] = {
     "tube_band_px": 16.0,
 }
 
-#: flat settings of stages this version does not have: left aside in model files
+#: flat settings of stages fluoronav no longer has: left out
 RETIRED = frozenset(
     {
         "fine_flip_tta",
@@ -114,40 +126,18 @@ def is_flat(d: Mapping[str, Any]) -> bool:
     return any(k in FLAT_DEFAULTS or k in RETIRED for k in d if k != "bf16_stages")
 
 
-def declared_from_flat(flat: Mapping[str, Any], *, strict: bool) -> dict[str, Any]:
-    """The declared form (:meth:`~fluoronav.detection.config.DetectorConfig.to_dict`'s) of a flat
-    configuration; validation is left to the declared config.
+def _network(f: Mapping[str, Any], channels: Any) -> dict[str, Any]:
+    return {"channels": list(channels), "num_res_units": f["num_res_units"]}
 
-    Args:
-        flat: flat settings; missing ones take :data:`FLAT_DEFAULTS`.
-        strict: True (keyword arguments): an unknown or retired key raises ValueError; False (a
-            model file): they are left aside, and a missing ``heatmap`` is ``"gaussian"``.
-    """
-    unknown = set(flat) - set(FLAT_DEFAULTS)
-    if strict and unknown:
-        raise ValueError(f"unknown detector settings: {', '.join(sorted(unknown))}")
-    f = {**FLAT_DEFAULTS, **{k: v for k, v in flat.items() if k in FLAT_DEFAULTS}}
-    if not strict and "heatmap" not in flat:
-        f["heatmap"] = "gaussian"
-    for name in _SWITCHES:
-        if not float(f[name]) >= 0.0:
-            raise ValueError(f"{name} must be 0 (off) or more, got {f[name]}")
 
-    def network(channels: Any) -> dict[str, Any]:
-        return {"channels": list(channels), "num_res_units": f["num_res_units"]}
+def _decoder(f: Mapping[str, Any], **kw: Any) -> dict[str, Any]:
+    return {"heatmap": f["heatmap"], "sigma_px": f["sigma_px"], "mask_threshold": f["mask_threshold"], **kw}
 
-    def decoder(**kw: Any) -> dict[str, Any]:
-        return {
-            "heatmap": f["heatmap"],
-            "sigma_px": f["sigma_px"],
-            "mask_threshold": f["mask_threshold"],
-            **kw,
-        }
 
+def _coarse_and_fine(f: Mapping[str, Any]) -> dict[str, Any]:
+    """The always-listed stages and the acceptance rules."""
     pct = {"low_pct": f["low_pct"], "high_pct": f["high_pct"]}
-    patch = {"shape": list(f["ends_shape"]), "step_mm": f["refine_step_mm"]}
-    tube_patch = {**patch, "spacing_px": f["tube_spacing_px"]}
-    out: dict[str, Any] = {
+    return {
         "assumed_spacing_mm": f["refine_assumed_spacing_mm"],
         "accept": {
             "min_confidence": f["min_confidence"],
@@ -156,12 +146,12 @@ def declared_from_flat(flat: Mapping[str, Any], *, strict: bool) -> dict[str, An
             "min_mask_mm2": f["min_mask_mm2"],
         },
         "coarse": {
-            "network": network(f["channels"]),
+            "network": _network(f, f["channels"]),
             "sampler": {"size": f["input_size"], "min_field_mm": f["coarse_min_field_mm"], **pct},
-            "decoder": decoder(min_mask_px=f["min_mask_px"], weak_mask_px=f["weak_mask_px"]),
+            "decoder": _decoder(f, min_mask_px=f["min_mask_px"], weak_mask_px=f["weak_mask_px"]),
         },
         "fine": {
-            "network": network(f["roi_channels"]),
+            "network": _network(f, f["roi_channels"]),
             "sampler": {
                 "size": f["roi_size"],
                 "margin_frac": f["roi_margin_frac"],
@@ -177,7 +167,8 @@ def declared_from_flat(flat: Mapping[str, Any], *, strict: bool) -> dict[str, An
                 "sure_tta": f["fine_sure_tta"],
                 "sure_confidence": f["fine_sure_confidence"],
             },
-            "decoder": decoder(
+            "decoder": _decoder(
+                f,
                 min_separation_px=f["fine_min_separation_px"],
                 support_px=f["fine_support_px"],
                 join_frac=f["mask_join_frac"],
@@ -193,9 +184,15 @@ def declared_from_flat(flat: Mapping[str, Any], *, strict: bool) -> dict[str, An
             },
         },
     }
+
+
+def _patch_stages(f: Mapping[str, Any]) -> dict[str, Any]:
+    """The patch networks a flat configuration switches on (those with channels)."""
+    patch = {"shape": list(f["ends_shape"]), "step_mm": f["refine_step_mm"]}
+    out: dict[str, Any] = {}
     if f["refine_channels"]:
         out["refine"] = {
-            "network": network(f["refine_channels"]),
+            "network": _network(f, f["refine_channels"]),
             "sampler": {
                 "shape": list(f["refine_shape"]),
                 "step_mm": f["refine_step_mm"],
@@ -206,18 +203,24 @@ def declared_from_flat(flat: Mapping[str, Any], *, strict: bool) -> dict[str, An
         }
     if f["tube_channels"]:
         out["tube"] = {
-            "network": network(f["tube_channels"]),
-            "sampler": tube_patch,
+            "network": _network(f, f["tube_channels"]),
+            "sampler": {**patch, "spacing_px": f["tube_spacing_px"]},
             "band_px": f["tube_band_px"],
             "tta": f["ends_tta"],
         }
     if f["ends_channels"]:
         out["ends"] = {
-            "network": network(f["ends_channels"]),
+            "network": _network(f, f["ends_channels"]),
             "sampler": patch,
             "inner_px": f["ends_inner_px"],
             "tta": f["ends_tta"],
         }
+    return out
+
+
+def _checks(f: Mapping[str, Any]) -> dict[str, Any]:
+    """The checks a flat configuration switches on (those with a threshold above 0)."""
+    out: dict[str, Any] = {}
     if f["free_end_max_continuation"] > 0.0:
         out["free_end"] = {
             "max_continuation": f["free_end_max_continuation"],
@@ -225,8 +228,12 @@ def declared_from_flat(flat: Mapping[str, Any], *, strict: bool) -> dict[str, An
         }
     if f["shaft_channels"] and f["shaft_cut_min_mm"] > 0.0:
         out["shaft"] = {
-            "network": network(f["shaft_channels"]),
-            "sampler": tube_patch,
+            "network": _network(f, f["shaft_channels"]),
+            "sampler": {
+                "shape": list(f["ends_shape"]),
+                "step_mm": f["refine_step_mm"],
+                "spacing_px": f["tube_spacing_px"],
+            },
             "band_px": f["tube_band_px"],
             "tta": f["ends_tta"],
             "cut_min_mm": f["shaft_cut_min_mm"],
@@ -239,8 +246,66 @@ def declared_from_flat(flat: Mapping[str, Any], *, strict: bool) -> dict[str, An
             "unsure_below_confidence": f["unsure_below_confidence"],
             "unsure_min_ratio": f["unsure_min_edge_ratio"],
         }
-    out["stages"] = [s for s in STAGE_ORDER if s in ("coarse", "fine") or s in out]
-    # a file's names of networks this version does not have are left aside; keywords are validated
-    bf16 = list(f["bf16_stages"])
-    out["bf16_stages"] = bf16 if strict else [s for s in bf16 if s in NETWORK_STAGES]
     return out
+
+
+def declared_from_flat(flat: Mapping[str, Any]) -> dict[str, Any]:
+    """The declared form (:meth:`~fluoronav.detection.config.DetectorConfig.to_dict`'s) of a model
+    file's flat configuration; validation is left to the declared config.
+
+    Args:
+        flat: flat settings; missing ones take :data:`FLAT_DEFAULTS`, but for a missing ``heatmap``:
+            ``"gaussian"``. Unknown and retired keys, and names in ``bf16_stages`` of networks
+            fluoronav does not have, are left out.
+
+    Raises:
+        ValueError: a check's switch below 0.
+    """
+    f = {**FLAT_DEFAULTS, **{k: v for k, v in flat.items() if k in FLAT_DEFAULTS}}
+    if "heatmap" not in flat:
+        f["heatmap"] = "gaussian"
+    for name in _SWITCHES:
+        if not float(f[name]) >= 0.0:
+            raise ValueError(f"{name} must be 0 (off) or more, got {f[name]}")
+    out = {**_coarse_and_fine(f), **_patch_stages(f), **_checks(f)}
+    out["stages"] = [s for s in STAGE_ORDER if s in ("coarse", "fine") or s in out]
+    out["bf16_stages"] = [s for s in f["bf16_stages"] if s in NETWORK_STAGES]
+    return out
+
+
+def convert_model_file(src: Path, dst: Path) -> DetectorConfig:
+    """Write ``dst`` (format 2, with its JSON sidecar) from the model file ``src`` of format 1.
+
+    Returns:
+        the declared configuration written.
+
+    Raises:
+        ValueError: ``src`` is not a model file of format 1.
+    """
+    blob = torch.load(src, map_location="cpu", weights_only=True)
+    if not isinstance(blob, dict) or "state_dict" not in blob or "config" not in blob:
+        raise ValueError(f"{src}: not a fluoronav detector model (no state_dict/config)")
+    if int(blob.get("format_version", 0)) >= 2 or not (is_flat(blob["config"]) or not blob["config"]):
+        raise ValueError(f"{src}: not a model file of format 1 (format {blob.get('format_version')})")
+    config = DetectorConfig.model_validate(declared_from_flat(blob["config"]))
+    listed = config.network_stages
+    # the entries keep their order; the weights of networks not listed are left out
+    out = {k: v for k, v in blob.items() if k != "state_dict"}
+    out.update(format_version=MODEL_FORMAT_VERSION, config=config.to_dict())
+    state = {k: v for k, v in blob["state_dict"].items() if k.split(".", 1)[0] in listed}
+    torch.save({**out, "state_dict": state}, dst)
+    sidecar_path(dst).write_text(json.dumps(out, indent=2) + "\n", encoding="utf-8")
+    return config
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("src", type=Path, help="model file of format 1")
+    parser.add_argument("dst", type=Path, help="model file of format 2 to write (and its .json sidecar)")
+    args = parser.parse_args()
+    config = convert_model_file(args.src, args.dst)
+    print(f"{args.dst}: format {MODEL_FORMAT_VERSION}, stages {', '.join(config.stages)}")
+
+
+if __name__ == "__main__":
+    main()

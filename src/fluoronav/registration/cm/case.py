@@ -1,0 +1,87 @@
+"""A CM registration case: the views, the initial estimate and the settings, with optional truth.
+
+:class:`CMCase` is what :func:`~fluoronav.registration.cm.problem.register_cm` needs; case files
+(``fluoronav register``) and simulated cases
+(:func:`fluoronav.simulation.cm_case.simulate_cm_case`, assembled by :func:`cm_case_from_simulation`)
+give one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fluoronav.registration.cm.background import CTBackground
+from fluoronav.registration.cm.config import CMRegistrationConfig
+from fluoronav.registration.cm.views import CMView
+from fluoronav.simulation.cm_case import SimulatedCMCase
+
+__all__ = ["CMCase", "cm_case_from_simulation"]
+
+
+@dataclass(frozen=True, eq=False)
+class CMCase:
+    """Everything :func:`~fluoronav.registration.cm.register_cm` needs, plus optional ground truth.
+
+    Attributes:
+        workflow: "single-view", "multi-view" or "multi-cm"
+            (:data:`~fluoronav.simulation.cm_case.CM_WORKFLOWS`).
+        views: the images.
+        initial_world_from_cm: (4, 4) initial pose (multiple-CM: of the CM in ``views[0]``).
+        initial_control_points_deg: (5,).
+        base_from_cm: (M, 4, 4) multiple-CM relative poses (robot FK × hand-eye), else None.
+        world_from_cm_true: (M, 4, 4) true poses or None; control_points_true_deg: (5,) or None.
+        config: registration settings.
+        source: file the case came from ("" for simulated cases).
+    """
+
+    workflow: str
+    views: list[CMView]
+    initial_world_from_cm: np.ndarray
+    initial_control_points_deg: np.ndarray
+    base_from_cm: np.ndarray | None = None
+    world_from_cm_true: np.ndarray | None = None
+    control_points_true_deg: np.ndarray | None = None
+    config: CMRegistrationConfig = field(default_factory=CMRegistrationConfig)
+    source: str = ""
+
+
+def cm_case_from_simulation(
+    simulated: SimulatedCMCase,
+    *,
+    background: bool = False,
+    config: CMRegistrationConfig | None = None,
+    device: str = "cpu",
+) -> CMCase:
+    """The registration case of a simulated one.
+
+    Args:
+        simulated: from :func:`~fluoronav.simulation.cm_case.simulate_cm_case`.
+        background: attach the anatomy DRR of the simulated CT at the true CT pose to each view (the
+            bone registration result in the studies).
+        config: registration settings stored in the case (default :class:`CMRegistrationConfig`).
+        device: the background renderer's device.
+    """
+    bg_renderer = CTBackground(simulated.volume, device=device) if background else None
+    views = [
+        CMView(
+            image=v.image,
+            camera=v.camera,
+            landmarks_px=v.landmarks_px,
+            background=bg_renderer,
+            binning=v.binning,
+            name=v.name,
+        )
+        for v in simulated.views
+    ]
+    return CMCase(
+        workflow=simulated.workflow,
+        views=views,
+        initial_world_from_cm=simulated.initial_world_from_cm,
+        initial_control_points_deg=simulated.initial_control_points_deg,
+        base_from_cm=simulated.base_from_cm,
+        world_from_cm_true=simulated.world_from_cm_true,
+        control_points_true_deg=simulated.control_points_true_deg,
+        config=config or CMRegistrationConfig(),
+    )
