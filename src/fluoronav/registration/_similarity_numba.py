@@ -99,6 +99,119 @@ def _add_rows(  # pragma: no cover - jitted
             col_mm[c] += sign * (m * m)
 
 
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _image_sum(x: np.ndarray) -> float:  # pragma: no cover - jitted
+    """Sum of the (H, W) image ``x`` (non-finite where a pixel is)."""
+    total = 0.0
+    for r in range(x.shape[0]):
+        for c in range(x.shape[1]):
+            total += x[r, c]
+    return total
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _patch_sums(  # pragma: no cover - jitted
+    gm: np.ndarray,
+    gf: np.ndarray,
+    d: int,
+    v: int,
+    sum_f: np.ndarray,
+    n: np.ndarray,
+    stride: int,
+    side: int,
+    cov: np.ndarray,
+    var: np.ndarray,
+    energy: np.ndarray,
+    col_m: np.ndarray,
+    col_fm: np.ndarray,
+    col_mm: np.ndarray,
+) -> None:
+    """Per patch of view ``v``, gradient direction ``d``: ``cov[d]`` of the moving gradient ``gm``
+    with the fixed ``gf``, ``var[d]`` its centred sum of squares and ``energy[d]`` its sum of
+    squares (float64; ``col_*`` (W,) are work buffers)."""
+    Pr, Pc = cov.shape[1], cov.shape[2]
+    for c in range(gm.shape[1]):
+        col_m[c] = 0.0
+        col_fm[c] = 0.0
+        col_mm[c] = 0.0
+    for pr in range(Pr):
+        r0 = pr * stride
+        # column sums over rows r0 … r0 + side − 1: slide the previous patch row's window
+        # (float64, so the running sums stay exact to ~1e-15 of the patch energy)
+        if pr == 0 or stride >= side:
+            if pr > 0:
+                col_m[:] = 0.0
+                col_fm[:] = 0.0
+                col_mm[:] = 0.0
+            _add_rows(gm, gf, r0, r0 + side, 1.0, col_m, col_fm, col_mm)
+        else:
+            _add_rows(gm, gf, r0 - stride, r0, -1.0, col_m, col_fm, col_mm)
+            _add_rows(gm, gf, r0 - stride + side, r0 + side, 1.0, col_m, col_fm, col_mm)
+        sm = 0.0
+        sfm = 0.0
+        smm = 0.0
+        for c in range(side):
+            sm += col_m[c]
+            sfm += col_fm[c]
+            smm += col_mm[c]
+        for pc in range(Pc):
+            c0 = pc * stride
+            if pc > 0:
+                if stride >= side:
+                    sm = 0.0
+                    sfm = 0.0
+                    smm = 0.0
+                    for c in range(c0, c0 + side):
+                        sm += col_m[c]
+                        sfm += col_fm[c]
+                        smm += col_mm[c]
+                else:
+                    for c in range(c0 - stride, c0):
+                        sm -= col_m[c]
+                        sfm -= col_fm[c]
+                        smm -= col_mm[c]
+                    for c in range(c0 - stride + side, c0 + side):
+                        sm += col_m[c]
+                        sfm += col_fm[c]
+                        smm += col_mm[c]
+            nn = max(n[v, pr, pc], 1.0)
+            cov[d, pr, pc] = sfm - sum_f[v, d, pr, pc] * sm / nn
+            energy[d, pr, pc] = smm
+            var[d, pr, pc] = max(smm - sm * sm / nn, 0.0)
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _weighted_dissimilarity(  # pragma: no cover - jitted
+    cov: np.ndarray,
+    var: np.ndarray,
+    energy: np.ndarray,
+    v: int,
+    weight: np.ndarray,
+    std_f: np.ndarray,
+    eps_rel: float,
+    flat_rel: float,
+) -> float:
+    """``Σ w (1 − NCC)`` over view ``v``'s patches of both directions (NCC 0 on flat patches)."""
+    Pr, Pc = cov.shape[1], cov.shape[2]
+    acc = 0.0
+    for d in range(2):
+        vmax = 0.0
+        for pr in range(Pr):
+            for pc in range(Pc):
+                vmax = max(vmax, var[d, pr, pc])
+        for pr in range(Pr):
+            for pc in range(Pc):
+                w = weight[v, d, pr, pc]
+                if w <= 0.0:
+                    continue
+                vm = var[d, pr, pc]
+                ncc = 0.0
+                if vmax > 0.0 and vm > eps_rel * vmax and vm > flat_rel * energy[d, pr, pc]:
+                    ncc = min(max(cov[d, pr, pc] / (std_f[v, d, pr, pc] * math.sqrt(vm)), -1.0), 1.0)
+                acc += w * (1.0 - ncc)
+    return acc
+
+
 @njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def patch_grad_ncc_cost(  # pragma: no cover - jitted
     moving: np.ndarray,
@@ -140,11 +253,7 @@ def patch_grad_ncc_cost(  # pragma: no cover - jitted
     for i in prange(B * V):
         b, v = i // V, i % V
         x = moving[b, v]
-        total = 0.0
-        for r in range(H):
-            for c in range(W):
-                total += x[r, c]
-        if not math.isfinite(total):
+        if not math.isfinite(_image_sum(x)):
             out[b, v] = np.nan
             continue
         if weight_total[v] <= 0.0:
@@ -164,71 +273,10 @@ def patch_grad_ncc_cost(  # pragma: no cover - jitted
         col_fm = np.empty(W, np.float64)
         col_mm = np.empty(W, np.float64)
         for d in range(2):
-            gm, gf = g[d], grad_fixed[v, d]
-            for c in range(W):
-                col_m[c] = 0.0
-                col_fm[c] = 0.0
-                col_mm[c] = 0.0
-            for pr in range(Pr):
-                r0 = pr * stride
-                # column sums over rows r0 … r0 + side − 1: slide the previous patch row's window
-                # (float64, so the running sums stay exact to ~1e-15 of the patch energy)
-                if pr == 0 or stride >= side:
-                    if pr > 0:
-                        col_m[:] = 0.0
-                        col_fm[:] = 0.0
-                        col_mm[:] = 0.0
-                    _add_rows(gm, gf, r0, r0 + side, 1.0, col_m, col_fm, col_mm)
-                else:
-                    _add_rows(gm, gf, r0 - stride, r0, -1.0, col_m, col_fm, col_mm)
-                    _add_rows(gm, gf, r0 - stride + side, r0 + side, 1.0, col_m, col_fm, col_mm)
-                sm = 0.0
-                sfm = 0.0
-                smm = 0.0
-                for c in range(side):
-                    sm += col_m[c]
-                    sfm += col_fm[c]
-                    smm += col_mm[c]
-                for pc in range(Pc):
-                    c0 = pc * stride
-                    if pc > 0:
-                        if stride >= side:
-                            sm = 0.0
-                            sfm = 0.0
-                            smm = 0.0
-                            for c in range(c0, c0 + side):
-                                sm += col_m[c]
-                                sfm += col_fm[c]
-                                smm += col_mm[c]
-                        else:
-                            for c in range(c0 - stride, c0):
-                                sm -= col_m[c]
-                                sfm -= col_fm[c]
-                                smm -= col_mm[c]
-                            for c in range(c0 - stride + side, c0 + side):
-                                sm += col_m[c]
-                                sfm += col_fm[c]
-                                smm += col_mm[c]
-                    nn = max(n[v, pr, pc], 1.0)
-                    cov[d, pr, pc] = sfm - sum_f[v, d, pr, pc] * sm / nn
-                    energy[d, pr, pc] = smm
-                    var[d, pr, pc] = max(smm - sm * sm / nn, 0.0)
-        acc = 0.0
-        for d in range(2):
-            vmax = 0.0
-            for pr in range(Pr):
-                for pc in range(Pc):
-                    vmax = max(vmax, var[d, pr, pc])
-            for pr in range(Pr):
-                for pc in range(Pc):
-                    w = weight[v, d, pr, pc]
-                    if w <= 0.0:
-                        continue
-                    vm = var[d, pr, pc]
-                    ncc = 0.0
-                    if vmax > 0.0 and vm > eps_rel * vmax and vm > flat_rel * energy[d, pr, pc]:
-                        ncc = min(max(cov[d, pr, pc] / (std_f[v, d, pr, pc] * math.sqrt(vm)), -1.0), 1.0)
-                    acc += w * (1.0 - ncc)
+            _patch_sums(
+                g[d], grad_fixed[v, d], d, v, sum_f, n, stride, side, cov, var, energy, col_m, col_fm, col_mm
+            )
+        acc = _weighted_dissimilarity(cov, var, energy, v, weight, std_f, eps_rel, flat_rel)
         out[b, v] = acc / weight_total[v]
     return out
 

@@ -169,60 +169,23 @@ class LinearizedRefiner:
         t0 = time.perf_counter()
         D = x0.size
         sig = np.broadcast_to(self.sigma, (D,)).astype(np.float64)
-        h = self.fd_step_sigma * sig
         radius = self.trust_sigma * sig
         lo = hi = None
         if self.bounds is not None:
             lo, hi = np.asarray(self.bounds[0], np.float64), np.asarray(self.bounds[1], np.float64)
+        renders = _Renders(render_images, cost_of, self.fd_step_sigma * sig, device)
         x = np.asarray(x0, np.float64).copy()
         history: list[IterationRecord] = []
-        n_evals = 0
         steps = 0
         stop = "maxiter"
         converged = False
-
-        def linearise(at: np.ndarray) -> tuple[float, torch.Tensor, torch.Tensor]:
-            nonlocal n_evals
-            X = np.repeat(at[None], D + 1, axis=0)
-            X[1:] += np.diag(h)
-            params = torch.as_tensor(X, dtype=torch.float64, device=device)
-            with torch.no_grad():
-                moving = render_images(params)
-                c = float(cost_of(moving[:1], params[:1])[0])
-            n_evals += D + 1
-            return c, moving[0], jacobian(moving[0], moving[1:])
-
-        def jacobian(I0: torch.Tensor, shifted: torch.Tensor) -> torch.Tensor:
-            return (shifted - I0) / torch.as_tensor(h, dtype=shifted.dtype, device=shifted.device).reshape(
-                D, *([1] * I0.dim())
-            )
-
-        def trial(at: np.ndarray) -> tuple[float, torch.Tensor]:
-            nonlocal n_evals
-            params = torch.as_tensor(at[None], dtype=torch.float64, device=device)
-            with torch.no_grad():
-                moving = render_images(params)
-                c = float(cost_of(moving, params)[0])
-            n_evals += 1
-            return c, moving[0]
-
-        def columns(at: np.ndarray, I_at: torch.Tensor) -> torch.Tensor:
-            # the Jacobian's D renders only where the next step starts: a rejected trial costs one
-            # render, the last accepted one none
-            nonlocal n_evals
-            X = np.repeat(at[None], D, axis=0) + np.diag(h)
-            with torch.no_grad():
-                shifted = render_images(torch.as_tensor(X, dtype=torch.float64, device=device))
-            n_evals += D
-            return jacobian(I_at, shifted)
-
-        f, I0, J = linearise(x)
+        f, I0, J = renders.linearise(x)
         if not np.isfinite(f):
-            return OptimizationResult(x, f, n_evals, 0, False, "non-finite cost", history, 1)
+            return OptimizationResult(x, f, renders.n_evals, 0, False, "non-finite cost", history, 1)
         J_at: torch.Tensor | None = J
         while steps < self.max_iters:
             if J_at is None:  # made lazily: a step that ends the refinement needs none
-                J_at = columns(x, I0)
+                J_at = renders.columns(x, I0)
             xt = torch.as_tensor(x, dtype=torch.float64, device=device)
             delta = self._solve(I0, J_at, xt, cost_of, radius)
             if lo is not None and hi is not None:
@@ -235,7 +198,7 @@ class LinearizedRefiner:
                     break
                 radius = 0.5 * radius
                 continue
-            f_new, I_new = trial(x + delta)
+            f_new, I_new = renders.trial(x + delta)
             if np.isfinite(f_new) and f_new < f:
                 gain = f - f_new
                 x, f, I0, J_at = x + delta, f_new, I_new, None
@@ -255,7 +218,7 @@ class LinearizedRefiner:
                 mean_cost=f_new,
                 sigma=float(np.max(radius / sig)),
                 best_params=tuple(float(v) for v in x),
-                n_evals=n_evals,
+                n_evals=renders.n_evals,
                 elapsed_s=time.perf_counter() - t0,
             )
             history.append(rec)
@@ -263,5 +226,57 @@ class LinearizedRefiner:
                 callback(rec)
             if converged:
                 break
-        logger.debug("linearised refinement: cost %.6g after %d renders, %s", f, n_evals, stop)
-        return OptimizationResult(x, f, n_evals, len(history), converged, stop, history, 0)
+        logger.debug("linearised refinement: cost %.6g after %d renders, %s", f, renders.n_evals, stop)
+        return OptimizationResult(x, f, renders.n_evals, len(history), converged, stop, history, 0)
+
+
+class _Renders:
+    """The renders of a refinement and their count: the cost at a point, and the forward-difference
+    Jacobian columns (steps ``h`` (D,), parameter units)."""
+
+    def __init__(
+        self, render_images: RenderImages, cost_of: CostOfImages, h: np.ndarray, device: torch.device
+    ) -> None:
+        self.render_images = render_images
+        self.cost_of = cost_of
+        self.h = h
+        self.device = device
+        self.n_evals = 0
+
+    def linearise(self, at: np.ndarray) -> tuple[float, torch.Tensor, torch.Tensor]:
+        """Cost, images and Jacobian at ``at``, in one batch of D + 1 renders."""
+        D = self.h.size
+        X = np.repeat(at[None], D + 1, axis=0)
+        X[1:] += np.diag(self.h)
+        params = torch.as_tensor(X, dtype=torch.float64, device=self.device)
+        with torch.no_grad():
+            moving = self.render_images(params)
+            c = float(self.cost_of(moving[:1], params[:1])[0])
+        self.n_evals += D + 1
+        return c, moving[0], self._jacobian(moving[0], moving[1:])
+
+    def _jacobian(self, I0: torch.Tensor, shifted: torch.Tensor) -> torch.Tensor:
+        D = self.h.size
+        return (shifted - I0) / torch.as_tensor(self.h, dtype=shifted.dtype, device=shifted.device).reshape(
+            D, *([1] * I0.dim())
+        )
+
+    def trial(self, at: np.ndarray) -> tuple[float, torch.Tensor]:
+        """Cost and images at ``at`` (one render)."""
+        params = torch.as_tensor(at[None], dtype=torch.float64, device=self.device)
+        with torch.no_grad():
+            moving = self.render_images(params)
+            c = float(self.cost_of(moving, params)[0])
+        self.n_evals += 1
+        return c, moving[0]
+
+    def columns(self, at: np.ndarray, I_at: torch.Tensor) -> torch.Tensor:
+        """The Jacobian at ``at`` whose images ``I_at`` are rendered already (D renders)."""
+        # the Jacobian's D renders only where the next step starts: a rejected trial costs one
+        # render, the last accepted one none
+        D = self.h.size
+        X = np.repeat(at[None], D, axis=0) + np.diag(self.h)
+        with torch.no_grad():
+            shifted = self.render_images(torch.as_tensor(X, dtype=torch.float64, device=self.device))
+        self.n_evals += D
+        return self._jacobian(I_at, shifted)

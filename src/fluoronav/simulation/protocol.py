@@ -250,6 +250,90 @@ def _small_motion(rng: np.random.Generator, rotation_deg: float, translation_mm:
 
 
 # ----- the protocol -------------------------------------------------------------------------------
+def _anatomy(
+    rng: np.random.Generator, cfg: ProtocolConfig, pelvis_ct: np.ndarray, head_ct: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Steps 1-2: ``(world_from_patient, world_from_femur)``."""
+    t = rng.uniform(0.0, cfg.pelvis_translation_mm) * _unit_vector(rng)
+    world_from_patient = _about(_rotation(rng, cfg.pelvis_rotation_deg), pelvis_ct, t)
+    world_from_femur = world_from_patient @ _about(_rotation(rng, cfg.femur_rotation_deg), head_ct)
+    return world_from_patient, world_from_femur
+
+
+def _carm_views(
+    workflow: str, rng: np.random.Generator, cfg: ProtocolConfig, head_w: np.ndarray
+) -> list[Camera]:
+    """Step 4: the AP view about the femoral head, and for multi-view the orbited views."""
+    iso = head_w + rng.uniform(-cfg.isocenter_jitter_mm, cfg.isocenter_jitter_mm, 3)
+    j = cfg.angle_jitter_deg
+    ap = carm_camera(
+        lao_rao_deg=rng.uniform(-j, j),
+        cran_caud_deg=cfg.cran_caud_deg + rng.uniform(-j, j),
+        source_to_isocenter_mm=rng.uniform(*cfg.source_to_isocenter_mm),
+        isocenter_world=iso,
+        detector=cfg.detector,
+    )
+    views = [ap]
+    if workflow == "multi-view":
+        views += [
+            orbit_camera(ap, angle_deg=rng.normal(m, s), isocenter_world=iso) for m, s in cfg.view_offsets_deg
+        ]
+    return views
+
+
+def _cm_poses(
+    rng: np.random.Generator,
+    cfg: ProtocolConfig,
+    world_from_patient: np.ndarray,
+    head_w: np.ndarray,
+    entry_w: np.ndarray,
+    views: list[Camera],
+    pts_cm: np.ndarray,
+    n: int,
+    *,
+    multi_cm: bool,
+) -> np.ndarray:
+    """Steps 5-6: the (n, 4, 4) CM poses, redrawn until in view. Nominal axis: the femoral neck
+    direction (entry → head) in the patient's coronal plane, so that the AP view sees the CM
+    side-on."""
+    anterior = world_from_patient[:3, :3] @ _ANTERIOR
+    neck = head_w - entry_w
+    neck -= neck.dot(anterior) * anterior
+    neck /= np.linalg.norm(neck)
+    for _ in range(cfg.max_redraws):
+        origin = head_w + rng.uniform(*cfg.cm_anterior_mm) * anterior - rng.uniform(*cfg.cm_setback_mm) * neck
+        base = cm_pose_along(origin, neck, rng.uniform(0.0, 2.0 * math.pi))
+        base = base @ _small_motion(rng, cfg.cm_rotation_deg, cfg.cm_translation_mm)
+        if multi_cm:
+            poses = np.stack(
+                [
+                    base @ _small_motion(rng, cfg.multi_cm_rotation_deg, cfg.multi_cm_translation_mm)
+                    for _ in range(cfg.multi_cm_poses)
+                ]
+            )
+        else:
+            poses = np.repeat(base[None], n, axis=0)
+        if _in_view(views, poses, pts_cm, cfg.margin_px):
+            return poses
+    raise ValueError(f"no CM pose in view after {cfg.max_redraws} draws; check the protocol ranges")
+
+
+def _initial_cm_poses(rng: np.random.Generator, cfg: ProtocolConfig, poses: np.ndarray) -> np.ndarray:
+    """Step 7 for the CM: each base pose perturbed about its origin A."""
+    return np.stack(
+        [
+            perturb_about(
+                T,
+                T[:3, 3],
+                rng,
+                rotation_deg=cfg.init_cm_rotation_deg,
+                translation_mm=cfg.init_cm_translation_mm,
+            )
+            for T in poses
+        ]
+    )
+
+
 def sample_trial(
     workflow: str,
     volume: Volume,
@@ -277,67 +361,22 @@ def sample_trial(
         if "pelvis_center" in volume.landmarks_world
         else volume.center_world
     )
-
-    # 1-2. anatomy
-    t = rng.uniform(0.0, cfg.pelvis_translation_mm) * _unit_vector(rng)
-    world_from_patient = _about(_rotation(rng, cfg.pelvis_rotation_deg), pelvis_ct, t)
-    world_from_femur = world_from_patient @ _about(_rotation(rng, cfg.femur_rotation_deg), head_ct)
+    # the draws in the module docstring's order: the anatomy, the shape, the C-arm, the CM, the noise
+    world_from_patient, world_from_femur = _anatomy(rng, cfg, pelvis_ct, head_ct)
     head_w = (world_from_femur @ np.append(head_ct, 1.0))[:3]
     entry_w = (world_from_femur @ np.append(entry_ct, 1.0))[:3]
     pelvis_w = (world_from_patient @ np.append(pelvis_ct, 1.0))[:3]
-
-    # 3. shape
     cp = rng.uniform(*cfg.control_point_range_deg, size=cm_config.n_control_points)
     pts_cm = _cm_points_cm(kin, cp)
-
-    # 4. C-arm
-    iso = head_w + rng.uniform(-cfg.isocenter_jitter_mm, cfg.isocenter_jitter_mm, 3)
-    j = cfg.angle_jitter_deg
-    ap = carm_camera(
-        lao_rao_deg=rng.uniform(-j, j),
-        cran_caud_deg=cfg.cran_caud_deg + rng.uniform(-j, j),
-        source_to_isocenter_mm=rng.uniform(*cfg.source_to_isocenter_mm),
-        isocenter_world=iso,
-        detector=cfg.detector,
-    )
-    views = [ap]
-    if workflow == "multi-view":
-        views += [
-            orbit_camera(ap, angle_deg=rng.normal(m, s), isocenter_world=iso) for m, s in cfg.view_offsets_deg
-        ]
+    views = _carm_views(workflow, rng, cfg, head_w)
     n = cfg.n_images(workflow)
-    multi_cm = workflow in _MULTI_CM
-
-    # 5-6. CM poses, redrawn until in view. Nominal axis: the femoral neck direction (entry → head)
-    # in the patient's coronal plane, so that the AP view sees the CM side-on
-    anterior = world_from_patient[:3, :3] @ _ANTERIOR
-    neck = head_w - entry_w
-    neck -= neck.dot(anterior) * anterior
-    neck /= np.linalg.norm(neck)
-    for _ in range(cfg.max_redraws):
-        origin = head_w + rng.uniform(*cfg.cm_anterior_mm) * anterior - rng.uniform(*cfg.cm_setback_mm) * neck
-        base = cm_pose_along(origin, neck, rng.uniform(0.0, 2.0 * math.pi))
-        base = base @ _small_motion(rng, cfg.cm_rotation_deg, cfg.cm_translation_mm)
-        if multi_cm:
-            poses = np.stack(
-                [
-                    base @ _small_motion(rng, cfg.multi_cm_rotation_deg, cfg.multi_cm_translation_mm)
-                    for _ in range(cfg.multi_cm_poses)
-                ]
-            )
-        else:
-            poses = np.repeat(base[None], n, axis=0)
-        if _in_view(views, poses, pts_cm, cfg.margin_px):
-            break
-    else:
-        raise ValueError(f"no CM pose in view after {cfg.max_redraws} draws; check the protocol ranges")
-    cameras = tuple(views) if len(views) == n else tuple([ap] * n)
-
+    poses = _cm_poses(
+        rng, cfg, world_from_patient, head_w, entry_w, views, pts_cm, n, multi_cm=workflow in _MULTI_CM
+    )
+    cameras = tuple(views) if len(views) == n else tuple([views[0]] * n)
     landmarks = np.stack(
         [cam.project(pts_cm[:2] @ T[:3, :3].T + T[:3, 3]) for cam, T in zip(cameras, poses, strict=True)]
     )
-
-    # 7. initialisation noise
     init_patient = perturb_about(
         world_from_patient,
         pelvis_w,
@@ -345,21 +384,9 @@ def sample_trial(
         rotation_deg=cfg.init_ct_rotation_deg,
         translation_mm=cfg.init_ct_translation_mm,
     )
-    init_cm = np.stack(
-        [
-            perturb_about(
-                T,
-                T[:3, 3],
-                rng,
-                rotation_deg=cfg.init_cm_rotation_deg,
-                translation_mm=cfg.init_cm_translation_mm,
-            )
-            for T in poses
-        ]
-    )
+    init_cm = _initial_cm_poses(rng, cfg, poses)
     init_cp = cp + rng.uniform(-cfg.fbg_noise_deg, cfg.fbg_noise_deg, size=cp.shape)
     oracle = landmarks + rng.uniform(-cfg.landmark_noise_px, cfg.landmark_noise_px, size=landmarks.shape)
-
     return Trial(
         workflow=workflow,
         side=side,

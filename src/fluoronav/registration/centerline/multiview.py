@@ -109,8 +109,8 @@ def centerline_initialize_multiview(
     With three or more views a landmark that disagrees with the others (a wrong detection, reprojection
     residual above the threshold) is left out of its triangulation
     (:func:`~fluoronav.geometry.camera.triangulate_points_robust`), and that view's centreline, drawn
-    to the wrong landmark, out of the roll score. Measured: a detection of B 75 px off in one of three
-    views turned the roll 49° (tip 3.3 mm) in a 20-trial multi-view study.
+    to the wrong landmark, out of the roll score: one wrong detection otherwise turns the roll by tens
+    of degrees (docs/validation.md).
 
     Args:
         cameras: V ≥ 2 cameras in one world frame.
@@ -122,14 +122,12 @@ def centerline_initialize_multiview(
         landmark_confidence: (V, 2) the detector's confidence of each landmark. With it, a landmark
             that only two views saw and that they disagree on (no vote possible) is taken from the
             more confident view, at the model's A–B distance from the other landmark on that view's
-            ray; both intersections are scanned. Measured: a detection of A on B (confidence 0.28
-            against 0.83 in the other view) turned the roll 49° (tip 3.4 mm) in a 20-trial study.
+            ray; both intersections are scanned (docs/validation.md: a detection of A on B).
         landmark_prior_world: (2, 3) where A and B are expected (the verification: the CM where the
             robot's kinematics put it). Detections farther than ``prior_gate_mm`` from it are left
             out before the vote, so two wrong views cannot outvote a right one; a landmark that one
             view keeps lies on that view's ray nearest the prediction, one that none keeps at the
-            prediction. Measured: two of three verification views detected A ~45 px off and the
-            vote replaced the right one.
+            prediction.
 
     Raises:
         InputError: malformed inputs; RegistrationFailure: coincident triangulated landmarks.
@@ -146,31 +144,13 @@ def centerline_initialize_multiview(
     cls = [checked_array(c, None, f"centerlines_px[{k}]") for k, c in enumerate(centerlines_px)]
     cfg = config or CMConfig()
     cp = checked_array(control_points_deg, (cfg.n_control_points,), "control_points_deg")
-    dt = torch.float64
-    thr = (
-        opt.landmark_residual_fraction * cameras[0].cols
-        if opt.max_landmark_residual_px is None
-        else float(opt.max_landmark_residual_px)
-    )
-    if landmark_prior_world is None:
-        ab, inliers, residuals = triangulate_points_robust(cameras, lm, max_residual_px=thr)
-    else:
-        prior = checked_array(landmark_prior_world, (2, 3), "landmark_prior_world")
-        ab, inliers, residuals = _triangulate_near_prior(
-            cameras, lm, prior, gate_mm=opt.prior_gate_mm, max_residual_px=thr
-        )
     kin = CMKinematics(cfg)
-    cp_t = torch.as_tensor(cp, dtype=dt)
+    cp_t = torch.as_tensor(cp, dtype=torch.float64)
     lm_cm = kin.landmarks_cm(cp_t)
-    chord_mm = float((lm_cm[1] - lm_cm[0]).norm())
-    candidates = [ab]
-    if conf is not None and landmark_prior_world is None:
-        candidates, inliers = _two_view_landmark_candidates(
-            cameras, lm, conf, ab, inliers, residuals, chord_mm=chord_mm, max_residual_px=thr
-        )
+    candidates, inliers = _landmark_candidates(cameras, lm, conf, landmark_prior_world, lm_cm, opt)
     scored = [k for k in range(len(cameras)) if inliers[k].all()] or list(range(len(cameras)))
     centerline_cm = kin.centerline_cm(cp_t, n_points=opt.n_model_points)
-    theta = torch.arange(opt.n_theta, dtype=dt) * (360.0 / opt.n_theta)
+    theta = torch.arange(opt.n_theta, dtype=torch.float64) * (360.0 / opt.n_theta)
     scans = []
     for cand in candidates:
         if np.linalg.norm(cand[1] - cand[0]) < 1e-6:
@@ -185,11 +165,6 @@ def centerline_initialize_multiview(
     all_minima.sort(key=lambda m: m[0])
     best_cost, best_scan, best = all_minima[0]
     ab, W_best, c_best, _ = scans[best_scan]
-    consensus = lm.copy()
-    for k, cam in enumerate(cameras):
-        for n in range(2):
-            if not inliers[k, n]:
-                consensus[k, n] = cam.project(ab[n][None])[0]
     return MultiViewInitResult(
         world_from_cm=W_best[best].numpy(),
         theta_deg=float(theta[best]),
@@ -200,8 +175,50 @@ def centerline_initialize_multiview(
         theta_grid_deg=theta.numpy(),
         theta_costs_px=c_best.numpy(),
         landmark_inliers=inliers.copy(),
-        landmarks_px=consensus,
+        landmarks_px=_consensus_landmarks(cameras, lm, ab, inliers),
     )
+
+
+def _landmark_candidates(
+    cameras: Sequence[Camera],
+    lm: np.ndarray,
+    conf: np.ndarray | None,
+    landmark_prior_world: np.ndarray | None,
+    lm_cm: torch.Tensor,
+    opt: MultiViewInitConfig,
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """The triangulated landmark pairs to scan (see :func:`centerline_initialize_multiview`) and
+    which detections agreed: ``(candidates [(2, 3) mm], inliers (V, 2))``."""
+    thr = (
+        opt.landmark_residual_fraction * cameras[0].cols
+        if opt.max_landmark_residual_px is None
+        else float(opt.max_landmark_residual_px)
+    )
+    if landmark_prior_world is None:
+        ab, inliers, residuals = triangulate_points_robust(cameras, lm, max_residual_px=thr)
+    else:
+        prior = checked_array(landmark_prior_world, (2, 3), "landmark_prior_world")
+        ab, inliers, residuals = _triangulate_near_prior(
+            cameras, lm, prior, gate_mm=opt.prior_gate_mm, max_residual_px=thr
+        )
+    if conf is None or landmark_prior_world is not None:
+        return [ab], inliers
+    chord_mm = float((lm_cm[1] - lm_cm[0]).norm())
+    return _two_view_landmark_candidates(
+        cameras, lm, conf, ab, inliers, residuals, chord_mm=chord_mm, max_residual_px=thr
+    )
+
+
+def _consensus_landmarks(
+    cameras: Sequence[Camera], lm: np.ndarray, ab: np.ndarray, inliers: np.ndarray
+) -> np.ndarray:
+    """(V, 2, 2) the detections, those that disagreed replaced by the projections of ``ab``."""
+    consensus = lm.copy()
+    for k, cam in enumerate(cameras):
+        for n in range(2):
+            if not inliers[k, n]:
+                consensus[k, n] = cam.project(ab[n][None])[0]
+    return consensus
 
 
 def _triangulate_near_prior(

@@ -115,35 +115,10 @@ class CMProblem:
             raise ValueError(f"initial_control_points_deg must have {cfg.cm_config.n_control_points} values")
         world_from_cm0 = _initial_world_from_cm(views, initial_world_from_cm, initial_camera_from_cm)
         self.kinematics = CMKinematics(cfg.cm_config)
-
-        # workflow and parameterisation (the world frame plays the parameterisation's "camera")
         self.workflow = cm_workflow(len(views), multiple_cm=base_from_cm is not None)
         self.param: CMPoseShape | MultiCMReference
-        if base_from_cm is not None:
-            bfc = np.asarray(base_from_cm, dtype=np.float64)
-            if bfc.ndim != 3 or bfc.shape[1:] != (4, 4) or bfc.shape[0] != len(views):
-                raise ValueError(f"base_from_cm must be ({len(views)}, 4, 4) for {len(views)} views")
-            world_from_base0 = world_from_cm0 @ np.linalg.inv(bfc[0])
-            base_from_ref, ref_from_cm = reference_frame(bfc)
-            self.param = MultiCMReference(
-                world_from_base0 @ base_from_ref.numpy(), ref_from_cm, cp0, device=device
-            )
-            self.pose_of_view = torch.arange(len(views), device=device)
-        else:
-            self.param = CMPoseShape(world_from_cm0, cp0, device=device)
-            self.pose_of_view = torch.zeros(len(views), dtype=torch.long, device=device)
-
-        # ROI centres: the landmarks' midpoint, else the initial pose's projection
-        W0 = (
-            self.world_from_cm(torch.as_tensor(self.param.initial()[None], device=device))[0][0].cpu().numpy()
-        )
-        ab0 = self.kinematics.landmarks_cm(torch.as_tensor(cp0)).numpy()  # (2, 3)
-        self.centers = []
-        for k, v in enumerate(views):
-            T = W0[int(self.pose_of_view[k])]
-            proj = v.camera.project(ab0 @ T[:3, :3].T + T[:3, 3])
-            self.centers.append(landmark_center(v, proj.mean(axis=0)))
-
+        self.param, self.pose_of_view = self._parameterisation(world_from_cm0, cp0, base_from_cm)
+        self.centers = self._roi_centers(cp0)
         self.renderer = CMRenderer(
             with_shaft(cfg.cm_config, cfg.shaft_length_mm),
             mu_per_mm=cfg.cm_mu_per_mm,
@@ -161,47 +136,9 @@ class CMProblem:
         self.T_full = torch.as_tensor(
             np.stack([v.camera.camera_from_world for v in views]), dtype=f64, device=device
         )
-
-        # landmark prior in full-detector pixels (the same at every level)
-        priors: list[PriorFn] = []
-        if cfg.landmark_sigma_full_px is not None:
-            detected = np.full((len(views), 2, 2), np.nan)
-            for k, v in enumerate(views):
-                if v.landmarks_px is not None:
-                    detected[k] = np.asarray(v.landmarks_px, dtype=np.float64) * v.image_binning
-            if np.isfinite(detected).any():
-                bins = torch.as_tensor([float(v.image_binning) for v in views], dtype=f64, device=device)
-
-                def project(params: torch.Tensor) -> torch.Tensor:
-                    return self.landmarks_px(params) * bins[None, :, None, None]
-
-                priors.append(LandmarkPrior(project, detected, cfg.landmark_sigma_full_px))
-
-        # a level finer than an image's binning cannot be formed from it: drop it
-        coarsest = max(v.image_binning for v in views)
-        levels = cfg.levels_for(self.workflow)
-        self.levels = [lv for lv in levels if lv.downsample % coarsest == 0]
-        if not self.levels:
-            raise ValueError(f"no level is compatible with images binned {coarsest}x")
-        if len(self.levels) < len(levels):
-            logger.info("dropped %d level(s) finer than the images' binning", len(levels) - len(self.levels))
-        self.pose_box = pose_box(
-            self.param.initial(),
-            cfg.cm_config.n_control_points,
-            max_rotation_deg=cfg.max_rotation_deg,
-            max_translation_mm=cfg.max_translation_mm,
-        )
-        if self.pose_box is not None:
-            box = (tuple(self.pose_box[0].tolist()), tuple(self.pose_box[1].tolist()))
-            self.levels = [lv if lv.bounds is not None else lv.with_(bounds=box) for lv in self.levels]
-
-        sigma, tolerance = cfg.control_point_sigma_deg, cfg.control_point_tolerance_deg
-        measured = cfg.response == "measured" and cfg.shaft_length_mm > 0 and len(self.levels) > 1
-        if len(views) == 1 and cfg.single_view_control_point_sigma_deg is not None and not measured:
-            sigma, tolerance = cfg.single_view_control_point_sigma_deg, 0.0
-        if sigma is not None:
-            priors.append(control_point_prior(cp0, n_leading=6, sigma_deg=sigma, tolerance_deg=tolerance))
-
+        priors = self._landmark_priors()
+        self.levels, self.pose_box = self._levels_and_box()
+        priors += self._control_point_priors(cp0)
         self.registration = Registration(
             self.moving,
             self.fixed,
@@ -213,6 +150,94 @@ class CMProblem:
             device=device,
             before_level=self._before_level,
         )
+
+    # ----- set-up -----------------------------------------------------------------------------
+    def _parameterisation(
+        self, world_from_cm0: np.ndarray, cp0: np.ndarray, base_from_cm: np.ndarray | None
+    ) -> tuple[CMPoseShape | MultiCMReference, torch.Tensor]:
+        """The parameterisation (the world frame plays its "camera") and each view's CM pose index:
+        one pose, or with ``base_from_cm`` one per view about the multiple-CM reference frame."""
+        views, device = self.views, self.device
+        if base_from_cm is None:
+            pose_of_view = torch.zeros(len(views), dtype=torch.long, device=device)
+            return CMPoseShape(world_from_cm0, cp0, device=device), pose_of_view
+        bfc = np.asarray(base_from_cm, dtype=np.float64)
+        if bfc.ndim != 3 or bfc.shape[1:] != (4, 4) or bfc.shape[0] != len(views):
+            raise ValueError(f"base_from_cm must be ({len(views)}, 4, 4) for {len(views)} views")
+        world_from_base0 = world_from_cm0 @ np.linalg.inv(bfc[0])
+        base_from_ref, ref_from_cm = reference_frame(bfc)
+        param = MultiCMReference(world_from_base0 @ base_from_ref.numpy(), ref_from_cm, cp0, device=device)
+        return param, torch.arange(len(views), device=device)
+
+    def _roi_centers(self, cp0: np.ndarray) -> list[np.ndarray]:
+        """Each view's ROI centre: its landmarks' midpoint, else the initial pose's projection."""
+        W0 = (
+            self.world_from_cm(torch.as_tensor(self.param.initial()[None], device=self.device))[0][0]
+            .cpu()
+            .numpy()
+        )
+        ab0 = self.kinematics.landmarks_cm(torch.as_tensor(cp0)).numpy()  # (2, 3)
+        centers = []
+        for k, v in enumerate(self.views):
+            T = W0[int(self.pose_of_view[k])]
+            proj = v.camera.project(ab0 @ T[:3, :3].T + T[:3, 3])
+            centers.append(landmark_center(v, proj.mean(axis=0)))
+        return centers
+
+    def _landmark_priors(self) -> list[PriorFn]:
+        """The prior on the detected landmarks, in full-detector pixels (the same at every level);
+        none without a σ or detections."""
+        views, sigma = self.views, self.config.landmark_sigma_full_px
+        if sigma is None:
+            return []
+        detected = np.full((len(views), 2, 2), np.nan)
+        for k, v in enumerate(views):
+            if v.landmarks_px is not None:
+                detected[k] = np.asarray(v.landmarks_px, dtype=np.float64) * v.image_binning
+        if not np.isfinite(detected).any():
+            return []
+        bins = torch.as_tensor(
+            [float(v.image_binning) for v in views], dtype=torch.float64, device=self.device
+        )
+
+        def project(params: torch.Tensor) -> torch.Tensor:
+            return self.landmarks_px(params) * bins[None, :, None, None]
+
+        return [LandmarkPrior(project, detected, sigma)]
+
+    def _levels_and_box(self) -> tuple[list[LevelConfig], tuple[np.ndarray, np.ndarray] | None]:
+        """The workflow's levels that the images' binning allows (a level finer than an image's
+        binning cannot be formed from it), bounded by the pose box where there is one."""
+        cfg = self.config
+        coarsest = max(v.image_binning for v in self.views)
+        levels = cfg.levels_for(self.workflow)
+        kept = [lv for lv in levels if lv.downsample % coarsest == 0]
+        if not kept:
+            raise ValueError(f"no level is compatible with images binned {coarsest}x")
+        if len(kept) < len(levels):
+            logger.info("dropped %d level(s) finer than the images' binning", len(levels) - len(kept))
+        box = pose_box(
+            self.param.initial(),
+            cfg.cm_config.n_control_points,
+            max_rotation_deg=cfg.max_rotation_deg,
+            max_translation_mm=cfg.max_translation_mm,
+        )
+        if box is not None:
+            bounds = (tuple(box[0].tolist()), tuple(box[1].tolist()))
+            kept = [lv if lv.bounds is not None else lv.with_(bounds=bounds) for lv in kept]
+        return kept, box
+
+    def _control_point_priors(self, cp0: np.ndarray) -> list[PriorFn]:
+        """The prior on the control points about the FBG reading ``cp0``: one view whose response is
+        not measured on several levels gets the single-view σ (none: no prior)."""
+        cfg = self.config
+        sigma, tolerance = cfg.control_point_sigma_deg, cfg.control_point_tolerance_deg
+        measured = cfg.response == "measured" and cfg.shaft_length_mm > 0 and len(self.levels) > 1
+        if len(self.views) == 1 and cfg.single_view_control_point_sigma_deg is not None and not measured:
+            sigma, tolerance = cfg.single_view_control_point_sigma_deg, 0.0
+        if sigma is None:
+            return []
+        return [control_point_prior(cp0, n_leading=6, sigma_deg=sigma, tolerance_deg=tolerance)]
 
     # ----- pieces -----------------------------------------------------------------------------
     def world_from_cm(self, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
