@@ -9,7 +9,7 @@ C-arm positions (``--views K``: each pose also seen from cameras orbited by ±``
 known to the calibration). Prints one JSON line: rotation (tilt of the CM axis, roll about it) and
 translation errors of ``ee_from_cm``, the eq. 10 tip error, the fitted shape's error and the levels.
 
-Run (the docs/robot-and-calibration.md table, ~5 min each on 2 cores)::
+Run (the docs/validation.md tables, ~5 min each on 2 cores)::
 
     python tools/handeye_factors.py --seed 71 --poses 15                       # the shipped default
     python tools/handeye_factors.py --seed 71 --poses 15 --shape-sigma 1 --tolerance 0   # old prior

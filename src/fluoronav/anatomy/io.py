@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk  # noqa: N813
 
-from fluoronav.anatomy import phantom
+import fluoronav.anatomy.phantom as phantom
 from fluoronav.anatomy.landmarks import read_landmarks, write_landmarks_json
 from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import InputError

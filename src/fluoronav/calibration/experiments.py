@@ -1,7 +1,7 @@
-"""Accuracy of the tracker-based hand-eye baselines on simulated data (the numbers in the docs).
+"""Accuracy of the tracker-based hand-eye baselines on simulated data.
 
-Run ``python -m fluoronav.calibration.experiments`` to print the table of
-docs/robot-and-calibration.md (about half a minute on one core).
+Run ``python -m fluoronav.calibration.experiments`` to print the table of docs/validation.md
+("Tracker-based baselines"; about half a minute on one core).
 """
 
 from __future__ import annotations

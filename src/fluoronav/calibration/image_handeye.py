@@ -14,16 +14,14 @@ views in one :class:`~fluoronav.rendering.cm.CMRenderer` call per generation) pl
 prior of eq. 6 (σ 100 full-detector px) and the flat-bottomed prior of the control points around
 the FBG reading of our multi-view CM registration (free within ±1°, σ 0.25° walls beyond).
 
-Our choices (measured, see docs/robot-and-calibration.md "Image-based hand-eye"):
+Our choices (docs/robot-and-calibration.md; the measurements in docs/validation.md):
 
 - ``world_from_rbase`` is initialised in closed form: the initial hand-eye maps the model landmarks
   A, B of every pose into the robot base frame, and a PnP (``cv2.solvePnP``, SQPnP) on the 2M
   detected landmarks of the one camera gives ``camera_from_rbase``. No per-view registration needed.
 - The shape prior is flat-bottomed, not a Gaussian: the image cost's differences between nearby
-  shapes are small, a Gaussian (σ 1°) held the shape at the FBG reading, and the hand-eye's tilt
-  absorbed the reading's error (±0.5°): seed-71 case (768², M = 15, robot errors, 10°/10 mm start)
-  rotation error 2.96° (tilt 2.90°); with the true shape held fixed 0.40°; with the flat prior
-  (or σ 10°) 0.70°.
+  shapes are small, a Gaussian (σ 1°) holds the shape at the FBG reading, and the hand-eye's tilt
+  then absorbs the reading's error (±0.5°).
 - Two stages: first the hand-eye is held (σ ≈ 0: the multiple-CM registration of §II-C with the
   initial hand-eye), then all 17 parameters are free; then a local refinement at 2×.
 """

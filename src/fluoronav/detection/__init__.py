@@ -3,8 +3,7 @@
 A model declares its stages (:mod:`~fluoronav.detection.config`); :class:`~fluoronav.detection.
 detector.Detector` runs them. Modules:
 
-- ``config``: the declared configuration (stages and their settings); ``flat_config``: the flat
-  configuration of model files of format 1 mapped onto it.
+- ``config``: the declared configuration (stages and their settings).
 - ``model``: the networks and the model files; ``runtime``: the networks on a device for inference.
 - ``views``: the view sampler (coarse, fine); ``patches``: the tube-aligned patch sampler.
 - ``heatmaps``: heatmap targets and peak decoding; ``decoder``: the rules that turn the stages'
@@ -18,3 +17,26 @@ detector.Detector` runs them. Modules:
 - ``dataset``, ``augment``, ``training_patches``, ``loss``, ``train``: training; ``evaluate``,
   ``bench``: accuracy and speed.
 """
+
+from fluoronav.detection.centerline import extract_centerline, resample_polyline
+from fluoronav.detection.config import DetectorConfig
+from fluoronav.detection.detector import Detector, load_image, shipped_model_path
+from fluoronav.detection.instrument import instrument_mask, instrument_masks
+from fluoronav.detection.result import Detection, detection_to_dict, write_detection
+from fluoronav.detection.train import TrainConfig, train
+
+__all__ = [
+    "Detection",  # one image's result: landmarks A and B, confidences, mask, centreline, why not
+    "Detector",  # the learned CM detector (the shipped model by default), CPU or CUDA
+    "DetectorConfig",  # a model's declared stages and their settings
+    "TrainConfig",  # settings of a training run (data, stages, schedule, seed)
+    "detection_to_dict",  # a detection as a JSON-ready dict (the detect command's output)
+    "extract_centerline",  # the CM's 2D centreline from its mask and landmarks
+    "instrument_mask",  # the CM and its mounting shaft in one image, to leave out of bone similarity
+    "instrument_masks",  # the instrument masks of several views
+    "load_image",  # an X-ray image file (npy, png, tiff, DICOM) as a log image and its pixel spacing
+    "resample_polyline",  # a polyline resampled by arc length
+    "shipped_model_path",  # the path of the detector model shipped with fluoronav
+    "train",  # trains (or resumes) a detector model on simulated data sets
+    "write_detection",  # writes a detection's JSON, mask and overlay
+]

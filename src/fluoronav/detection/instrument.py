@@ -1,11 +1,11 @@
 """Where the instrument is in an X-ray: the CM and the straight shaft it is mounted on.
 
 Bone registration compares the image with a DRR of bone only; the metal CM and its shaft are the
-strongest edges in a fluoroscopic image, and patch NCC near them pulls the bone towards them (a
-femur 10 mm off in depth on one multiple-CM trial; 0.8 mm with the instrument masked out). The mask
-is made from what detection gives: the CM segmentation and the centreline from landmark A to B, plus
-the solid tip beyond B and the shaft behind A to the image border (its direction the centreline's
-base, refined on the image when given: the base is short and the shaft long).
+strongest edges in a fluoroscopic image, and patch NCC near them pulls the bone towards them
+(docs/validation.md: a femur pulled off in depth). The mask is made from what detection gives: the
+CM segmentation and the centreline from landmark A to B, plus the solid tip beyond B and the shaft
+behind A to the image border (its direction the centreline's base, refined on the image when given:
+the base is short and the shaft long).
 """
 
 from __future__ import annotations

@@ -60,8 +60,8 @@ class LevelConfig:
         restarts: IPOP restarts when CMA-ES does not converge.
         bounds: optional absolute (lower, upper) parameter bounds.
         similarity_backend: the patch gradient NCC's backend (:class:`PatchGradNCC`): ``"auto"``
-            (the fused numba kernel on the CPU) or ``"torch"`` (the torch ops of fluoronav 0.1.0,
-            the benchmarks' reference).
+            (the fused numba kernel on the CPU) or ``"torch"`` (always the torch ops; the
+            benchmarks' reference).
         name: label for traces.
     """
 

@@ -134,7 +134,7 @@ class CMRenderer:
         max_tile_elements: memory bound of the torch backend (groups × tile pixels per chunk).
         row_spans: numba backend: in each row of a link's box, only the columns across the box's
             projected footprint (the hull of its 8 projected corners; the same images, ~1.4×
-            faster for an oblique CM); False: every pixel of the box (fluoronav 0.1.0).
+            faster for an oblique CM); False: every pixel of the box (the benchmark's reference).
     """
 
     def __init__(

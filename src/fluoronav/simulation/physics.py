@@ -25,7 +25,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from fluoronav.simulation import noise
+import fluoronav.simulation.noise as noise
 from fluoronav.simulation.materials import get_material, mass_attenuation, mass_attenuation_table
 from fluoronav.simulation.spectrum import DEFAULT_FILTRATION, Spectrum, load_spectrum
 

@@ -73,9 +73,9 @@ class BoneRegistrationConfig:
 #: The CMA-ES ladder (the default, :data:`PELVIS_PRESET`): for an initial error of a few degrees /
 #: ~10 mm as in the authors' protocol, σ 5° / 10, 10, 20 mm, population 16, ≤ 40 generations at
 #: ~96 px (patch radius 10 px), then σ 1° / 2, 2, 4 mm at ~128 px, then σ 0.5° / 1, 1, 2 mm at ~256 px
-#: with 1 mm voxels (population 12, ≤ 30 generations each). The third level: the pelvis centre
-#: (mostly depth) on 9 multiple-CM trials (768² images, instrument masked) 0.08–0.89 mm → 0.06–0.56 mm.
-#: With ``skip_empty=False`` it is the benchmark's reference (the settings of fluoronav 0.1.0).
+#: with 1 mm voxels (population 12, ≤ 30 generations each). The third level resolves the pelvis
+#: centre's depth, which ~128 px leaves open (docs/validation.md). With ``skip_empty=False`` it is
+#: the reference of :mod:`fluoronav.bench.navigation`.
 PELVIS_CMAES_PRESET = BoneRegistrationConfig(
     levels=(
         BoneLevel(
@@ -108,9 +108,8 @@ PELVIS_PRESET = PELVIS_CMAES_PRESET
 
 #: CMA-ES finds the basin (σ 5° / 10, 10, 20 mm, population 12, ≤ 25 generations at ~96 px), then
 #: the linearised refinement (:mod:`~fluoronav.registration.linearized`, ≤ 8 steps of 7 renders each)
-#: at ~128 px / 2 mm and ~256 px / 1 mm, where CMA-ES spent 720 renders. On the nine views of demo
-#: seeds 0, 3 and 9 the pelvis centre was 0.33 mm from the truth (mean; max 0.79) against 0.32 (max
-#: 0.95) with :data:`PELVIS_CMAES_PRESET`, at ~400 renders instead of 1,360. The navigation
+#: at ~128 px / 2 mm and ~256 px / 1 mm, where CMA-ES spent 720 renders: about the accuracy of
+#: :data:`PELVIS_CMAES_PRESET` at ~400 renders instead of 1,360 (docs/validation.md). The navigation
 #: pipeline's pelvis (``NavigationConfig.pelvis``).
 PELVIS_LINEARIZED_PRESET = BoneRegistrationConfig(
     levels=(
@@ -207,18 +206,11 @@ FEMUR_MULTI_VIEW_PRESET = BoneRegistrationConfig(
 )
 
 #: One view hardly tells a femur tilted towards the source from one tilted away, and the out-of-plane
-#: rotation (the entry point's depth) shows at ~256 px, hardly at 128 or 96:
-#:
-#: - on three multiple-CM trials the cost at 128 px was lower at the (1.2–2.5 mm off) estimate than
-#:   at the truth in two, at 256 px higher in all three;
-#: - on one, a σ = 10° level ran from every start (also tilted ones) into a minimum 16° off (entry
-#:   7 mm), whose cost at 256 px was above the truth's.
-#:
-#: So the first level (~128 px / 1 mm, σ = 3°, population 12, ≤ 30 generations) is local and runs
-#: from 9 starts (the initial pose and :data:`FEMUR_TILT_STARTS`); the best 3 are finished at ~256 px /
-#: 1 mm (σ = 1.5°, population 16, ≤ 40 generations) and the lowest final cost wins. Entry error on 9
-#: multiple-CM trials of seed 9205 (instrument masked, the pelvis's third level) 0.79 mm mean with the
-#: σ = 10° levels and 5 tilted starts, 0.73 mm with this; ~15–20 s per registration on one CPU core.
+#: rotation (the entry point's depth) shows at ~256 px, hardly at 128 or 96; a σ = 10° level can run
+#: from every start into a minimum far off (docs/validation.md). So the first level (~128 px / 1 mm,
+#: σ = 3°, population 12, ≤ 30 generations) is local and runs from 9 starts (the initial pose and
+#: :data:`FEMUR_TILT_STARTS`); the best 3 are finished at ~256 px / 1 mm (σ = 1.5°, population 16,
+#: ≤ 40 generations) and the lowest final cost wins.
 FEMUR_ONE_VIEW_PRESET = BoneRegistrationConfig(
     levels=(
         BoneLevel(

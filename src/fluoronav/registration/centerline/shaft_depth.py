@@ -25,8 +25,8 @@ __all__ = [
     "shaft_depth_residual",
 ]
 
-#: σ of the measured shaft depth as a fraction of it: on physics-simulated 768² phantom images the
-#: measured depth was −9 to +3 mm off at 450–520 mm (8 scenes)
+#: σ of the measured shaft depth as a fraction of it: the spread of the measured depth on
+#: physics-simulated images (docs/validation.md)
 SHAFT_DEPTH_SIGMA_FRACTION = 0.02
 #: the shaft's scale is searched for depths this far either side of the CM's depth range (the shaft
 #: reaches behind A), mm

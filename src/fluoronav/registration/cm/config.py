@@ -40,12 +40,9 @@ CM_FINE_LEVEL = LevelConfig(
 
 #: :data:`CM_FINE_LEVEL` with the linearised refinement (:mod:`~fluoronav.registration.linearized`,
 #: ≤ 8 steps of 12 renders) instead of CMA-ES: the default of the multi-view workflow
-#: (:meth:`CMRegistrationConfig.levels_for`). Three noise-free 768² views: 10.3 s instead of 24.8 s,
-#: the tip 0.014 mm from the truth against 0.009 mm. The first views of four demo cases (true
-#: cameras, after the multi-start screening): the finish took 8.3–10.9 s instead of 24.6–28.1 s, the
-#: tip 0.02–0.06 mm against 0.01–0.04 mm. Not for one view (nor multiple-CM, one camera): there the
-#: tip ended 3.6 mm off in depth against 1.4 mm (the depth changes the cost too little for its
-#: stopping rule).
+#: (:meth:`CMRegistrationConfig.levels_for`): with several views about as accurate in less than half
+#: the time. Not for one view (nor multiple-CM, one camera): there the depth changes the cost too
+#: little for its stopping rule (docs/validation.md).
 CM_FINE_LINEARIZED_LEVEL = CM_FINE_LEVEL.with_(optimizer="linearized", max_iters=8, tolfun=1e-5)
 
 
@@ -74,17 +71,14 @@ class CMRegistrationConfig:
         control_point_sigma_deg, control_point_tolerance_deg: prior of the control points around
             their initial values (the FBG reading): free within ± tolerance, Gaussian walls of σ
             beyond (:func:`~fluoronav.registration.priors.gaussian_parameter_prior`); σ None disables
-            it (the authors have none). Why a flat bottom: a plain Gaussian (σ 1°) held the notch
-            angles at the FBG error (multi-view notch 0.37 → 0.13° and 0.40 → 0.05° without it),
-            and without any prior one of eight multi-view trials traded the base rotation against
-            the shape (notch error 4.4°). The tolerance is the FBG accuracy with a margin (the
-            simulated reading is within ±0.5°); docs/registration.md.
+            it (the authors have none). Why a flat bottom: a plain Gaussian holds the notch angles
+            at the FBG error, and without any prior the base rotation trades against the shape
+            (docs/validation.md). The tolerance is the FBG accuracy with a margin (the simulated
+            reading is within ±0.5°).
         single_view_control_point_sigma_deg: one view without a measured response (a single
             level, e.g. 384² images, or ``response="linear"``): a plain Gaussian of this σ instead of
-            the flat-bottomed prior; there one view does not tell depth from shape (a 384² test case:
-            depth 7.1 mm off with the flat prior, < 6 mm with σ = 1°). With the measured response
-            the flat prior is used in every workflow: on six 768² single-view scenes it beat σ = 1°
-            (tip 0.55 → 0.29 mm mean, notch 0.31 → 0.06°; docs/registration.md).
+            the flat-bottomed prior; there one view does not tell depth from shape. With the
+            measured response the flat prior is used in every workflow (docs/validation.md).
         use_background: add the views' background DRRs (when given) to the CM DRR.
         cm_mu_per_mm: attenuation of the CM in the DRR (matters only relative to a background).
         cm_config: CM geometry.
@@ -94,24 +88,22 @@ class CMRegistrationConfig:
         max_rotation_deg, max_translation_mm: search box of the pose around each start (per
             parameter: rotation-vector components, translation components; None: unbounded). A
             result on the box's edge is reported as a failure (``success`` False): the optimiser
-            left the region it was started in, typically pulled by a wrong landmark (a single-view
-            trial with a mis-detected B otherwise ended 583 mm away, "converged").
+            left the region it was started in, typically pulled by a wrong landmark.
         response: ``"measured"``: before every level after the first, each view's response to the
             CM (:mod:`~fluoronav.rendering.response`: gain and veil, from scatter, glare and beam
             hardening) is fitted on the CM's shaft at the current estimate
             (:func:`~fluoronav.detection.tube_profile.fit_tube_profile`, the shaft's scale known
             from the pose) and applied to the DRR; a view whose fit fails stays linear.
             ``"linear"``: the plain DRR throughout. Why: against physics-simulated images the linear
-            DRR put single-view depth 0.5–2.7 mm nearer the source (the image's compressed profile
-            matches a larger CM); with the measured response the tip error fell from 1.10 to
-            0.35 mm mean on six scenes (docs/registration.md).
+            DRR puts single-view depth nearer the source (the image's compressed profile matches a
+            larger CM); docs/registration.md, docs/validation.md.
         response_shaft_span: the stretch of the shaft whose profiles are fitted for the response,
             as fractions of ``shaft_length_mm`` behind A.
         response_profiles: number of profiles fitted along that stretch.
         chunk_size: render at most this many candidates per call (None: the whole population).
         row_spans: the CM renderer evaluates each row of a link's box only across the link's
             projected footprint (:class:`~fluoronav.rendering.cm.CMRenderer`; False: the whole box,
-            as fluoronav 0.1.0; the same images).
+            the benchmark's reference; the same images).
         device: torch device of rendering and similarity.
     """
 

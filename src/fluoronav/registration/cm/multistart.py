@@ -18,9 +18,8 @@ __all__ = ["SCREEN_ITERATIONS", "register_cm_multistart"]
 
 logger = logging.getLogger(__name__)
 
-#: CMA-ES generations of the screening of each start: 15 proved too short to rank a start 70° off in
-#: roll below the right one (measured on a demo scene: costs 2.364 vs 2.372 after 15, 2.143 vs 1.767
-#: at convergence)
+#: CMA-ES generations of the screening of each start: 15 are too few to rank a start 70° off in roll
+#: below the right one (docs/validation.md)
 SCREEN_ITERATIONS = 40
 
 
