@@ -55,6 +55,7 @@ from fluoronav.registration.cm.diagnostics import edge_ncc
 from fluoronav.rendering.ct import render_line_integrals
 from fluoronav.runner import CsvLog, finish_row, mark_failed, new_row, run_tasks
 from fluoronav.simulation.protocol import perturb_about
+from fluoronav.studies.deepfluoro_report import ANCHORS, WORKFLOW
 from fluoronav.studies.summary import summarize, write_summary
 
 log = logging.getLogger(__name__)
@@ -73,7 +74,6 @@ __all__ = [
     "run_deepfluoro_trial",
 ]
 
-WORKFLOW = "deepfluoro"
 METRICS = ("rotation_deg", "translation_mm", "mtre_mm", "reprojection_mm")
 #: mTRE thresholds (mm) of the summary's success fractions; 1 mm: "sub-millimetre", as DiffPose and
 #: xvr state their accuracy
@@ -83,23 +83,6 @@ PRESETS: dict[str, BoneRegistrationConfig] = {
     "navigation": PELVIS_LINEARIZED_PRESET,
     "cmaes": PELVIS_CMAES_PRESET,
     "authors": pelvis_config(authors=True),
-}
-#: the published figures on the same data (only what was checked; see docs/real-data.md)
-ANCHORS: dict[str, dict[str, Any]] = {
-    "xReg (Grupp et al., IJCARS 15(5):759-769, 2020)": {
-        "within_1deg": 0.86,
-        "seconds": 7.0,
-        "start": "landmarks found by a network, then intensity-based (GPU)",
-        "images": 366,
-    },
-    "intensity-only, no manual initialisation (same paper)": {"within_1deg": 0.18, "images": 366},
-    "DiffPose (Gopalakrishnan et al., CVPR 2024)": {
-        "note": "mTRE computed with a spurious 0.194 mm/px factor, acknowledged by its maintainer "
-        "(eigenvivek/DiffPose issue #27): not comparable in mm; figures not reproduced here",
-    },
-    "xvr (Gopalakrishnan et al., 2025)": {
-        "note": "reports mTRE in 3D (mm) on this data; its figures were not checked for this page",
-    },
 }
 _COLUMNS = [
     "trial",
