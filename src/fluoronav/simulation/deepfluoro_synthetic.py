@@ -64,16 +64,18 @@ _ROLL_180 = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 @dataclass(frozen=True)
 class SyntheticView:
-    """One C-arm view: angles (:func:`~fluoronav.geometry.carm.carm_camera`) and the roll flag."""
+    """One C-arm view: angles (:func:`~fluoronav.geometry.carm.carm_camera`), the phantom landmark
+    it is centred on (± 10 mm) and the roll flag."""
 
     lao_rao_deg: float
     cran_caud_deg: float
     rot_180_for_up: bool = False
+    center: str = "pelvis_center"
 
 
 DEFAULT_SYNTHETIC_VIEWS = (
     SyntheticView(0.0, 90.0),
-    SyntheticView(20.0, 96.0),
+    SyntheticView(20.0, 96.0, center="femoral_head_left"),
     SyntheticView(-15.0, 86.0, rot_180_for_up=True),
 )
 
@@ -191,11 +193,13 @@ def _write_projection(
     camera: Camera,
     world_from_femur_left: np.ndarray,
     marks: dict[str, np.ndarray],
+    trochanters: dict[str, np.ndarray],
     extrinsic: np.ndarray,
     dtype: str,
 ) -> np.ndarray:
     """One ``projections/NNN`` group (but its flag) from a simulated image and its camera; returns
-    the intrinsics it implies."""
+    the intrinsics it implies. ``trochanters``: side → the lesser trochanter where the image shows it
+    (for the femur's field-of-view flag)."""
     K0, n = camera.K, camera.cols
     K_df = np.array([[-K0[0, 0], 0.0, n - 1.0 - K0[0, 2]], [0.0, -K0[1, 1], K0[1, 2]], [0.0, 0.0, 1.0]])
     stored = np.ascontiguousarray(line_integral[:, ::-1])  # the detector seen from behind
@@ -218,9 +222,18 @@ def _write_projection(
         ("cam-to-right-femur-vol", df_from_ct),
     ):
         poses.create_dataset(name, data=(np.linalg.inv(df_from_bone) @ extrinsic).astype(dtype))
-    poses.create_dataset("left-femur-good-fov", data=np.uint8(1))
-    poses.create_dataset("right-femur-good-fov", data=np.uint8(1))
+    for side in ("left", "right"):
+        good = _femur_in_view(camera, marks[f"FH-{side[0]}"], trochanters[side])
+        poses.create_dataset(f"{side}-femur-good-fov", data=np.uint8(good))
     return K_df
+
+
+def _femur_in_view(camera: Camera, head: np.ndarray, trochanter: np.ndarray) -> bool:
+    """The synthetic file's ``*-femur-good-fov``: the femoral head and the neck below it (halfway to
+    the lesser trochanter) at least a tenth of the image inside its edges."""
+    uv = camera.project(np.stack([head, 0.5 * (head + trochanter)]))
+    m = 0.1 * camera.cols
+    return bool(np.all((uv >= m) & (uv <= np.array([camera.cols, camera.rows]) - 1 - m)))
 
 
 def _write_parameters(
@@ -275,7 +288,6 @@ def write_synthetic_deepfluoro(
         volume, femur_side="left", config=SimulationConfig(image_size=image_size), device=device
     )
     rng = np.random.default_rng([seed, 67])
-    iso = volume.landmarks_world["pelvis_center"]
     extrinsic = np.eye(4)
     extrinsic[:3, :3] = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
     extrinsic[:3, 3] = (12.0, -34.0, 560.0)
@@ -287,13 +299,17 @@ def write_synthetic_deepfluoro(
             up = carm_camera(
                 lao_rao_deg=view.lao_rao_deg,
                 cran_caud_deg=view.cran_caud_deg,
-                isocenter_world=iso + rng.uniform(-10.0, 10.0, 3),
+                isocenter_world=volume.landmarks_world[view.center] + rng.uniform(-10.0, 10.0, 3),
             )
             full = up.with_pose(_ROLL_180 @ up.camera_from_world) if view.rot_180_for_up else up
             W_fl = _femur_motion(volume.landmarks_world["femoral_head_left"], rng, femur_motion_deg)
             im = sim.simulate(full, world_from_patient=np.eye(4), world_from_femur=W_fl, seed=seed + k)
             g = projections.create_group(f"{k:03d}")
-            intrinsics.append(_write_projection(g, im.image, im.camera, W_fl, marks, extrinsic, matrix_dtype))
+            lt = volume.landmarks_world
+            troch = {"left": W_fl[:3, :3] @ lt["lesser_trochanter_left"] + W_fl[:3, 3]}
+            troch["right"] = lt["lesser_trochanter_right"]
+            K_df = _write_projection(g, im.image, im.camera, W_fl, marks, troch, extrinsic, matrix_dtype)
+            intrinsics.append(K_df)
             g.create_dataset("rot-180-for-up", data=np.uint8(view.rot_180_for_up))
             cams.append(sim.stored_camera(up, image_size))
             imgs.append(np.ascontiguousarray(im.image[::-1, ::-1] if view.rot_180_for_up else im.image))
