@@ -181,3 +181,25 @@ def test_bad_files_and_names(tmp_path, deepfluoro_file: SyntheticDeepFluoro) -> 
     assert _bone_by_name("left-hemipelvis") == "pelvis" and _bone_by_name("upper-sacrum") == "pelvis"
     assert _bone_by_name("right-femur") == "femur_right" and _bone_by_name("left_femur") == "femur_left"
     assert _bone_by_name("background") is None
+
+
+def test_float32_matrices_as_xreg_writes_them(deepfluoro_file: SyntheticDeepFluoro, tmp_path) -> None:
+    """The real file most likely stores matrices, points and spacings as float32 (xReg's CoordScalar)."""
+    single = tmp_path / "float32.h5"
+    with h5py.File(deepfluoro_file.path, "r") as src, h5py.File(single, "w") as dst:
+
+        def copy(name: str, obj: object) -> None:
+            if isinstance(obj, h5py.Dataset):
+                data = obj[()]
+                if isinstance(data, np.ndarray) and data.dtype == np.float64:
+                    data = data.astype(np.float32)
+                dst.create_dataset(name, data=data)
+
+        src.visititems(copy)
+    with DeepFluoroFile(single) as f:
+        marks = f.landmarks_world(SPEC)
+        for k, cam in enumerate(deepfluoro_file.cameras):
+            p = f.projection(SPEC, k)
+            res = p.landmark_residual_px(marks)
+            assert res is not None and res < 1e-2
+            np.testing.assert_allclose(p.camera.camera_from_world, cam.camera_from_world, atol=1e-3)

@@ -301,7 +301,7 @@ class DeepFluoroFile:
         sid = self.resolve_specimen(specimen)
         g = self._h5[sid]
         spacing, origin, direction = self._image_geometry(g["vol"])
-        data = _array(g["vol"], "pixels", self.source).astype(np.float32)
+        data = _array(g["vol"], "pixels", self.source).astype(np.float32, copy=False)
         labels = None
         if "vol-seg/image" in g:
             s_spacing, s_origin, s_dir = self._image_geometry(g["vol-seg/image"])
@@ -312,7 +312,9 @@ class DeepFluoroFile:
                 and np.allclose(s_dir, direction)
             ):
                 raise InputError(self.path, f"{sid}: vol-seg/image is not on the grid of vol")
-            labels = self._bone_lut(g)[seg.astype(np.int64).clip(0, 255)]
+            if seg.dtype != np.uint8:  # the data set's are uint8; other label types are clipped
+                seg = np.clip(seg, 0, 255).astype(np.uint8)
+            labels = self._bone_lut(g)[seg]
         marks = self.landmarks_world(sid)
         for name, alias in LANDMARK_ALIASES.items():
             if name in marks:

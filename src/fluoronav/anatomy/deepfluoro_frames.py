@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fluoronav.errors import InputError
+from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera
 
 __all__ = ["ImageFlip", "df_camera_from_ct", "fluoronav_camera"]
@@ -147,6 +148,10 @@ def fluoronav_camera(
     D = np.diag(np.append(d, 1.0))
     camera_from_ct = lam * D @ P
     camera_from_ct[3] = (0.0, 0.0, 0.0, 1.0)
+    if np.linalg.det(camera_from_ct[:3, :3]) < 0.99:
+        raise InputError(source, "extrinsic · inv(cam-to-pelvis-vol) is not a rotation and translation")
+    # float32 matrices (as xReg stores them) leave the rotation ~1e-7 off orthonormal
+    camera_from_ct[:3, :3] = se3.project_to_so3(camera_from_ct[:3, :3])
     camera = Camera(
         rows=rows,
         cols=cols,
