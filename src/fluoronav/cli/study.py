@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -57,14 +58,12 @@ def register(app: typer.Typer) -> None:
             max=1,
             help="navigation: 1: verification images after the move and one corrective move; 0: open loop.",
         ),
-        data: Path = typer.Option(
-            None, "--data", help="deepfluoro: the DeepFluoro HDF5 file (your download)."
-        ),
+        data: Path = typer.Option(None, "--data", help="deepfluoro: the DeepFluoro HDF5 file (yours)."),
         specimen: str = typer.Option(None, "--specimen", help="deepfluoro: one specimen (ID or 1–6)."),
         xreg_gt_correction: bool = typer.Option(
             False,
             "--xreg-gt-correction",
-            help="deepfluoro: shift the ground truth by −0.5 mm per CT axis, as xReg's samples do.",
+            help="deepfluoro: the truth −0.5 mm per CT axis, as xReg's samples.",
         ),
         device: str = DEVICE_OPTION,
     ) -> None:
@@ -72,19 +71,9 @@ def register(app: typer.Typer) -> None:
         from fluoronav.device import resolve_device  # heavy: torch
 
         if workflow == "deepfluoro":
-            from fluoronav.studies.deepfluoro import DeepFluoroStudyConfig, run_deepfluoro_study  # lazy
-
-            if data is None:
-                raise InputError("--data", "study deepfluoro needs --data FILE.h5 (see docs/real-data.md)")
-            dcfg = DeepFluoroStudyConfig(
-                data=str(data),
-                seed=seed,
-                trials=trials,
-                specimen=specimen,
-                device=str(resolve_device(device)),
-                xreg_texture_correction=xreg_gt_correction,
+            summary = _deepfluoro(
+                data, trials, seed, out, specimen, xreg_gt_correction, device, scheduler, workers
             )
-            summary = run_deepfluoro_study(dcfg, out, scheduler=scheduler, workers=workers)
         elif trials is None:
             raise InputError("--trials", f"study {workflow} needs --trials N")
         elif workflow in ("hand-eye", "navigation"):
@@ -135,3 +124,31 @@ def register(app: typer.Typer) -> None:
             f"{workflow}: {summary['completed']}/{summary['trials']} trials, {summary['failed']} failed; "
             + ", ".join(parts)
         )
+
+
+def _deepfluoro(
+    data: Path | None,
+    trials: int | None,
+    seed: int,
+    out: Path,
+    specimen: str | None,
+    xreg_gt_correction: bool,
+    device: str,
+    scheduler: str | None,
+    workers: int | None,
+) -> dict[str, Any]:
+    """``study deepfluoro`` (docs/real-data.md)."""
+    from fluoronav.device import resolve_device  # heavy: torch
+    from fluoronav.studies.deepfluoro import DeepFluoroStudyConfig, run_deepfluoro_study  # lazy: fast --help
+
+    if data is None:
+        raise InputError("--data", "study deepfluoro needs --data FILE.h5 (see docs/real-data.md)")
+    cfg = DeepFluoroStudyConfig(
+        data=str(data),
+        seed=seed,
+        trials=trials,
+        specimen=specimen,
+        device=str(resolve_device(device)),
+        xreg_texture_correction=xreg_gt_correction,
+    )
+    return run_deepfluoro_study(cfg, out, scheduler=scheduler, workers=workers)
