@@ -125,7 +125,8 @@ class DeepFluoroStudyConfig:
         xreg_texture_correction: shift the ground truth as xReg's samples do
             (:class:`~fluoronav.anatomy.deepfluoro.DeepFluoroFile`).
         border_px: collimator border cropped per side; None: 50 px of 1536, scaled.
-        min_edge_ncc: the check's threshold on :func:`pelvis_edge_ncc`.
+        min_edge_ncc: the check's threshold on :func:`pelvis_edge_ncc`, between its values on the
+            phantom at the truth (near 1) and at the start's error (near 0); not tuned on real images.
     """
 
     data: str
