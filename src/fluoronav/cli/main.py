@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "detect",
     "evaluate",
     "study",
+    "deepfluoro",
     "register",
     "calibrate",
     "report",

@@ -35,6 +35,14 @@ def register(app: typer.Typer) -> None:
                 json.loads(s.read_text(encoding="utf-8"))
             except json.JSONDecodeError as exc:
                 raise InputError(s, f"summary.json does not parse ({exc.msg})") from None
+        from fluoronav.studies.deepfluoro_report import WORKFLOW, deepfluoro_table  # lazy: fast --help
+
+        real = [
+            d
+            for d in dirs
+            if json.loads((d / "summary.json").read_text(encoding="utf-8")).get("workflow") == WORKFLOW
+        ]
+        dirs = [d for d in dirs if d not in real]
         header, rows = table_i(dirs)
         out.mkdir(parents=True, exist_ok=True)
         note = (
@@ -42,9 +50,17 @@ def register(app: typer.Typer) -> None:
             "rotation, mean notch rotation, as the paper's Table I reports them."
         )
         o_header, o_rows = outcome_table(dirs)
+        real_md, real_sections = "", []
+        if real:
+            r_header, r_rows = deepfluoro_table(real)
+            r_note = "Pelvis registration on the DeepFluoro cadaver images, beside the published figures."
+            real_md = f"\n## Real data: DeepFluoro\n\n{r_note}\n\n{table_markdown(r_header, r_rows)}\n"
+            real_sections = [
+                Section("Real data: DeepFluoro", paragraphs=[r_note], tables=[(r_header, r_rows)])
+            ]
         (out / "table_i.md").write_text(
             f"# Table I\n\n{note}\n\n{table_markdown(header, rows)}\n\n## Outcomes\n\n"
-            f"{table_markdown(o_header, o_rows)}\n",
+            f"{table_markdown(o_header, o_rows)}\n{real_md}",
             encoding="utf-8",
         )
         sections = [
@@ -58,8 +74,9 @@ def register(app: typer.Typer) -> None:
                 ],
                 tables=[(o_header, o_rows)],
             ),
+            *real_sections,
         ]
-        for d in dirs:
+        for d in [*dirs, *real]:
             summ = json.loads((d / "summary.json").read_text(encoding="utf-8"))
             figs = [
                 (f"{summ['workflow']}: {p.stem.replace('_', ' ')}", p.read_bytes())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -14,9 +15,11 @@ def register(app: typer.Typer) -> None:
     @app.command("study")
     def study(
         workflow: str = typer.Argument(
-            ..., help="centerline, single-view, multi-view, multi-cm, hand-eye or navigation."
+            ..., help="centerline, single-view, multi-view, multi-cm, hand-eye, navigation or deepfluoro."
         ),
-        trials: int = typer.Option(..., "--trials", min=1, help="Number of trials."),
+        trials: int = typer.Option(
+            None, "--trials", min=1, help="Number of trials (deepfluoro: default one per image)."
+        ),
         seed: int = typer.Option(..., "--seed", help="Run seed; each trial's seed derives from it."),
         out: Path = typer.Option(..., "--out", help="Output directory (rerun to resume)."),
         ct: str = typer.Option("phantom", "--ct", help="CT file/DICOM dir, or 'phantom'."),
@@ -55,12 +58,25 @@ def register(app: typer.Typer) -> None:
             max=1,
             help="navigation: 1: verification images after the move and one corrective move; 0: open loop.",
         ),
+        data: Path = typer.Option(None, "--data", help="deepfluoro: the DeepFluoro HDF5 file (yours)."),
+        specimen: str = typer.Option(None, "--specimen", help="deepfluoro: one specimen (ID or 1–6)."),
+        xreg_gt_correction: bool = typer.Option(
+            False,
+            "--xreg-gt-correction",
+            help="deepfluoro: the truth −0.5 mm per CT axis, as xReg's samples.",
+        ),
         device: str = DEVICE_OPTION,
     ) -> None:
-        """Run (or resume) a simulation study; writes trials.csv, summary.json and figures/."""
+        """Run (or resume) a study; writes trials.csv, summary.json and figures/."""
         from fluoronav.device import resolve_device  # heavy: torch
 
-        if workflow in ("hand-eye", "navigation"):
+        if workflow == "deepfluoro":
+            summary = _deepfluoro(
+                data, trials, seed, out, specimen, xreg_gt_correction, device, scheduler, workers
+            )
+        elif trials is None:
+            raise InputError("--trials", f"study {workflow} needs --trials N")
+        elif workflow in ("hand-eye", "navigation"):
             from fluoronav.studies.handeye_study import run_handeye_or_navigation_study  # lazy: fast --help
 
             summary = run_handeye_or_navigation_study(
@@ -102,7 +118,37 @@ def register(app: typer.Typer) -> None:
             summary = run_study(cfg, out, scheduler=scheduler, workers=workers)
         m = summary.get("metrics", {})
         parts = [f"{k} {v['mean']:.3g}±{v['std']:.2g}" for k, v in m.items()]
+        if summary.get("within_1deg") is not None:
+            parts.append(f"within 1° {100 * summary['within_1deg']:.0f} %")
         typer.echo(
             f"{workflow}: {summary['completed']}/{summary['trials']} trials, {summary['failed']} failed; "
             + ", ".join(parts)
         )
+
+
+def _deepfluoro(
+    data: Path | None,
+    trials: int | None,
+    seed: int,
+    out: Path,
+    specimen: str | None,
+    xreg_gt_correction: bool,
+    device: str,
+    scheduler: str | None,
+    workers: int | None,
+) -> dict[str, Any]:
+    """``study deepfluoro`` (docs/real-data.md)."""
+    from fluoronav.device import resolve_device  # heavy: torch
+    from fluoronav.studies.deepfluoro import DeepFluoroStudyConfig, run_deepfluoro_study  # lazy: fast --help
+
+    if data is None:
+        raise InputError("--data", "study deepfluoro needs --data FILE.h5 (see docs/real-data.md)")
+    cfg = DeepFluoroStudyConfig(
+        data=str(data),
+        seed=seed,
+        trials=trials,
+        specimen=specimen,
+        device=str(resolve_device(device)),
+        xreg_texture_correction=xreg_gt_correction,
+    )
+    return run_deepfluoro_study(cfg, out, scheduler=scheduler, workers=workers)
