@@ -16,17 +16,21 @@ from fluoronav.navigation.case import CaseView, NavigationCase
 from fluoronav.navigation.planning import Plan
 
 HEAD = np.array([14.0, 2.0, -6.0])
+HEAD_RADIUS_MM = 20.0
+#: the plan: the CM tip on the head's surface, its axis towards the centre
+PLAN_DIRECTION = np.array([-0.7071, 0.0, 0.7071])
 
 
 def _volume() -> Volume:
-    """32³ voxels at 2 mm: a pelvis block and a left femoral head ball, labelled."""
-    n, h = 32, 2.0
+    """40³ voxels at 3 mm: a pelvis block (256 mL) and a left femoral head ball (r = 20 mm, 34 mL),
+    labelled, each of a size the preflight's label checks find plausible."""
+    n, h = 40, 3.0
     origin = -0.5 * h * (n - 1)
     ax = origin + h * np.arange(n)
     Z, Y, X = np.meshgrid(ax, ax, ax, indexing="ij")
     labels = np.zeros((n, n, n), np.uint8)
-    labels[(np.abs(X) < 10) & (np.abs(Y) < 12) & (Z > 10)] = 1
-    labels[(X - HEAD[0]) ** 2 + (Y - HEAD[1]) ** 2 + (Z - HEAD[2]) ** 2 < 64] = 2
+    labels[(np.abs(X) < 40) & (np.abs(Y) < 40) & (Z > 20)] = 1
+    labels[(X - HEAD[0]) ** 2 + (Y - HEAD[1]) ** 2 + (Z - HEAD[2]) ** 2 < HEAD_RADIUS_MM**2] = 2
     return Volume(
         data=np.where(labels > 0, 600.0, -100.0).astype(np.float32),
         spacing_mm=(h, h, h),
@@ -52,7 +56,7 @@ def no_cm_case(n_views: int = 3, size: int = 256) -> NavigationCase:
         views.append(CaseView(f"view{k}", image, cam))
     return NavigationCase(
         volume=_volume(),
-        plan=Plan("entry", HEAD + np.array([20.0, 0.0, -20.0]), np.array([-0.7071, 0.0, 0.7071])),
+        plan=Plan("entry", HEAD - HEAD_RADIUS_MM * PLAN_DIRECTION, PLAN_DIRECTION),
         side="left",
         cm_config=CMConfig(),
         fbg_control_points_deg=np.zeros(5),

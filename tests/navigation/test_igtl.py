@@ -398,7 +398,7 @@ def test_navigate_command_streams_a_refusal_to_the_server(
     assert [m.device_name for m in images] == ["view0", "view1", "view2"]
     assert all(m.image.shape == (1, 256, 256) for m in images)
     texts = [m.string for m in server.messages("STRING", "Status")]
-    assert texts[0] == "detect: started" and "detect: done" in texts
+    assert texts[0] == "preflight: started" and "detect: started" in texts and "detect: done" in texts
     assert texts[-1].startswith("navigation refused: stage detect")
     assert not server.messages("TRANSFORM")  # nothing was registered
     nav = json.loads((tmp_path / "out" / "navigation.json").read_text(encoding="utf-8"))

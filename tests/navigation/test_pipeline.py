@@ -11,15 +11,20 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 import fluoronav.navigation.pipeline as pipeline
 from fluoronav.errors import RegistrationRefused
-from fluoronav.navigation.case import write_navigation_case
+from fluoronav.geometry import se3
+from fluoronav.navigation.case import VerificationViews, write_navigation_case
 from fluoronav.navigation.pipeline import NavigationConfig, NavigationRefused, _band_mask, _refusals, navigate
+from fluoronav.navigation.planning import planned_femur_from_cm
 from fluoronav.navigation.result import navigation_cm_config
+from fluoronav.navigation.safety import SafetyConfig
 
 
 def test_no_cm_in_the_views_refuses_at_detection_without_a_command(make_no_cm_case) -> None:
@@ -30,7 +35,7 @@ def test_no_cm_in_the_views_refuses_at_detection_without_a_command(make_no_cm_ca
     assert res.joints_target_deg is None and res.rbase_from_ee_target is None
     assert res.stages["detect"].passed is False
     assert res.stages["detect"].diagnostics["views_detected"] == 0
-    assert events == [("detect", "start"), ("detect", "done")]
+    assert events == [("preflight", "start"), ("preflight", "done"), ("detect", "start"), ("detect", "done")]
     d = res.to_json()
     assert d["status"] == "refused" and "joints_target_deg" not in d and "rbase_from_ee_target" not in d
 
@@ -118,4 +123,146 @@ def test_navigate_registers_the_detected_views_as_one_set(
     assert seen.get("prior") is None and seen["side"] == case.side
     assert res.status == "refused" and res.reason == "stage cm, view view1, check edge_ncc: NCC 0.10"
     assert res.stages["cm"].passed is False and res.joints_target_deg is None
-    assert events == [("detect", "start"), ("detect", "done"), ("cm", "start"), ("cm", "done")]
+    assert events == [
+        ("preflight", "start"),
+        ("preflight", "done"),
+        ("detect", "start"),
+        ("detect", "done"),
+        ("cm", "start"),
+        ("cm", "done"),
+    ]
+
+
+def _fake_registration(ct_from_cm: np.ndarray) -> SimpleNamespace:
+    """What the plan, robot and correct stages read of a registration (femur = CT, view 0 = CT)."""
+    return SimpleNamespace(
+        cameras_ct=(SimpleNamespace(camera_from_world=np.eye(4)),),
+        ct_from_femur=np.eye(4),
+        ct_from_cm=ct_from_cm,
+        cm=SimpleNamespace(control_points_deg=np.zeros(5)),
+        to_dict=lambda: {"ct_from_cm": ct_from_cm.tolist()},
+        tip_ct_mm=np.zeros(3),
+    )
+
+
+def _robot_case(
+    make_no_cm_case,
+    monkeypatch: pytest.MonkeyPatch,
+    *,
+    roll_deg: float,
+    plan=None,
+    verify_offset_mm=None,
+    tilt_deg: float = 0.0,
+):
+    """The conftest case with given landmarks and a stand-in registration: the CM held 40 mm back along
+    the plan's axis, rolled ``roll_deg`` from the plan's default roll. With ``verify_offset_mm``, a
+    verification at the first command's joints whose CM lies that far (mm, CM x) from the plan."""
+    case = make_no_cm_case(n_views=2, size=64)
+    lm = np.array([[20.0, 30.0], [40.0, 34.0]])
+    views = tuple(dataclasses.replace(v, landmarks_px=lm) for v in case.views)
+    case = dataclasses.replace(case, views=views, plan=plan or case.plan)
+    free = dataclasses.replace(case.plan, bending_direction_world=None, control_points_deg=np.zeros(5))
+    held = planned_femur_from_cm(free, roll_deg=roll_deg)
+    held[:3, 3] -= 40.0 * case.plan.direction_world
+    held = held @ se3.make(Rotation.from_rotvec([np.radians(tilt_deg), 0.0, 0.0]).as_matrix(), np.zeros(3))
+    first = _fake_registration(held)
+    monkeypatch.setattr(pipeline, "register_view_set", lambda views, volume, **kw: first)
+    if verify_offset_mm is None:
+        return case
+    q_after = navigate(case, _CFG).joints_target_deg
+    assert q_after is not None
+    reached = np.array(navigate(case, _CFG).femur_from_cm_target)
+    reached[:3, 3] += verify_offset_mm * reached[:3, 0]
+    ver = _fake_registration(reached)
+    monkeypatch.setattr(
+        pipeline,
+        "register_view_set",
+        lambda views, volume, **kw: ver if kw.get("prior") is not None else first,
+    )
+    return dataclasses.replace(case, verification=VerificationViews(q_after, views))
+
+
+_CFG = NavigationConfig(device="cpu", seed=0, preflight=None)
+
+
+def test_a_free_roll_plan_gets_the_least_motion_roll_and_a_measured_command(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=120.0)
+    assert case.plan.roll_free
+    res = navigate(case, _CFG)
+    assert res.status == "ok", res.reason
+    plan_diag, robot_diag = res.stages["plan"].diagnostics, res.stages["robot"].diagnostics
+    assert plan_diag["roll_free"] is True and plan_diag["roll_deg"] == pytest.approx(120.0, abs=0.5)
+    assert res.plan is not None
+    assert res.femur_from_cm_target is not None
+    np.testing.assert_allclose(
+        res.femur_from_cm_target, planned_femur_from_cm(res.plan, roll_deg=plan_diag["roll_deg"]), atol=1e-12
+    )
+    assert robot_diag["joint_motion_deg"] <= 30.0
+    assert robot_diag["tip_move_mm"] == pytest.approx(40.0, abs=0.01)
+    assert robot_diag["rotation_deg"] == pytest.approx(0.0, abs=0.5)
+    assert robot_diag["swept_path_mm"] >= robot_diag["swept_straight_mm"] == pytest.approx(40.0, abs=0.01)
+    d = res.to_json()
+    assert len(d["joint_motion_deg"]) == 6 and max(d["joint_motion_deg"]) == robot_diag["joint_motion_deg"]
+    assert d["stages"]["robot"]["swept_max_deviation_mm"] == robot_diag["swept_max_deviation_mm"]
+
+
+def test_a_fixed_roll_plan_keeps_its_pose_and_a_far_turn_is_refused(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The plan fixes the roll 60° from where the CM is held: today's pose exactly, and a command that
+    turns the wrist 60° is refused naming the plan."""
+    plan0 = make_no_cm_case().plan
+    bend = planned_femur_from_cm(plan0)[:3, 1]  # the default roll, fixed
+    plan = dataclasses.replace(plan0, bending_direction_world=bend)
+    case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, plan=plan)
+    res = navigate(case, _CFG)
+    assert res.plan is not None and not res.plan.roll_free
+    assert res.femur_from_cm_target is not None
+    assert np.array_equal(res.femur_from_cm_target, planned_femur_from_cm(res.plan))
+    assert "roll_deg" not in res.stages["plan"].diagnostics
+    assert res.status == "refused" and res.joints_target_deg is None
+    assert "stage robot, check joint_motion: plan 'entry'" in res.reason
+    assert res.stages["robot"].diagnostics["joint_motion_deg"] == pytest.approx(60.0, abs=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("bound", "check"),
+    [
+        ({"max_move_mm": 30.0}, "move_length"),
+        ({"max_move_deg": 5.0}, "move_rotation"),
+        ({"max_joint_motion_deg": 1.0}, "joint_motion"),
+    ],
+)
+def test_each_bound_of_the_first_move_refuses_the_navigation(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch, bound: dict, check: str
+) -> None:
+    # for the rotation's bound, the CM held 10° off the plan's axis
+    tilt_deg = 10.0 if check == "move_rotation" else 0.0
+    case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=0.0, tilt_deg=tilt_deg)
+    cfg = dataclasses.replace(_CFG, safety=dataclasses.replace(SafetyConfig(), **bound))
+    assert navigate(case, _CFG).status == "ok"
+    res = navigate(case, cfg)
+    assert res.status == "refused" and res.joints_target_deg is None and not res.stages["robot"].passed
+    assert f"stage robot, check {check}: plan 'entry'" in res.reason
+
+
+@pytest.mark.parametrize(
+    ("offset_mm", "check"), [(2.0, None), (5.0, "correction_within_uncertainty"), (12.0, "correction_length")]
+)
+def test_the_correction_is_bounded_by_length_and_by_what_the_verification_vouches_for(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch, offset_mm: float, check: str | None
+) -> None:
+    case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=offset_mm)
+    res = navigate(case, _CFG)
+    diag = res.stages["correct"].diagnostics
+    assert diag["tip_move_mm"] == pytest.approx(offset_mm, abs=1e-6)
+    assert diag["predicted_tip_error_mm"] == pytest.approx(0.0, abs=1e-6)
+    if check is None:
+        assert res.status == "ok", res.reason
+        assert res.joints_correction_deg is not None and diag["joint_motion_deg"] <= 30.0
+        assert len(res.to_json()["verification"]["joint_motion_deg"]) == 6
+    else:
+        assert res.status == "refused" and res.joints_correction_deg is None
+        assert f"stage correct, check {check}: plan 'entry'" in res.reason

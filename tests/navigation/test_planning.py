@@ -7,11 +7,19 @@ import json
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from fluoronav.errors import InputError
 from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
-from fluoronav.navigation.planning import Plan, load_plan, plan_from_dict, planned_femur_from_cm, save_plan
+from fluoronav.navigation.planning import (
+    Plan,
+    _frame_axes,
+    load_plan,
+    plan_from_dict,
+    planned_femur_from_cm,
+    save_plan,
+)
 
 GOOD = {
     "target_name": "entry_left",
@@ -132,3 +140,40 @@ def test_neck_entry_plan_puts_the_tip_on_the_entry_along_the_neck() -> None:
     np.testing.assert_allclose(plan.tip_target_world_mm, entry)
     T = planned_femur_from_cm(plan, kinematics=CMKinematics())
     np.testing.assert_allclose(T[:3, 2], (head - entry) / np.linalg.norm(head - entry), atol=1e-12)
+
+
+def test_a_plan_without_bending_direction_leaves_the_roll_free() -> None:
+    assert plan_from_dict(GOOD).roll_free
+    assert not plan_from_dict({**GOOD, "bending_direction": [1.0, 0.0, 0.0]}).roll_free
+
+
+@pytest.mark.parametrize("bend", [None, [1.0, 1.0, 0.0]])
+def test_roll_zero_is_the_plans_own_pose_exactly(bend) -> None:
+    """A fixed-roll plan keeps today's pose bitwise: the frame from the bending direction, the tip on
+    the target."""
+    plan = plan_from_dict(
+        {**GOOD, "bending_direction": bend, "control_points_deg": [3.0, -2.0, 5.0, 1.0, -4.0]}
+    )
+    kin = CMKinematics()
+    R = _frame_axes(plan.direction_world, plan.bending_direction_world)
+    tip_cm = kin.tip_cm(torch.as_tensor(plan.control_points_deg, dtype=torch.float64)).numpy()
+    expected = se3.make(R, plan.tip_target_world_mm - R @ tip_cm)
+    assert np.array_equal(planned_femur_from_cm(plan, kinematics=kin), expected)
+    assert np.array_equal(planned_femur_from_cm(plan, kinematics=kin, roll_deg=0.0), expected)
+
+
+@pytest.mark.parametrize("roll_deg", [-135.0, 30.0, 90.0, 170.0])
+def test_the_roll_family_keeps_tip_and_axis_for_a_bent_cm(roll_deg: float) -> None:
+    plan = plan_from_dict({**GOOD, "control_points_deg": [8.0, 6.0, 4.0, 6.0, 8.0]})
+    kin = CMKinematics()
+    tip_cm = kin.tip_cm(torch.as_tensor(plan.control_points_deg, dtype=torch.float64)).numpy()
+    T0 = planned_femur_from_cm(plan, kinematics=kin)
+    T = planned_femur_from_cm(plan, kinematics=kin, roll_deg=roll_deg)
+    np.testing.assert_allclose(se3.apply(T, tip_cm), plan.tip_target_world_mm, atol=1e-9)
+    np.testing.assert_allclose(T[:3, 2], plan.direction_world, atol=1e-12)
+    # a right-handed turn by roll_deg about the direction, through the tip target
+    turn = Rotation.from_rotvec(np.radians(roll_deg) * plan.direction_world).as_matrix()
+    np.testing.assert_allclose(T[:3, :3], turn @ T0[:3, :3], atol=1e-12)
+    tip = plan.tip_target_world_mm
+    np.testing.assert_allclose(T[:3, 3], tip + turn @ (T0[:3, 3] - tip), atol=1e-9)
+    assert se3.rotation_angle_deg(T0[:3, :3].T @ T[:3, :3]) == pytest.approx(abs(roll_deg), abs=1e-6)

@@ -16,6 +16,11 @@ def test_safety_config_keeps_its_fields_and_defaults() -> None:
         "min_edge_ncc": 0.7,
         "max_motion_tip_mm": 3.0,
         "min_views": 2,
+        "max_joint_motion_deg": 30.0,
+        "max_move_mm": 200.0,
+        "max_move_deg": 90.0,
+        "max_correction_mm": 10.0,
+        "max_correction_deg": 5.0,
     }
 
 

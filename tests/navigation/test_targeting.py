@@ -13,9 +13,12 @@ from fluoronav.navigation.planning import plan_from_dict, planned_femur_from_cm
 from fluoronav.navigation.targeting import (
     UnreachableTarget,
     femur_from_cm_registered,
+    joint_motion_deg,
+    least_motion_target,
     predicted_femur_from_cm,
     rbase_from_ee_target,
     robot_target,
+    swept_tip_path,
     tip_correction_target,
 )
 
@@ -184,3 +187,92 @@ def test_the_predicted_cm_after_a_move_is_where_the_robot_took_it() -> None:
     # no move: the registered pose
     same = predicted_femur_from_cm(UR10, q_regi, q_regi, ee_from_cm=EE_FROM_CM, femur_from_cm=femur_from_cm)
     np.testing.assert_allclose(same, femur_from_cm, atol=1e-9)
+
+
+def _rolled_scene(true_roll_deg: float, q_offset_deg: np.ndarray):
+    """Femur placed so that the free-roll plan turned by ``true_roll_deg`` is reached at
+    Q_TARGET_TRUE; the CM registered at Q_TARGET_TRUE + ``q_offset_deg``."""
+    rbase_from_femur = (
+        UR10.rbase_from_ee(Q_TARGET_TRUE)
+        @ EE_FROM_CM
+        @ se3.inv(planned_femur_from_cm(PLAN, roll_deg=true_roll_deg))
+    )
+    q_regi = Q_TARGET_TRUE + q_offset_deg
+    carm_from_cm = se3.inv(RBASE_FROM_CARM) @ UR10.rbase_from_ee(q_regi) @ EE_FROM_CM
+    carm_from_femur = se3.inv(RBASE_FROM_CARM) @ rbase_from_femur
+    return q_regi, {
+        "ee_from_cm": EE_FROM_CM,
+        "carm_from_femur": carm_from_femur,
+        "carm_from_cm": carm_from_cm,
+    }
+
+
+def test_the_least_motion_roll_beats_the_fixed_roll_and_stays_within_30_degrees() -> None:
+    """A UR-10 working pose whose CM is rolled 120° from the plan's default roll: the fixed roll turns
+    the joints far, the free roll barely more than the registration pose's own offset."""
+    assert PLAN.roll_free
+    offset = np.array([4.0, -6.0, 5.0, 3.0, -4.0, 6.0])
+    q_regi, kw = _rolled_scene(120.0, offset)
+    _, q_fixed = robot_target(UR10, q_regi, femur_from_cm_target=planned_femur_from_cm(PLAN), **kw)
+    fixed = float(joint_motion_deg(q_regi, q_fixed).max())
+    best = least_motion_target(UR10, q_regi, lambda r: planned_femur_from_cm(PLAN, roll_deg=r), **kw)
+    assert fixed > 60.0
+    assert best.joint_motion_deg <= 30.0 and best.joint_motion_deg < fixed
+    assert best.joint_motion_deg <= np.abs(offset).max() + 1e-6
+    assert abs(best.roll_deg - 120.0) < 20.0
+    assert best.n_reachable == 72
+    # the command is the plan's pose at that roll, reached within IK tolerance
+    np.testing.assert_allclose(best.femur_from_cm_target, planned_femur_from_cm(PLAN, roll_deg=best.roll_deg))
+    np.testing.assert_allclose(
+        UR10.rbase_from_ee(best.joints_target_deg), best.rbase_from_ee_target, atol=1e-6
+    )
+    assert best.joint_motion_deg == pytest.approx(
+        float(joint_motion_deg(q_regi, best.joints_target_deg).max())
+    )
+    # no roll of a 1° scan does better (the refinement found the minimum), and the search is repeatable
+    scan = []
+    for r in np.arange(-180.0, 180.0, 1.0):
+        _, q = robot_target(UR10, q_regi, femur_from_cm_target=planned_femur_from_cm(PLAN, roll_deg=r), **kw)
+        scan.append(float(joint_motion_deg(q_regi, q).max()))
+    assert best.joint_motion_deg <= min(scan) + 1e-6
+    again = least_motion_target(UR10, q_regi, lambda r: planned_femur_from_cm(PLAN, roll_deg=r), **kw)
+    assert again.roll_deg == best.roll_deg and np.array_equal(again.joints_target_deg, best.joints_target_deg)
+
+
+def test_the_least_motion_search_skips_unreachable_rolls_and_refuses_when_none_is() -> None:
+    q_regi, kw = _rolled_scene(0.0, np.zeros(6))
+    calls: list[float] = []
+
+    def only_near_zero(r: float) -> np.ndarray:
+        calls.append(r)
+        far = se3.make(np.eye(3), [5000.0, 0.0, 0.0])  # out of the arm's reach
+        return planned_femur_from_cm(PLAN, roll_deg=r) if abs(r) <= 20.0 else far
+
+    best = least_motion_target(UR10, q_regi, only_near_zero, **kw)
+    assert best.n_reachable == 9 and abs(best.roll_deg) <= 20.0
+    assert best.joint_motion_deg == pytest.approx(0.0, abs=1e-6)
+    with pytest.raises(UnreachableTarget, match="no roll"):
+        least_motion_target(UR10, q_regi, lambda r: se3.make(np.eye(3), [5000.0, 0.0, 0.0]), **kw)
+
+
+def test_joint_motion_is_wrapped() -> None:
+    np.testing.assert_allclose(
+        joint_motion_deg(np.array([170.0, 0.0, -90.0]), np.array([-170.0, 30.0, -90.0])), [20.0, 30.0, 0.0]
+    )
+
+
+def test_the_swept_path_of_a_joint_move_is_measured_against_the_straight_segment() -> None:
+    tip = np.array([0.0, 0.0, 60.0])
+    q0 = Q_TARGET_TRUE
+    q1 = Q_TARGET_TRUE + np.array([30.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    path = swept_tip_path(UR10, q0, q1, ee_from_cm=EE_FROM_CM, tip_cm_mm=tip, n_samples=201)
+    p0 = se3.apply(UR10.rbase_from_ee(q0) @ EE_FROM_CM, tip)
+    p1 = se3.apply(UR10.rbase_from_ee(q1) @ EE_FROM_CM, tip)
+    np.testing.assert_allclose(path.tip_rbase_mm[[0, -1]], [p0, p1], atol=1e-9)
+    assert path.straight_mm == pytest.approx(float(np.linalg.norm(p1 - p0)))
+    # a base turn sweeps an arc about the base axis: its length and sagitta
+    r = float(np.linalg.norm(p0[:2]))
+    assert path.length_mm == pytest.approx(r * np.radians(30.0), rel=1e-3)
+    assert path.max_deviation_mm == pytest.approx(r * (1 - np.cos(np.radians(15.0))), rel=1e-3)
+    still = swept_tip_path(UR10, q0, q0, ee_from_cm=EE_FROM_CM, tip_cm_mm=tip)
+    assert still.length_mm == 0.0 and still.max_deviation_mm == 0.0

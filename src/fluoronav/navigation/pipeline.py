@@ -13,22 +13,26 @@ Stages, each timed and recorded with its diagnostics (:class:`StageRecord`):
    centrelines (multi-view centreline initialisation), then multi-view CM registration (pose and
    shape) in the CT frame from the best one or two roll minima.
 5. ``plan``: the planned CM pose in the femur frame, with the CM's registered shape where the plan
-   gives none.
+   gives none. Where the plan leaves the CM's roll free, the roll whose command turns the joints
+   least (:func:`~fluoronav.navigation.targeting.least_motion_target`).
 6. ``robot``: eqs. 7–8 and inverse kinematics near the joints read while imaging →
-   ``rbase_from_ee_target``, ``joints_target_deg``.
+   ``rbase_from_ee_target``, ``joints_target_deg``; the command measured and bounded
+   (:mod:`fluoronav.navigation.commands`).
 
 With verification views (the images after the move): ``verify_detect``, ``verify_pelvis``,
 ``verify_femur``, ``verify_cm`` (the CM registered from the plan on the re-registered femur) and
 ``correct``: one corrective command from the verification joints that slides the registered CM so
-that its tip meets the plan (:func:`~fluoronav.navigation.targeting.tip_correction_target`).
+that its tip meets the plan (:func:`~fluoronav.navigation.targeting.tip_correction_target`),
+measured and bounded as the first move is.
 
 Stages 2–4 are :func:`~fluoronav.registration.view_set.register_view_set`, for the verification
 with the first registration and the robot's kinematics as its prior
 (:class:`~fluoronav.registration.view_set.ViewSetPrior`).
 
-A stage that cannot go on (fewer than two views with a CM, the target out of the robot's reach)
-ends the run with status ``"refused"`` and a reason naming the stage, the view and the check; no
-robot command is given then.
+A stage that cannot go on (fewer than two views with a CM, the target out of the robot's reach, a
+command beyond a bound of :class:`~fluoronav.navigation.safety.SafetyConfig`) ends the run with
+status ``"refused"`` and a reason naming the stage, the view and the check; no robot command is
+given then.
 
 Frames: ``ct`` (LPS, mm) throughout; ``femur`` is the CT frame moved with the femur
 (``ct_from_femur``), the frame the plan is drawn in; ``carm_k`` is view k's C-arm camera frame.
@@ -50,9 +54,10 @@ import torch
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.errors import RegistrationRefused
 from fluoronav.manipulator.kinematics import CMKinematics
-from fluoronav.manipulator.robot import wrap_deg
 from fluoronav.navigation.case import CaseView, NavigationCase
-from fluoronav.navigation.planning import planned_femur_from_cm
+from fluoronav.navigation.commands import check_correction, check_first_move, measure_command
+from fluoronav.navigation.planning import Plan, planned_femur_from_cm
+from fluoronav.navigation.preflight import preflight, raise_for_input
 from fluoronav.navigation.result import (
     NavigationConfig,
     NavigationRefused,
@@ -61,8 +66,10 @@ from fluoronav.navigation.result import (
     ViewDetection,
 )
 from fluoronav.navigation.targeting import (
+    LeastMotionTarget,
     UnreachableTarget,
     femur_from_cm_registered,
+    least_motion_target,
     predicted_femur_from_cm,
     robot_target,
     tip_correction_target,
@@ -90,7 +97,7 @@ __all__ = [
     "verify",
 ]
 
-STAGES = ("detect", "pelvis", "femur", "cm", "plan", "robot")
+STAGES = ("preflight", "detect", "pelvis", "femur", "cm", "plan", "robot")
 VERIFY_STAGES = ("verify_detect", "verify_pelvis", "verify_femur", "verify_cm", "correct")
 
 
@@ -269,6 +276,56 @@ def _command(
         raise NavigationRefused(stage_name, "reachable", str(exc)) from None
 
 
+def _least_motion_roll(
+    case: NavigationCase,
+    reg: ViewSetRegistration,
+    plan: Plan,
+    kin: CMKinematics,
+    config: NavigationConfig,
+) -> LeastMotionTarget:
+    """A free-roll plan's roll whose command from the case's joints turns the joints least; refuses
+    where no roll is reachable."""
+    carm_from_ct = reg.cameras_ct[0].camera_from_world
+    try:
+        return least_motion_target(
+            case.robot,
+            case.joints_deg,
+            lambda roll: planned_femur_from_cm(plan, kinematics=kin, roll_deg=roll),
+            ee_from_cm=case.ee_from_cm,
+            carm_from_femur=carm_from_ct @ reg.ct_from_femur,
+            carm_from_cm=carm_from_ct @ reg.ct_from_cm,
+            tol_mm=config.ik_tol_mm,
+            tol_deg=config.ik_tol_deg,
+        )
+    except UnreachableTarget as exc:
+        raise NavigationRefused("plan", "reachable", f"plan '{plan.target_name}': {exc}") from None
+
+
+def _tip_cm(kin: CMKinematics, control_points_deg: np.ndarray) -> np.ndarray:
+    return kin.tip_cm(torch.as_tensor(np.asarray(control_points_deg), dtype=torch.float64)).numpy()
+
+
+def _preflight(case: NavigationCase, config: NavigationConfig, stage: _Stages) -> None:
+    """The case's inputs and plan checked before any registration (:mod:`fluoronav.navigation.preflight`).
+
+    Raises:
+        InputError: bad input (exit status 2), naming the case file and the first problem.
+        NavigationRefused: the plan cannot be carried out (stage ``preflight``).
+    """
+    if config.preflight is None:
+        return
+    with stage("preflight") as rec:
+        findings = preflight(case, config.preflight)
+        rec.diagnostics["findings"] = [
+            {"kind": f.kind, "check": f.check, "reason": f.reason} for f in findings
+        ]
+    raise_for_input(findings, str(case.source or "navigation case"))
+    plan = [f for f in findings if f.kind == "plan"]
+    if plan:
+        more = f" (and {len(plan) - 1} more plan problem(s))" if len(plan) > 1 else ""
+        raise NavigationRefused("preflight", plan[0].check, plan[0].reason + more)
+
+
 def navigate(
     case: NavigationCase,
     config: NavigationConfig | None = None,
@@ -291,6 +348,13 @@ def navigate(
     cfg = config or NavigationConfig()
     res = NavigationResult(config=cfg)
     stage = _Stages(res, on_stage, on_event)
+    try:
+        _preflight(case, cfg, stage)
+    except NavigationRefused as exc:
+        log.warning("navigation refused: %s", exc)
+        res.refuse(exc)
+        stage.emit("status", status=res.status, reason=res.reason)
+        return res
     torch.manual_seed(abs(int(cfg.seed)) % 2**63)
     kin = CMKinematics(case.cm_config)
     cp0 = (
@@ -318,8 +382,14 @@ def navigate(
             if plan.control_points_deg is None:  # the CM keeps the shape it has now
                 plan = dataclasses.replace(plan, control_points_deg=np.asarray(first.cm.control_points_deg))
             res.plan = plan
-            res.femur_from_cm_target = planned_femur_from_cm(plan, kinematics=kin)
             rec.diagnostics["tip_target_ct_mm"] = plan.tip_target_world_mm.tolist()
+            rec.diagnostics["roll_free"] = plan.roll_free
+            if plan.roll_free:
+                chosen = _least_motion_roll(case, first, plan, kin, cfg)
+                res.femur_from_cm_target = chosen.femur_from_cm_target
+                rec.diagnostics["roll_deg"] = chosen.roll_deg
+            else:
+                res.femur_from_cm_target = planned_femur_from_cm(plan, kinematics=kin)
         stage.emit(
             "plan",
             plan=plan,
@@ -329,7 +399,19 @@ def navigate(
         with stage("robot") as rec:
             target, q = _command(case, first, case.joints_deg, res.femur_from_cm_target, cfg, "robot")
             res.rbase_from_ee_target, res.joints_target_deg = target, q
-            rec.diagnostics["joint_motion_deg"] = float(np.max(np.abs(wrap_deg(q - case.joints_deg))))
+            assert plan.control_points_deg is not None
+            motion = measure_command(
+                case.robot,
+                case.joints_deg,
+                q,
+                ee_from_cm=case.ee_from_cm,
+                tip_cm_mm=_tip_cm(kin, first.cm.control_points_deg),
+                femur_from_cm_from=femur_from_cm_registered(first.ct_from_femur, first.ct_from_cm),
+                femur_from_cm_to=res.femur_from_cm_target,
+                tip_to_cm_mm=_tip_cm(kin, plan.control_points_deg),
+            )
+            rec.diagnostics.update(motion.diagnostics())
+            check_first_move(motion, cfg.safety, plan_name=plan.target_name)
     except NavigationRefused as exc:
         log.warning("navigation refused: %s", exc)
         res.refuse(exc)
@@ -396,15 +478,30 @@ def verify(
         stage.emit("registration", prefix="verify_", registration=ver)
         result.verification = ver
         with stage("correct") as rec:
-            tip_cm = kin.tip_cm(torch.as_tensor(ver.cm.control_points_deg, dtype=torch.float64)).numpy()
-            corr = tip_correction_target(
-                femur_from_cm_registered(ver.ct_from_femur, ver.ct_from_cm), tip_cm, plan.tip_target_world_mm
-            )
+            tip_cm = _tip_cm(kin, ver.cm.control_points_deg)
+            femur_from_cm_ver = femur_from_cm_registered(ver.ct_from_femur, ver.ct_from_cm)
+            corr = tip_correction_target(femur_from_cm_ver, tip_cm, plan.tip_target_world_mm)
             result.correction_femur_from_cm_target = corr
             q_now = np.asarray(case.verification.joints_deg, np.float64)
             T, q = _command(case, ver, q_now, corr, cfg, "correct")
             result.rbase_from_ee_correction, result.joints_correction_deg = T, q
-            rec.diagnostics["joint_motion_deg"] = float(np.max(np.abs(wrap_deg(q - q_now))))
+            motion = measure_command(
+                case.robot,
+                q_now,
+                q,
+                ee_from_cm=case.ee_from_cm,
+                tip_cm_mm=tip_cm,
+                femur_from_cm_from=femur_from_cm_ver,
+                femur_from_cm_to=corr,
+            )
+            # how far the kinematics say the move left the tip from the plan (first registration's shape)
+            predicted_tip = predicted[:3, :3] @ _tip_cm(kin, first.cm.control_points_deg) + predicted[:3, 3]
+            predicted_error = float(np.linalg.norm(plan.tip_target_world_mm - predicted_tip))
+            rec.diagnostics.update(motion.diagnostics())
+            rec.diagnostics["predicted_tip_error_mm"] = predicted_error
+            check_correction(
+                motion, cfg.safety, plan_name=plan.target_name, predicted_tip_error_mm=predicted_error
+            )
     except NavigationRefused as exc:
         log.warning("verification refused: %s", exc)
         result.refuse(exc)

@@ -14,9 +14,12 @@ Plan file (JSON), coordinates in the CT's world frame (LPS, mm, as SimpleITK rea
 
 ``direction`` is the insertion direction (normalised on reading). The planned CM base frame has
 +z along ``direction`` and its +y (the bending direction) along the component of
-``bending_direction`` orthogonal to it; by default the world axis least parallel to ``direction``
-is used for that. The CM **tip** (the distal end point of the model, the point the paper's tip and
-relative errors use) is placed at ``entry_point + insertion_depth · direction``.
+``bending_direction`` orthogonal to it. Without ``bending_direction`` the CM's **roll** about the
+insertion axis is free: the navigation chooses it (the roll whose robot command moves the joints
+least, :func:`fluoronav.navigation.targeting.least_motion_target`); roll 0 of that family has +y
+along the world axis least parallel to ``direction``. The CM **tip** (the distal end point of the
+model, the point the paper's tip and relative errors use) is placed at
+``entry_point + insertion_depth · direction``.
 
 A 3D Slicer markups file (``.mrk.json``, see :mod:`fluoronav.anatomy.markups`) is also a plan, read
 by :func:`plan_from_markups`: either one **Line** markup (first control point = entry point, second
@@ -68,6 +71,7 @@ class Plan:
         direction_world: (3,) unit insertion direction, world.
         insertion_depth_mm: distance of the CM tip beyond the entry point along the direction.
         bending_direction_world: (3,) or None; the CM +y axis is its part orthogonal to ``direction``.
+            None leaves the roll about the insertion axis free (:attr:`roll_free`).
         control_points_deg: (n,) or None; CM shape at the target (straight when None).
     """
 
@@ -77,6 +81,16 @@ class Plan:
     insertion_depth_mm: float = 0.0
     bending_direction_world: np.ndarray | None = None
     control_points_deg: np.ndarray | None = None
+
+    @property
+    def roll_free(self) -> bool:
+        """True where the plan does not fix the CM's roll about the insertion axis.
+
+        Notes:
+            A plan that fixes no bending direction says nothing about the roll; fixing it to a world
+            axis anyway can cost the robot a large turn of its joints near the patient.
+        """
+        return self.bending_direction_world is None
 
     @property
     def tip_target_world_mm(self) -> np.ndarray:
@@ -266,6 +280,7 @@ def planned_femur_from_cm(
     *,
     femur_from_world: np.ndarray | None = None,
     kinematics: CMKinematics | None = None,
+    roll_deg: float = 0.0,
 ) -> np.ndarray:
     """The CM base pose in the femur frame that realises ``plan`` → (4, 4) ``femur_from_cm``.
 
@@ -277,6 +292,10 @@ def planned_femur_from_cm(
         plan: the plan (world coordinates).
         femur_from_world: (4, 4) femur frame from the CT world frame; identity by default.
         kinematics: CM kinematics (paper CM by default).
+        roll_deg: the pose turned by this angle (right-handed, degrees) about the line through the
+            tip target along the direction: the roll family of a plan whose roll is free
+            (:attr:`Plan.roll_free`). The tip target and the insertion axis stay where they are,
+            for a bent CM too. 0 gives the plan's own pose exactly.
     """
     kin = kinematics or CMKinematics()
     n_cp = kin.config.n_control_points
@@ -285,6 +304,9 @@ def planned_femur_from_cm(
         raise ValueError(f"plan has {cps.shape[0]} control points, the CM model needs {n_cp}")
     tip_cm = kin.tip_cm(torch.as_tensor(cps, dtype=torch.float64)).numpy()
     R = _frame_axes(plan.direction_world, plan.bending_direction_world)
+    if roll_deg != 0.0:  # R's +z is the direction: a turn about it is a turn about the CM's own z
+        c, s = math.cos(math.radians(roll_deg)), math.sin(math.radians(roll_deg))
+        R = R @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     world_from_cm = se3.make(R, plan.tip_target_world_mm - R @ tip_cm)
     F = (
         np.eye(4)

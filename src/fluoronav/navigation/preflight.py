@@ -363,9 +363,10 @@ def check_labels(
     """
     cfg = config or PreflightConfig()
     femur = f"femur_{side}"
-    out = _volume_findings(volume, side, cfg)
+    volumes = _volume_findings(volume, side, cfg)
     if not _has_label(volume, femur):
-        return out  # the volume finding names the empty label
+        return volumes  # the volume finding names the empty label
+    out: list[PreflightFinding] = []  # landmark findings first: they name the cause (a swap, a side)
     d = distance or _femur_distance(volume, side, cfg)
     for name, limit in (
         (f"femoral_head_{side}", cfg.landmark_margin_mm),
@@ -380,7 +381,7 @@ def check_labels(
         signed = float(d(np.asarray(volume.landmarks_world[name], np.float64)))
         if signed > limit:
             out.append(_landmark_finding(volume, name, femur, signed, limit))
-    return out
+    return out + volumes
 
 
 # ----- the images --------------------------------------------------------------------------------
@@ -592,7 +593,8 @@ def preflight(case: NavigationCase, config: PreflightConfig | None = None) -> li
         plan = check_plan(case.plan, volume, side, case.cm_config, cfg, distance=distance)
     findings = labels + views + images + plan
     for f in findings:
-        logger.warning("preflight %s: %s", f.check, f.reason)
+        # the caller reports them (an input error, a refusal): logged here for the record only
+        logger.info("preflight %s: %s", f.check, f.reason)
     return findings
 
 

@@ -323,10 +323,33 @@ def _stage_rows(result: NavigationResult) -> list[list[Any]]:
     for name, rec in result.stages.items():
         d = rec.diagnostics
         keys = [
-            k for k in ("views_detected", "cost", "converged", "init_cost_px", "joint_motion_deg") if k in d
+            k
+            for k in ("views_detected", "cost", "converged", "init_cost_px", "roll_deg", "joint_motion_deg")
+            if k in d
         ]
         rows.append(
             [name, rec.seconds, "yes" if rec.passed else "NO", ", ".join(f"{k} {d[k]}" for k in keys)]
+        )
+    return rows
+
+
+def _motion_rows(result: NavigationResult) -> list[list[Any]]:
+    """Per measured command: its joint motion and the CM tip's swept path (also when refused)."""
+    rows = []
+    for name, label in (("robot", "first move"), ("correct", "correction")):
+        d = result.stages[name].diagnostics if name in result.stages else {}
+        if "swept_path_mm" not in d:
+            continue
+        rows.append(
+            [
+                label,
+                round(float(d["joint_motion_deg"]), 2),
+                ", ".join(f"{v:.1f}" for v in d["joint_motion_per_joint_deg"]),
+                round(float(d["tip_move_mm"]), 2),
+                round(float(d["rotation_deg"]), 2),
+                round(float(d["swept_path_mm"]), 2),
+                round(float(d["swept_max_deviation_mm"]), 2),
+            ]
         )
     return rows
 
@@ -363,6 +386,18 @@ def write_report(
         summary.tables.append(
             (["robot command (joints, deg)", *[f"q{i + 1}" for i in range(len(cmd[0]) - 1)]], cmd)
         )
+    motion = _motion_rows(result)
+    if motion:
+        header = [
+            "command motion",
+            "largest joint turn (deg)",
+            "per joint (deg)",
+            "CM tip moves (mm)",
+            "CM turns (deg)",
+            "tip's swept path (mm)",
+            "path's largest deviation from straight (mm)",
+        ]
+        summary.tables.append((header, motion))
     if error_rows:
         summary.tables.append(
             (["error against the truth", "value", "unit", "paper"], [list(r) for r in error_rows])

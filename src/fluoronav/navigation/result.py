@@ -17,6 +17,7 @@ from fluoronav import __version__
 from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
 from fluoronav.navigation.planning import Plan
+from fluoronav.navigation.preflight import PreflightConfig
 from fluoronav.navigation.safety import SafetyConfig
 from fluoronav.registration.bone.presets import (
     PELVIS_LINEARIZED_PRESET,
@@ -51,6 +52,8 @@ class NavigationConfig:
             whose case gives landmarks but no mask.
         ik_tol_mm, ik_tol_deg: inverse-kinematics acceptance.
         safety: the thresholds of the registration checks.
+        preflight: the thresholds of the checks of the case's inputs and plan before any
+            registration (:mod:`fluoronav.navigation.preflight`); None: none.
         pelvis: the per-view pelvis registration's levels (its ``device`` is replaced by ``device``):
             CMA-ES to ~96 px, then the linearised refinement at ~128 and ~256 px.
         femur: the femur registration's levels; None: the multi-view preset
@@ -75,6 +78,7 @@ class NavigationConfig:
     ik_tol_mm: float = 1e-6
     ik_tol_deg: float = 1e-6
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    preflight: PreflightConfig | None = field(default_factory=PreflightConfig)
     pelvis: BoneRegistrationConfig = PELVIS_LINEARIZED_PRESET
     femur: BoneRegistrationConfig | None = None
     verify_pelvis_refine: BoneRegistrationConfig | None = PELVIS_REFINE_PRESET
@@ -189,6 +193,7 @@ class NavigationResult:
             assert self.rbase_from_ee_target is not None
             d["rbase_from_ee_target"] = self.rbase_from_ee_target.tolist()
             d["joints_target_deg"] = self.joints_target_deg.tolist()
+            d.update(self._command_motion("robot"))
         if self.verification is not None:
             v = self.verification.to_dict()
             if self.plan is not None:
@@ -198,5 +203,13 @@ class NavigationResult:
                 assert self.rbase_from_ee_correction is not None
                 v["rbase_from_ee_target"] = self.rbase_from_ee_correction.tolist()
                 v["joints_target_deg"] = self.joints_correction_deg.tolist()
+                v.update(self._command_motion("correct"))
             d["verification"] = v
         return d
+
+    def _command_motion(self, stage: str) -> dict[str, Any]:
+        """A command's ``joint_motion_deg`` (per joint, degrees) from its stage's measurement."""
+        rec = self.stages.get(stage)
+        if rec is None or "joint_motion_per_joint_deg" not in rec.diagnostics:
+            return {}
+        return {"joint_motion_deg": list(rec.diagnostics["joint_motion_per_joint_deg"])}

@@ -527,7 +527,9 @@ def _robot_only_error(
     res, tr = run.result, sc.trial
     assert res is not None and res.plan is not None
     plan_true = dataclasses.replace(res.plan, control_points_deg=sc.control_points_deg)
-    target = planned_femur_from_cm(plan_true, kinematics=CMKinematics(sc.cm_config))
+    # the roll the pipeline chose for a plan whose roll is free, so that the same move is measured
+    roll_deg = float(res.stages["plan"].diagnostics.get("roll_deg", 0.0)) if "plan" in res.stages else 0.0
+    target = planned_femur_from_cm(plan_true, kinematics=CMKinematics(sc.cm_config), roll_deg=roll_deg)
     _, q = robot_target(
         sc.nominal,
         q_regi,
