@@ -3,7 +3,9 @@
 The registrations are stand-ins that record their arguments: this tests the chain (one device for
 every stage, the prior's starts and landmark gate, the stages' records and refusals), not the
 registrations themselves (tests/registration/bone, cm, centerline; the whole chain on simulated
-images: tests/navigation/test_demo.py).
+images: tests/navigation/test_demo.py). The bones' checks are stand-ins too (a view's image says
+whether its pelvis or its femur fails), but for one test on physics images: a mirrored view of three
+is left out and the femur registered from the other two.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 
+import fluoronav.registration.bone.checks as bone_checks
 import fluoronav.registration.view_set as view_set
 from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
@@ -23,6 +26,7 @@ from fluoronav.geometry.camera import Camera, DetectorSpec
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.bone import PELVIS_PRESET, PELVIS_REFINE_PRESET, femur_config
+from fluoronav.registration.bone.checks import BoneCheckConfig, BoneViewDiagnostics
 from fluoronav.registration.cm import CMRegistrationConfig
 from fluoronav.registration.stages import StageRecord, timed_stages
 from fluoronav.registration.view_set import (
@@ -36,6 +40,8 @@ from fluoronav.registration.view_set import (
 
 SIZE = 32
 SIDE = "left"
+#: image values of a view whose pelvis, or whose femur, fails its checks (the stand-in's diagnostics)
+BAD_PELVIS, BAD_FEMUR = 0.9, 0.8
 
 
 def _rigid(deg: float, t: tuple[float, float, float]) -> np.ndarray:
@@ -43,7 +49,7 @@ def _rigid(deg: float, t: tuple[float, float, float]) -> np.ndarray:
     return se3.make(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), t)
 
 
-def _views(n: int = 3, detected: int = 3) -> list[FluoroView]:
+def _views(n: int = 3, detected: int = 3, values: dict[int, float] | None = None) -> list[FluoroView]:
     out = []
     for k in range(n):
         cam = Camera.from_detector(
@@ -52,7 +58,7 @@ def _views(n: int = 3, detected: int = 3) -> list[FluoroView]:
         )
         lm = np.array([[8.0 + k, 10.0], [20.0, 22.0 - k]])
         det = ViewDetection(lm, np.linspace(lm[0], lm[1], 5), np.ones((SIZE, SIZE), bool), np.ones(2), "case")
-        image = np.full((SIZE, SIZE), 0.5, np.float32)
+        image = np.full((SIZE, SIZE), (values or {}).get(k, 0.5), np.float32)
         out.append(FluoroView(f"view{k}", image, cam, det if k < detected else None))
     return out
 
@@ -91,7 +97,7 @@ def calls(monkeypatch: pytest.MonkeyPatch) -> _Calls:
         return [bone_result(np.eye(4), v.camera) for v in views]
 
     def femur(views: list[Any], volume: Any, **kw: Any) -> SimpleNamespace:
-        c.femur.append(kw)
+        c.femur.append({**kw, "views": len(views)})
         return bone_result(_rigid(3.0, (1.0, 2.0, 3.0)))
 
     def footprints(cameras: list[Camera], *a: Any, **kw: Any) -> np.ndarray:
@@ -120,7 +126,19 @@ def calls(monkeypatch: pytest.MonkeyPatch) -> _Calls:
         view_set, "multiview_start_poses", lambda init, max_starts: MULTIVIEW_STARTS[:max_starts]
     )
     monkeypatch.setattr(view_set, "register_cm_checked", checked)
+
+    def diagnostics(views: list[Any], volume: Any, label: str, *a: Any) -> list[BoneViewDiagnostics]:
+        bad = BAD_PELVIS if label == "pelvis" else BAD_FEMUR
+        return [
+            BoneViewDiagnostics(0.1, 0.05)
+            if np.isclose(np.mean(v.image), bad)
+            else BoneViewDiagnostics(0.9, 0.5)
+            for v in views
+        ]
+
     monkeypatch.setattr(view_set, "register_cm_multistart", unchecked)
+    monkeypatch.setattr(bone_checks, "bone_view_diagnostics", diagnostics)
+    monkeypatch.setattr(bone_checks, "register_pelvis_per_view", pelvis)
     return c
 
 
@@ -253,3 +271,93 @@ def test_a_refusal_of_the_cm_marks_its_stage(monkeypatch: pytest.MonkeyPatch, ca
     with pytest.raises(RegistrationRefused, match="stage cm, view view1, check edge_ncc"):
         _register(ViewSetSettings(), recorder=timed_stages(records))
     assert records["cm"].passed is False and records["femur"].passed is True
+
+
+def test_a_view_whose_pelvis_fails_is_left_out_of_the_later_stages(calls: _Calls) -> None:
+    records: dict[str, StageRecord] = {}
+    reg = _register(ViewSetSettings(), views=_views(values={1: BAD_PELVIS}), recorder=timed_stages(records))
+    assert [v.name for v in reg.views] == ["view0", "view2"] and len(reg.cameras_ct) == len(reg.pelvis) == 2
+    assert calls.femur[0]["views"] == 2 and len(calls.femur) == 1
+    assert [v.name for v in calls.cm[0]["views"]] == ["view0", "view2"]
+    assert list(reg.left_out) == ["view1"] and reg.left_out["view1"].startswith("edge_ncc: ")
+    assert records["pelvis"].diagnostics["left_out"] == reg.left_out and records["pelvis"].passed
+    assert records["pelvis"].diagnostics["views"]["view1"]["check"] == "edge_ncc"
+    # the failed view's mirror was tried once, at the pelvis's coarse level only
+    assert len(calls.pelvis) == 2 and len(calls.pelvis[1]["config"].levels) == 1
+
+
+def test_too_few_views_whose_pelvis_passes_refuse(calls: _Calls) -> None:
+    records: dict[str, StageRecord] = {}
+    with pytest.raises(RegistrationRefused, match="stage pelvis, view view1, check edge_ncc") as err:
+        _register(
+            ViewSetSettings(),
+            views=_views(values={1: BAD_PELVIS, 2: BAD_PELVIS}),
+            recorder=timed_stages(records),
+        )
+    assert err.value.stage == "pelvis" and err.value.view == "view1"
+    assert records["pelvis"].passed is False and not calls.femur and not calls.cm
+
+
+def test_a_view_whose_femur_fails_is_left_out_and_the_femur_registered_again(calls: _Calls) -> None:
+    records: dict[str, StageRecord] = {}
+    reg = _register(ViewSetSettings(), views=_views(values={2: BAD_FEMUR}), recorder=timed_stages(records))
+    assert [kw["views"] for kw in calls.femur] == [3, 2]
+    assert [kw["seed"] for kw in calls.femur] == [ViewSetSeeds.from_seed(100).femur] * 2
+    assert [v.name for v in calls.cm[0]["views"]] == ["view0", "view1"]
+    assert [v.name for v in reg.views] == ["view0", "view1"]
+    assert list(reg.left_out) == ["view2"] and "femur" in reg.left_out["view2"]
+    assert list(records["femur"].diagnostics["views"]) == ["view0", "view1"]
+    assert records["femur"].diagnostics["left_out"] == reg.left_out
+
+
+def test_without_bone_checks_every_view_goes_on(calls: _Calls) -> None:
+    reg = _register(ViewSetSettings(bone_checks=None), views=_views(values={1: BAD_PELVIS, 2: BAD_FEMUR}))
+    assert len(reg.views) == 3 and not reg.left_out and calls.femur[0]["views"] == 3
+
+
+# ----- on physics images -----------------------------------------------------------------------------
+def test_a_mirrored_view_of_three_is_left_out_and_the_femur_registered_from_the_others() -> None:
+    from fluoronav.anatomy.phantom import hip_phantom
+    from fluoronav.registration.bone import BoneLevel, BoneRegistrationConfig, views_from_images
+    from fluoronav.registration.bone.checks import mirrored_view
+    from fluoronav.registration.levels import LevelConfig
+    from fluoronav.registration.view_set import register_view_set_bones
+    from fluoronav.simulation.articulated import ArticulatedSimulator
+    from fluoronav.simulation.physics import XrayPhysics
+    from fluoronav.simulation.protocol import sample_trial, simulate_trial_images
+    from fluoronav.simulation.xray import SimulationConfig
+
+    volume = hip_phantom(seed=0, spacing_mm=2.0)
+    sim = ArticulatedSimulator(
+        volume, config=SimulationConfig(physics=XrayPhysics(energy_bin_keV=3.0, photons_per_pixel=None))
+    )
+    trial = sample_trial("multi-view", volume, np.random.default_rng(2))
+    views = views_from_images(simulate_trial_images(trial, sim, seed=0, image_size=128))
+    quick = BoneRegistrationConfig(
+        levels=(
+            BoneLevel(
+                LevelConfig(sigma=(3, 3, 3, 6, 6, 12), popsize=12, max_iters=40), image_px=64, voxel_mm=4.0
+            ),
+            BoneLevel(
+                LevelConfig(sigma=(1, 1, 1, 2, 2, 4), popsize=10, max_iters=30), image_px=128, voxel_mm=2.0
+            ),
+        )
+    )
+    bones = register_view_set_bones(
+        [views[0], mirrored_view(views[1]), views[2]],
+        volume,
+        side=trial.side,
+        settings=ViewSetSettings(pelvis=quick, bone_checks=BoneCheckConfig()),
+        seeds=ViewSetSeeds.from_seed(0),
+        names=["AP", "orbit +20", "orbit -15"],
+        initial_world_from_pelvis=trial.initial_world_from_patient,
+    )
+    assert bones.kept == (0, 2)
+    assert bones.left_out == {
+        "orbit +20": "mirrored: view orbit +20 looks mirrored left–right: check the detector orientation"
+    }
+    ct_from_femur = np.linalg.inv(trial.world_from_patient) @ trial.world_from_femur
+    entry = np.append(volume.landmarks_world[f"entry_{trial.side}"], 1.0)
+    assert np.linalg.norm((bones.femur.world_from_bone @ entry - ct_from_femur @ entry)[:3]) < 1.0
+    rot = bones.femur.world_from_bone[:3, :3] @ ct_from_femur[:3, :3].T
+    assert np.degrees(np.arccos(np.clip((np.trace(rot) - 1) / 2, -1, 1))) < 1.0

@@ -259,7 +259,8 @@ def _command(
     config: NavigationConfig,
     stage_name: str,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Eqs. 7–8 + IK from the registration in its view 0; refuses an unreachable target."""
+    """Eqs. 7–8 + IK from the registration; refuses an unreachable target. (The C-arm frame of the
+    registration's first kept view cancels in eq. 7: any view's would give the same command.)"""
     carm_from_ct = reg.cameras_ct[0].camera_from_world
     try:
         return robot_target(

@@ -393,7 +393,7 @@ def run_simulated_navigation(
 
     res = navigate(case, nav_cfg, on_stage=on_stage, on_event=on_event)
     run.result = res
-    _first_errors(run, s.sc, images, s.W_regi, s.cp_true)
+    _first_errors(run, s.sc, dict(zip(s.names, images, strict=True)), s.W_regi, s.cp_true)
     if res.status != "ok" or res.joints_target_deg is None:
         return run
     with T("move"):
@@ -407,7 +407,8 @@ def run_simulated_navigation(
         case, images2 = _verification_case(s, run, case, W_after, rng, int(seeds[2]), case_dir)
     A.update(images2=images2, case=case)
     verify(case, res, on_stage=on_stage, on_event=on_event)
-    _verification_errors(run, s.sc, images2, W_after)
+    names2 = [v.name for v in case.verification.views] if case.verification is not None else []
+    _verification_errors(run, s.sc, dict(zip(names2, images2, strict=True)), W_after)
     if res.status != "ok" or res.joints_correction_deg is None:
         return run
     with T("correct_move"):
@@ -435,13 +436,19 @@ def _write_truth(run: SimulatedNavigation, case_dir: Path) -> None:
 
 
 def _first_errors(
-    run: SimulatedNavigation, sc: HandEyeScenario, images: list[Any], W_regi: np.ndarray, cp_true: np.ndarray
+    run: SimulatedNavigation,
+    sc: HandEyeScenario,
+    images_by_view: dict[str, Any],
+    W_regi: np.ndarray,
+    cp_true: np.ndarray,
 ) -> None:
-    """Errors of the first registration against the truth (AP C-arm frame, as the paper's)."""
+    """Errors of the first registration against the truth, in the C-arm frame of its first view (the
+    AP view, as the paper's, unless the bones' checks left it out)."""
     res, E, tr = run.result, run.errors, sc.trial
     if res is None or res.first is None:
         return
     first = res.first
+    images = [images_by_view[v.name] for v in first.views]  # the views the registration kept
     det_err = [
         np.linalg.norm(d.landmarks_px - im.landmarks_px, axis=1)
         for d, im in zip(first.detections, images, strict=True)
@@ -489,12 +496,13 @@ def _tip(sc: HandEyeScenario, cp_deg: np.ndarray) -> np.ndarray:
 
 
 def _verification_errors(
-    run: SimulatedNavigation, sc: HandEyeScenario, images2: list[Any], W_after: np.ndarray
+    run: SimulatedNavigation, sc: HandEyeScenario, images_by_view: dict[str, Any], W_after: np.ndarray
 ) -> None:
     res, E, tr = run.result, run.errors, sc.trial
     if res is None or res.verification is None or res.plan is None:
         return
     ver = res.verification
+    images2 = [images_by_view[v.name] for v in ver.views]  # the views the registration kept
     carm2 = images2[0].camera.camera_from_world
     carm2_est = ver.cameras_ct[0].camera_from_world
     tip_after = se3.apply(W_after, _tip(sc, sc.control_points_deg))

@@ -6,9 +6,12 @@ multi-view study share, :func:`register_view_set`, in three stages:
 1. ``pelvis``: the pelvis registered to each view alone, with the CM and its shaft left out of the
    similarity (:func:`bone_views`); each view's ``camera_from_ct`` follows, and with it the views'
    relative geometry. After a move (:class:`ViewSetPrior`), each view's pelvis again with the
-   femur's footprint (the femur where the earlier registration put it) left out as well.
-2. ``femur``: the femur (rotation about its head) registered to all views in the CT frame →
-   ``ct_from_femur``.
+   femur's footprint (the femur where the earlier registration put it) left out as well. Each
+   view's pelvis is checked (:mod:`fluoronav.registration.bone.checks`); a view that fails (a
+   mirrored image, a wrong camera) is left out of every later stage.
+2. ``femur``: the femur (rotation about its head) registered to the views in the CT frame →
+   ``ct_from_femur``, checked view by view; a view that fails is left out and the femur
+   registered again without it.
 3. ``cm``: the CM's landmarks triangulated over the views and its roll scanned against the
    centrelines (:func:`~fluoronav.registration.centerline.centerline_initialize_multiview`), then
    the CM registered (pose and shape) from the best roll minima, or after a move from the prior's
@@ -51,6 +54,7 @@ from fluoronav.registration.bone import (
     register_pelvis_per_view,
     views_in_ct_frame,
 )
+from fluoronav.registration.bone.checks import BoneCheckConfig, judge_pelvis_views, register_femur_checked
 from fluoronav.registration.centerline import (
     MultiViewInitResult,
     centerline_initialize_multiview,
@@ -138,6 +142,8 @@ class ViewSetSettings:
         cm_checks: thresholds of the CM registration's per-view checks
             (:mod:`~fluoronav.registration.cm.checks`); None: the CM is registered unchecked, from
             the first starts only.
+        bone_checks: thresholds of the pelvis's and the femur's per-view checks
+            (:mod:`~fluoronav.registration.bone.checks`); None: the bones are not checked.
     """
 
     device: str = "cpu"
@@ -148,6 +154,7 @@ class ViewSetSettings:
     cm: CMRegistrationConfig = field(default_factory=CMRegistrationConfig)
     max_cm_starts: int = 2
     cm_checks: CMCheckConfig | None = field(default_factory=CMCheckConfig)
+    bone_checks: BoneCheckConfig | None = field(default_factory=BoneCheckConfig)
 
 
 @dataclass(frozen=True)
@@ -194,15 +201,20 @@ class ViewSetBones:
     """The bones registered in a view set.
 
     Attributes:
-        pelvis: per-view pelvis registrations (the last of each view's).
-        cameras: each view's camera, placed by its pelvis registration in the CT frame (or as given,
-            see :func:`register_view_set_bones`).
+        pelvis: per-view pelvis registrations (the last of each view's) of the views that passed
+            their checks.
+        cameras: those views' cameras, placed by their pelvis registrations in the CT frame (or as
+            given, see :func:`register_view_set_bones`).
         femur: the femur registration (``world_from_bone`` = ``ct_from_femur``).
+        kept: the indices (into the given views) of those views; None: every view.
+        left_out: the views left out by the checks, name → why (the pelvis's or the femur's).
     """
 
     pelvis: tuple[BoneRegistrationResult, ...]
     cameras: tuple[Camera, ...]
     femur: BoneRegistrationResult
+    kept: tuple[int, ...] | None = None
+    left_out: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, eq=False)
@@ -210,12 +222,13 @@ class ViewSetRegistration:
     """Bones and CM registered in one set of views (the first images, or the verification's).
 
     Attributes:
-        views: the views as given.
+        views: the views as given, less those the bones' checks left out (``left_out``).
         pelvis: per-view pelvis registrations; cameras_ct: each view's camera placed by it
             (``camera_from_world`` = ``carm_k_from_ct``).
         femur: the femur registration (``world_from_bone`` = ``ct_from_femur``).
         cm: the CM registration in the CT frame; cm_init: the multi-view centreline initialisation
             (None with fewer than two views with a CM).
+        left_out: the views the bones' checks left out, name → why.
     """
 
     views: tuple[FluoroView, ...]
@@ -224,6 +237,7 @@ class ViewSetRegistration:
     femur: BoneRegistrationResult
     cm: CMRegistrationResult
     cm_init: MultiViewInitResult | None = None
+    left_out: dict[str, str] = field(default_factory=dict)
 
     @property
     def detections(self) -> tuple[ViewDetection | None, ...]:
@@ -306,9 +320,10 @@ def register_view_set(
         :class:`ViewSetRegistration`.
 
     Raises:
-        RegistrationRefused: (stage "cm") the CM failed its checks from every start
-            (:func:`~fluoronav.registration.cm.checks.register_cm_checked`), or fewer than two views
-            have a CM and there is no prior.
+        RegistrationRefused: (stage "pelvis", "femur") too few views' bones passed their checks
+            (:mod:`~fluoronav.registration.bone.checks`); (stage "cm") the CM failed its checks from
+            every start (:func:`~fluoronav.registration.cm.checks.register_cm_checked`), or fewer
+            than two views have a CM and there is no prior.
     """
     settings = settings or ViewSetSettings()
     seeds = seed if isinstance(seed, ViewSetSeeds) else ViewSetSeeds.from_seed(seed)
@@ -324,6 +339,8 @@ def register_view_set(
         initial_world_from_pelvis=initial_world_from_pelvis,
         recorder=record,
     )
+    if bones.kept is not None:
+        views = [views[k] for k in bones.kept]
     with record("cm") as rec:
         try:
             cm, init = register_view_set_cm(
@@ -348,6 +365,7 @@ def register_view_set(
         femur=bones.femur,
         cm=cm,
         cm_init=init,
+        left_out=dict(bones.left_out),
     )
 
 
@@ -383,6 +401,8 @@ def register_view_set_bones(
 
     Raises:
         ValueError: ``in_ct_frame`` is False with more than one view.
+        RegistrationRefused: (stage "pelvis", "femur") too few views passed their checks
+            (``settings.bone_checks``).
     """
     if not in_ct_frame and len(views) != 1:
         raise ValueError(f"the world frame of the cameras takes one view, got {len(views)}")
@@ -405,23 +425,64 @@ def register_view_set_bones(
             pelvis = _pelvis_without_femur(
                 views, volume, side, pelvis, prior_ct_from_femur, settings, seeds, rec.diagnostics["views"]
             )
+        kept, left_out = list(range(len(views))), dict[str, str]()
+        if settings.bone_checks is not None:
+            try:
+                kept, left_out = judge_pelvis_views(
+                    views,
+                    volume,
+                    pelvis,
+                    names,
+                    settings.bone_checks,
+                    initial_world_from_patient=W0,
+                    pelvis_config=replace(settings.pelvis, device=settings.device),
+                    seed=seeds.pelvis,
+                    record=rec.diagnostics["views"],
+                )
+            except RegistrationRefused:
+                rec.passed = False
+                raise
+            if left_out:
+                rec.diagnostics["left_out"] = dict(left_out)
+    views, pelvis, names = [views[k] for k in kept], [pelvis[k] for k in kept], [names[k] for k in kept]
     if in_ct_frame:
         femur_views = views_in_ct_frame(views, pelvis)
         world_from_pelvis = np.eye(4)
     else:
         femur_views, world_from_pelvis = list(views), pelvis[0].world_from_bone
-    with record("femur") as rec:
-        femur = register_femur(
-            femur_views,
+
+    def femur_of(fviews: Sequence[BoneView]) -> BoneRegistrationResult:
+        return register_femur(
+            fviews,
             volume,
             side=side,
             world_from_patient=world_from_pelvis,
-            config=replace(settings.femur or femur_config(views=len(femur_views)), device=settings.device),
+            config=replace(settings.femur or femur_config(views=len(fviews)), device=settings.device),
             seed=seeds.femur,
             initial_world_from_femur=prior_ct_from_femur,
         )
+
+    with record("femur") as rec:
+        femur_kept = list(range(len(femur_views)))
+        if settings.bone_checks is None:
+            femur = femur_of(femur_views)
+        else:
+            try:
+                femur, femur_kept = register_femur_checked(
+                    femur_views, names, femur_of, volume, side, settings.bone_checks, rec.diagnostics
+                )
+            except RegistrationRefused:
+                rec.passed = False
+                raise
+            left_out.update(rec.diagnostics.get("left_out", {}))
         rec.diagnostics.update(cost=float(femur.cost), converged=bool(femur.converged), reason=femur.reason)
-    return ViewSetBones(tuple(pelvis), tuple(v.camera for v in femur_views), femur)
+    return ViewSetBones(
+        tuple(pelvis[k] for k in femur_kept),
+        tuple(femur_views[k].camera for k in femur_kept),
+        femur,
+        kept=None if not left_out else tuple(kept[k] for k in femur_kept),
+        left_out=left_out,
+    )
 
 
 def _pelvis_without_femur(

@@ -13,6 +13,9 @@ binned): :mod:`~fluoronav.registration.bone.levels`. The levels are data
 (:mod:`~fluoronav.registration.bone.presets`: :func:`pelvis_config`, :func:`femur_config`; a femur
 in one view from a grid of tilted starts; ``authors=True`` gives the authors' σ and population 50).
 
+Checks: each view's registered bone against its image, a mirrored image named as such, and the
+femur registered again without a view that fails (:mod:`~fluoronav.registration.bone.checks`).
+
 Instruments: a view's ``mask`` leaves the CM and its shaft out of the similarity
 (:mod:`~fluoronav.registration.bone.views`).
 
@@ -23,6 +26,17 @@ of them (joint); :func:`register_pelvis_per_view` registers each view alone and 
 
 from __future__ import annotations
 
+from fluoronav.registration.bone.checks import (
+    BoneCheckConfig,
+    BoneVerdict,
+    BoneViewDiagnostics,
+    bone_view_diagnostics,
+    judge_bone_view,
+    judge_pelvis_views,
+    mirrored_view,
+    pelvis_mirror_diagnosis,
+    register_femur_checked,
+)
 from fluoronav.registration.bone.levels import (
     TISSUE_HU,
     bone_excess_mu,
@@ -70,15 +84,24 @@ __all__ = [
     "PELVIS_PRESET",
     "PELVIS_REFINE_PRESET",
     "TISSUE_HU",
+    "BoneCheckConfig",
     "BoneLevel",
     "BoneRegistrationConfig",
     "BoneRegistrationResult",
+    "BoneVerdict",
     "BoneView",
+    "BoneViewDiagnostics",
     "bone_excess_mu",
     "bone_footprints",
+    "bone_view_diagnostics",
     "femur_config",
+    "judge_bone_view",
+    "judge_pelvis_views",
+    "mirrored_view",
     "pelvis_config",
+    "pelvis_mirror_diagnosis",
     "register_femur",
+    "register_femur_checked",
     "register_pelvis",
     "register_pelvis_per_view",
     "relative_view_poses",
