@@ -306,10 +306,18 @@ def navigation_figures(
 
 
 def _banner(result: NavigationResult) -> str:
+    if result.status == "ok" and not result.verified:
+        return (
+            "<div style='background:#fff8e1;border:2px solid #f9a825;padding:.6em 1em;font-size:1.1em'>"
+            "<b>Status: ok, UNVERIFIED</b>: every stage passed its checks, but no images were taken "
+            "after the move; a wrong hand-eye matrix or a robot that moved wrongly cannot be seen "
+            "before then. Take verification images after the move.</div>"
+        )
     if result.status == "ok":
         return (
             "<div style='background:#e6f4ea;border:2px solid #2e7d32;padding:.6em 1em;font-size:1.1em'>"
-            "<b>Status: ok</b>: every stage passed its checks; the robot command below may be sent.</div>"
+            "<b>Status: ok</b>: every stage passed its checks, and the move was verified on images "
+            "taken after it; the robot commands below may be sent.</div>"
         )
     return (
         "<div style='background:#fdecea;border:3px solid #c62828;padding:.6em 1em;font-size:1.15em;"

@@ -175,11 +175,21 @@ class NavigationResult:
                 out[f"{prefix}femur_cost"] = float(st[f"{prefix}femur"].diagnostics["cost"])
         return out
 
+    @property
+    def verified(self) -> bool:
+        """True where the move was checked on images taken after it (a verification that passed).
+
+        Without verification views a command rests on the first registration, the hand-eye matrix
+        and the robot's kinematics alone: a wrong hand-eye matrix cannot be seen before the move.
+        """
+        return self.status == "ok" and self.verification is not None
+
     def to_json(self) -> dict[str, Any]:
         d: dict[str, Any] = {
             "version": __version__,
             "status": self.status,
             "reason": self.reason,
+            "verified": self.verified,
             "config": dataclasses.asdict(self.config),
             "stages": {k: v.to_dict() for k, v in self.stages.items()},
         }

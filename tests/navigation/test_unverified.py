@@ -1,0 +1,22 @@
+"""A navigation without verification images says it is unverified (navigation.json and the report)."""
+
+from __future__ import annotations
+
+from fluoronav.navigation.pipeline import NavigationRefused
+from fluoronav.navigation.report import _banner
+from fluoronav.navigation.result import NavigationConfig, NavigationResult
+
+
+def test_a_result_without_verification_is_unverified_in_json_and_report() -> None:
+    res = NavigationResult(config=NavigationConfig())
+    assert res.status == "ok" and res.verified is False
+    assert res.to_json()["verified"] is False
+    assert "UNVERIFIED" in _banner(res) and "hand-eye" in _banner(res)
+
+
+def test_a_passed_verification_is_verified_and_a_refusal_is_not() -> None:
+    res = NavigationResult(config=NavigationConfig())
+    res.verification = object()  # type: ignore[assignment]  # only its presence matters here
+    assert res.verified is True and "UNVERIFIED" not in _banner(res)
+    res.refuse(NavigationRefused("verify_cm", "edge_ncc", "NCC 0.10"))
+    assert res.verified is False and "REFUSED" in _banner(res)
