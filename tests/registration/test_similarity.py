@@ -11,6 +11,7 @@ from fluoronav.registration.similarity import (
     NCC,
     GradNCC,
     PatchGradNCC,
+    edge_ncc,
     grad_ncc,
     ncc,
     patch_grad_ncc,
@@ -285,3 +286,16 @@ def test_torch_backend_is_used_where_a_gradient_is_needed() -> None:
     assert moving.grad is not None and float(moving.grad.abs().sum()) > 0
     with pytest.raises(ValueError, match="backend"):
         PatchGradNCC(fixed, patch_radius=4, backend="cuda")  # type: ignore[arg-type]
+
+
+def test_edge_ncc_compares_only_the_drrs_outline() -> None:
+    yy, xx = np.mgrid[0:64, 0:64]
+    disc = ((yy - 32) ** 2 + (xx - 32) ** 2 < 15**2).astype(np.float64)
+    assert edge_ncc(disc, disc) == pytest.approx(1.0, abs=1e-9)
+    # what lies away from the outline does not count: a far blob added to the image
+    blob = disc + 3.0 * (((yy - 5) ** 2 + (xx - 5) ** 2) < 9)
+    assert edge_ncc(blob, disc) == pytest.approx(1.0, abs=1e-6)
+    assert edge_ncc(-disc, disc) == pytest.approx(-1.0, abs=1e-9)
+    assert edge_ncc(disc, np.zeros_like(disc)) == 0.0  # a DRR without edges
+    none = torch.zeros(64, 64, dtype=torch.bool)
+    assert edge_ncc(disc, disc, mask=none) == 0.0  # no pixel left to compare

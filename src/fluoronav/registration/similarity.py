@@ -38,6 +38,7 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
+from scipy import ndimage
 from torch.nn import functional as tnf
 
 __all__ = [
@@ -45,6 +46,7 @@ __all__ = [
     "GradNCC",
     "PatchGradNCC",
     "compile_kernels",
+    "edge_ncc",
     "grad_ncc",
     "ncc",
     "patch_grad_ncc",
@@ -440,3 +442,32 @@ def ncc(fixed: torch.Tensor, moving: torch.Tensor, *, mask: torch.Tensor | None 
     """Global intensity NCC cost ``1 − NCC``; shapes as :func:`patch_grad_ncc`."""
     _as_views(fixed, moving)
     return NCC(fixed, mask=mask)(moving)
+
+
+def edge_ncc(
+    image: np.ndarray | torch.Tensor,
+    drr: np.ndarray,
+    *,
+    mask: torch.Tensor | None = None,
+    dilate_px: int = 2,
+    sigma_px: float = 1.0,
+) -> float:
+    """Gradient NCC (−1 … 1) of ``image`` and ``drr`` (both (h, w)) on the DRR's edges; 0 where it
+    has none.
+
+    The edge pixels are those whose smoothed DRR gradient magnitude exceeds a tenth of its maximum,
+    dilated by ``dilate_px`` (and within ``mask`` where given): the comparison is about where the
+    registered object's outline lies, not about what surrounds it. Both arrays are used in the
+    precision they come in.
+    """
+    d = np.asarray(drr)
+    gy, gx = np.gradient(ndimage.gaussian_filter(d, sigma_px))
+    mag = np.hypot(gx, gy)
+    if not np.isfinite(mag).all() or mag.max() <= 0:
+        return 0.0
+    edges = torch.as_tensor(ndimage.binary_dilation(mag > 0.1 * mag.max(), iterations=dilate_px))
+    if mask is not None:
+        edges = edges & mask
+    fixed = image if isinstance(image, torch.Tensor) else torch.as_tensor(np.asarray(image))
+    cost = float(grad_ncc(fixed, torch.as_tensor(d)[None], sigma_px=sigma_px, mask=edges)[0])
+    return 1.0 - cost if np.isfinite(cost) else 0.0

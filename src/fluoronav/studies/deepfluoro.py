@@ -51,7 +51,7 @@ from fluoronav.registration.bone import (
     pelvis_config,
     register_pelvis,
 )
-from fluoronav.registration.cm.diagnostics import edge_ncc
+from fluoronav.registration.similarity import edge_ncc
 from fluoronav.rendering.ct import render_line_integrals
 from fluoronav.runner import CsvLog, finish_row, mark_failed, new_row, run_tasks
 from fluoronav.simulation.protocol import perturb_about
@@ -200,7 +200,7 @@ def pelvis_edge_ncc(
     image: np.ndarray, camera: Camera, volume: Volume, world_from_patient: np.ndarray, *, size_px: int = 256
 ) -> float:
     """Gradient NCC (−1 … 1) of ``image`` and the pelvis DRR at ``world_from_patient`` on the DRR's
-    outline, both binned to about ``size_px`` (:func:`~fluoronav.registration.cm.diagnostics.edge_ncc`)."""
+    outline, both binned to about ``size_px`` (:func:`~fluoronav.registration.similarity.edge_ncc`)."""
     f = max(1, camera.cols // size_px)
     small = camera.downsample(f)
     img = np.asarray(image, np.float64)[: small.rows * f, : small.cols * f]
@@ -208,7 +208,7 @@ def pelvis_edge_ncc(
     mu, w_idx = bone_excess_mu(volume, ["pelvis"])
     T = (small.camera_from_world @ np.asarray(world_from_patient, np.float64))[None]
     drr = render_line_integrals(torch.from_numpy(mu), w_idx, small.K[None], T, small.rows, small.cols)[0]
-    return float(edge_ncc(img, drr.cpu().numpy()))
+    return float(edge_ncc(img, drr.cpu().numpy().astype(np.float64)))
 
 
 # ----- one trial ------------------------------------------------------------------------------------

@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy import ndimage
 
 from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import RegistrationRefused
@@ -37,7 +36,7 @@ from fluoronav.registration.bone.presets import BoneRegistrationConfig
 from fluoronav.registration.bone.register import BoneRegistrationResult, register_pelvis_per_view
 from fluoronav.registration.bone.views import BoneView
 from fluoronav.registration.roi import area_downsample
-from fluoronav.registration.similarity import grad_ncc
+from fluoronav.registration.similarity import edge_ncc, grad_ncc
 from fluoronav.rendering.ct import CTRenderer
 
 log = logging.getLogger(__name__)
@@ -111,19 +110,6 @@ class BoneVerdict:
     detail: str = ""
 
 
-def _edge_ncc(image: torch.Tensor, drr: np.ndarray, use: torch.Tensor | None, dilate_px: int) -> float:
-    """Gradient NCC on the DRR's edges (smoothed gradient above a tenth of its maximum, dilated)."""
-    gy, gx = np.gradient(ndimage.gaussian_filter(drr, 1.0))
-    mag = np.hypot(gx, gy)
-    if not np.isfinite(mag).all() or mag.max() <= 0:
-        return 0.0
-    edges = torch.as_tensor(ndimage.binary_dilation(mag > 0.1 * mag.max(), iterations=dilate_px))
-    if use is not None:
-        edges = edges & use
-    cost = float(grad_ncc(image, torch.as_tensor(drr)[None], mask=edges)[0])
-    return 1.0 - cost if np.isfinite(cost) else 0.0
-
-
 def bone_view_diagnostics(
     views: Sequence[BoneView],
     volume: Volume,
@@ -160,7 +146,7 @@ def bone_view_diagnostics(
         whole = float(grad_ncc(image, torch.as_tensor(drr)[None], mask=use)[0])
         out.append(
             BoneViewDiagnostics(
-                edge_ncc=_edge_ncc(image, drr, use, config.edge_dilate_px),
+                edge_ncc=edge_ncc(image, drr, mask=use, dilate_px=config.edge_dilate_px),
                 grad_ncc=1.0 - whole if np.isfinite(whole) else 0.0,
             )
         )

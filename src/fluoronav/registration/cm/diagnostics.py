@@ -19,11 +19,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import torch
-from scipy import ndimage
 
 from fluoronav.registration.cm.result import CMRegistrationResult
-from fluoronav.registration.similarity import grad_ncc
+from fluoronav.registration.similarity import edge_ncc as similarity_edge_ncc
 
 __all__ = ["CMViewDiagnostics", "cm_view_diagnostics", "edge_ncc"]
 
@@ -49,22 +47,10 @@ class CMViewDiagnostics:
 
 
 def edge_ncc(image: np.ndarray, drr: np.ndarray, *, dilate_px: int = 2, sigma_px: float = 1.0) -> float:
-    """Gradient NCC of ``image`` and ``drr`` (both (h, w)) on the DRR's edges; 0 where it has none.
-
-    The edge pixels are those whose smoothed DRR gradient magnitude exceeds a tenth of its maximum,
-    dilated by ``dilate_px``: the comparison is about where the CM's outline lies, not about the
-    anatomy around it.
-    """
-    d = np.asarray(drr, np.float64)
-    gy, gx = np.gradient(ndimage.gaussian_filter(d, sigma_px))
-    mag = np.hypot(gx, gy)
-    if not np.isfinite(mag).all() or mag.max() <= 0:
-        return 0.0
-    edges = ndimage.binary_dilation(mag > 0.1 * mag.max(), iterations=dilate_px)
-    fixed = torch.as_tensor(np.asarray(image, np.float64))
-    moving = torch.as_tensor(d)[None]
-    cost = float(grad_ncc(fixed, moving, sigma_px=sigma_px, mask=torch.as_tensor(edges))[0])
-    return 1.0 - cost if np.isfinite(cost) else 0.0
+    """:func:`fluoronav.registration.similarity.edge_ncc` of the CM's DRR, in float64."""
+    return similarity_edge_ncc(
+        np.asarray(image, np.float64), np.asarray(drr, np.float64), dilate_px=dilate_px, sigma_px=sigma_px
+    )
 
 
 def cm_view_diagnostics(
