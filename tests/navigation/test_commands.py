@@ -87,6 +87,20 @@ def test_the_correction_the_verification_vouches_for_grows_with_the_kinematic_mi
         check_correction(_motion(tip_mm=6.5), strict, plan_name="p", predicted_tip_error_mm=4.0)
 
 
+def test_images_that_overrule_the_kinematics_lift_only_the_vouching_bound() -> None:
+    """Unambiguous images trusted over the kinematics: a 6.5 mm correction with the planned tip 0.2 mm
+    from the prediction passes; the length and rotation bounds still hold."""
+    with pytest.raises(NavigationRefused, match="correction_within_uncertainty"):
+        check_correction(_motion(tip_mm=6.5), SAFETY, plan_name="p", predicted_tip_error_mm=0.2)
+    check_correction(
+        _motion(tip_mm=6.5), SAFETY, plan_name="p", predicted_tip_error_mm=0.2, images_overrule=True
+    )
+    with pytest.raises(NavigationRefused, match="correction_length"):
+        check_correction(
+            _motion(tip_mm=11.0), SAFETY, plan_name="p", predicted_tip_error_mm=0.2, images_overrule=True
+        )
+
+
 def test_the_bounds_are_frozen_config() -> None:
     with pytest.raises(dataclasses.FrozenInstanceError):
         SAFETY.max_joint_motion_deg = 90.0  # type: ignore[misc]

@@ -153,10 +153,13 @@ def _robot_case(
     plan=None,
     verify_offset_mm=None,
     tilt_deg: float = 0.0,
+    verify_diagnostics=None,
 ):
     """The conftest case with given landmarks and a stand-in registration: the CM held 40 mm back along
     the plan's axis, rolled ``roll_deg`` from the plan's default roll. With ``verify_offset_mm``, a
-    verification at the first command's joints whose CM lies that far (mm, CM x) from the plan."""
+    verification at the first command's joints whose CM lies that far (mm, CM x) from the plan (and so
+    from where the kinematics put it), its CM stage recording ``verify_diagnostics`` (default: two
+    views that passed, their landmarks 0.3 mm from the detected ones)."""
     case = make_no_cm_case(n_views=2, size=64)
     lm = np.array([[20.0, 30.0], [40.0, 34.0]])
     views = tuple(dataclasses.replace(v, landmarks_px=lm) for v in case.views)
@@ -174,11 +177,23 @@ def _robot_case(
     reached = np.array(navigate(case, _CFG).femur_from_cm_target)
     reached[:3, 3] += verify_offset_mm * reached[:3, 0]
     ver = _fake_registration(reached)
-    monkeypatch.setattr(
-        pipeline,
-        "register_view_set",
-        lambda views, volume, **kw: ver if kw.get("prior") is not None else first,
-    )
+    ver.left_out = {}
+    diag = {
+        "views": {v.name: {"landmark_residual_mm": 0.3, "edge_ncc": 0.9} for v in views},
+        "views_used": [v.name for v in views],
+        "tries": 1,
+        **(verify_diagnostics or {}),
+        "motion_tip_mm": verify_offset_mm,  # the plan is where the kinematics put the CM
+    }
+
+    def register(views, volume, **kw):
+        if kw.get("prior") is None:
+            return first
+        with kw["recorder"]("cm") as rec:
+            rec.diagnostics.update(diag)
+        return ver
+
+    monkeypatch.setattr(pipeline, "register_view_set", register)
     return dataclasses.replace(case, verification=VerificationViews(q_after, views))
 
 
@@ -249,20 +264,62 @@ def test_each_bound_of_the_first_move_refuses_the_navigation(
 
 
 @pytest.mark.parametrize(
-    ("offset_mm", "check"), [(2.0, None), (5.0, "correction_within_uncertainty"), (12.0, "correction_length")]
+    ("offset_mm", "safety", "check"),
+    [
+        (2.0, {}, None),  # the images agree with the kinematics: corrected
+        (5.0, {}, "kinematics_disagree"),  # they disagree, and two views cannot overrule the kinematics
+        (5.0, {"overrule_min_views": 2}, None),  # two views may: corrected, with a warning
+        (5.0, {"overrule_min_views": 2, "overrule_max_landmark_residual_mm": 0.2}, "kinematics_disagree"),
+        (12.0, {"overrule_min_views": 2}, "kinematics_disagree"),  # beyond any correction
+        (2.5, {"max_correction_mm": 2.0}, "correction_length"),
+    ],
 )
-def test_the_correction_is_bounded_by_length_and_by_what_the_verification_vouches_for(
-    make_no_cm_case, monkeypatch: pytest.MonkeyPatch, offset_mm: float, check: str | None
+def test_the_correction_is_judged_against_the_kinematics_and_bounded(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch, offset_mm: float, safety: dict, check: str | None
 ) -> None:
     case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=offset_mm)
-    res = navigate(case, _CFG)
+    res = navigate(case, dataclasses.replace(_CFG, safety=dataclasses.replace(SafetyConfig(), **safety)))
     diag = res.stages["correct"].diagnostics
-    assert diag["tip_move_mm"] == pytest.approx(offset_mm, abs=1e-6)
-    assert diag["predicted_tip_error_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert diag["kinematics_disagreement_mm"] == offset_mm
     if check is None:
         assert res.status == "ok", res.reason
+        assert diag["tip_move_mm"] == pytest.approx(offset_mm, abs=1e-6)
+        assert diag["predicted_tip_error_mm"] == pytest.approx(0.0, abs=1e-6)
         assert res.joints_correction_deg is not None and diag["joint_motion_deg"] <= 30.0
         assert len(res.to_json()["verification"]["joint_motion_deg"]) == 6
+        overruled = offset_mm > SafetyConfig().max_motion_tip_mm
+        assert bool(res.warnings) == overruled == bool(diag.get("images_overrule"))
+        if overruled:
+            assert "check the hand-eye matrix and the joint readings" in res.warnings[0]
+            assert res.to_json()["warnings"] == res.warnings
     else:
         assert res.status == "refused" and res.joints_correction_deg is None
-        assert f"stage correct, check {check}: plan 'entry'" in res.reason
+        assert f"stage correct, check {check}" in res.reason
+        if check == "kinematics_disagree":
+            assert f"{offset_mm:.1f} mm from where the robot's kinematics put it" in res.reason
+            assert "hand-eye matrix" in res.reason
+
+
+def test_a_view_left_out_keeps_the_images_from_overruling_the_kinematics(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    left = {"left_out": {"view1": "edge_ncc: NCC 0.2"}}
+    case = _robot_case(
+        make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=5.0, verify_diagnostics=left
+    )
+    res = navigate(case, dataclasses.replace(_CFG, safety=SafetyConfig(overrule_min_views=1)))
+    assert res.status == "refused" and "views left out (view1)" in res.reason
+
+
+def test_joint_readings_that_differ_from_the_command_are_refused_before_any_registration(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=1.0)
+    assert case.verification is not None
+    q = np.array(case.verification.joints_deg)
+    q[1] += 3.0
+    case = dataclasses.replace(case, verification=VerificationViews(q, case.verification.views))
+    res = navigate(case, _CFG)
+    assert res.status == "refused" and res.verification is None
+    assert "stage verify_joints, check joint_readings" in res.reason and "joint 2" in res.reason
+    assert "3.00°" in res.reason and "verify_detect" not in res.stages

@@ -21,6 +21,9 @@ def test_safety_config_keeps_its_fields_and_defaults() -> None:
         "max_move_deg": 90.0,
         "max_correction_mm": 10.0,
         "max_correction_deg": 5.0,
+        "max_joint_reading_deg": 0.5,
+        "overrule_min_views": 3,
+        "overrule_max_landmark_residual_mm": 1.0,
     }
 
 

@@ -1,11 +1,11 @@
 """One set of views registered (``register_view_set``): what it hands each stage.
 
 The registrations are stand-ins that record their arguments: this tests the chain (one device for
-every stage, the prior's starts and landmark gate, the stages' records and refusals), not the
-registrations themselves (tests/registration/bone, cm, centerline; the whole chain on simulated
-images: tests/navigation/test_demo.py). The bones' checks are stand-ins too (a view's image says
-whether its pelvis or its femur fails), but for one test on physics images: a mirrored view of three
-is left out and the femur registered from the other two.
+every stage, the prior's starts and the agreement with its prediction, the stages' records and
+refusals), not the registrations themselves (tests/registration/bone, cm, centerline; the whole
+chain on simulated images: tests/navigation/test_demo.py). The bones' checks are stand-ins too (a
+view's image says whether its pelvis or its femur fails), but for one test on physics images: a
+mirrored view of three is left out and the femur registered from the other two.
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-import torch
 
 import fluoronav.registration.bone.checks as bone_checks
 import fluoronav.registration.view_set as view_set
@@ -24,7 +23,6 @@ from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera, DetectorSpec
 from fluoronav.manipulator.config import CMConfig
-from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.bone import PELVIS_PRESET, PELVIS_REFINE_PRESET, femur_config
 from fluoronav.registration.bone.checks import BoneCheckConfig, BoneViewDiagnostics
 from fluoronav.registration.cm import CMRegistrationConfig
@@ -72,6 +70,7 @@ class _Calls:
     init: list[dict[str, Any]] = field(default_factory=list)
     cm: list[dict[str, Any]] = field(default_factory=list)
     unchecked: list[dict[str, Any]] = field(default_factory=list)
+    motion: list[Any] = field(default_factory=list)
 
 
 MULTIVIEW_STARTS = [np.diag([1.0, 1.0, 1.0, 1.0])]
@@ -126,6 +125,12 @@ def calls(monkeypatch: pytest.MonkeyPatch) -> _Calls:
         view_set, "multiview_start_poses", lambda init, max_starts: MULTIVIEW_STARTS[:max_starts]
     )
     monkeypatch.setattr(view_set, "register_cm_checked", checked)
+
+    def agreement(predicted: Any, cm: Any, cm_config: Any) -> dict[str, float]:
+        c.motion.append(predicted)
+        return {"motion_tip_mm": 4.2, "motion_rotation_deg": 1.5}
+
+    monkeypatch.setattr(view_set, "motion_agreement", agreement)
 
     def diagnostics(views: list[Any], volume: Any, label: str, *a: Any) -> list[BoneViewDiagnostics]:
         bad = BAD_PELVIS if label == "pelvis" else BAD_FEMUR
@@ -198,29 +203,31 @@ def test_without_a_prior_the_cm_starts_from_the_views(calls: _Calls) -> None:
     )
     assert [kw["seed"] for kw in calls.pelvis + calls.femur + calls.cm] == [7, 8, 10]
     assert calls.femur[0]["initial_world_from_femur"] is None
-    assert calls.init[0]["landmark_prior_world"] is None
-    assert calls.cm[0]["tries"] == [MULTIVIEW_STARTS[:1]] and calls.cm[0]["predicted"] is None
+    assert "landmark_prior_world" not in calls.init[0]
+    assert calls.cm[0]["tries"] == [MULTIVIEW_STARTS[:1]] and not calls.motion
     assert [v.name for v in calls.cm[0]["views"]] == ["view0", "view1", "view2"]
     assert reg.cm_init is not None and reg.detections == tuple(v.detection for v in reg.views)
 
 
-def test_a_prior_changes_the_start_the_landmark_gate_and_the_checks(calls: _Calls) -> None:
-    reg = _register(ViewSetSettings(), PRIOR, name="verify")
+def test_a_prior_adds_the_prediction_to_the_images_starts_and_reports_the_agreement(calls: _Calls) -> None:
+    records: dict[str, StageRecord] = {}
+    reg = _register(ViewSetSettings(), PRIOR, name="verify", recorder=timed_stages(records))
     F = reg.femur.world_from_bone  # the femur registered anew
     expected = F @ PRIOR.femur_from_cm_predicted
-    # the start: the prior's pose on the new femur, then (where it fails) the predicted one
+    # the images' own starts and the prediction screened together; the plan's pose where they fail
     tries = calls.cm[0]["tries"]
-    assert len(tries) == 2
-    np.testing.assert_array_equal(tries[0][0], F @ PRIOR.femur_from_cm_start)
-    np.testing.assert_array_equal(tries[1][0], expected)
-    # the gate of the detected landmarks: the landmarks of the CM where the prediction puts it
-    landmarks_cm = CMKinematics(CMConfig()).landmarks_cm(torch.as_tensor(CP, dtype=torch.float64)).numpy()
-    np.testing.assert_allclose(calls.init[0]["landmark_prior_world"], se3.apply(expected, landmarks_cm))
-    # the motion check: the predicted pose and its tolerance
-    predicted = calls.cm[0]["predicted"]
+    assert len(tries) == 2 and len(tries[0]) == len(MULTIVIEW_STARTS) + 1
+    for got, want in zip(tries[0], [*MULTIVIEW_STARTS, expected], strict=True):
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(tries[1][0], F @ PRIOR.femur_from_cm_start)
+    # the detections are not gated by the prediction
+    assert "landmark_prior_world" not in calls.init[0]
+    # the agreement with the prediction is measured and recorded, not judged
+    [predicted] = calls.motion
     np.testing.assert_array_equal(predicted.world_from_reference, F)
     np.testing.assert_array_equal(predicted.reference_from_cm, PRIOR.femur_from_cm_predicted)
-    assert predicted.max_tip_mm == 2.5
+    assert predicted.max_tip_mm == 2.5 and "predicted" not in calls.cm[0]
+    assert records["cm"].diagnostics["motion_tip_mm"] == 4.2
     # the bones: the femur starts at the prior's, and each view's pelvis again without the femur
     np.testing.assert_array_equal(calls.femur[0]["initial_world_from_femur"], PRIOR.ct_from_femur)
     seeds = ViewSetSeeds.from_seed(100)
@@ -228,10 +235,20 @@ def test_a_prior_changes_the_start_the_landmark_gate_and_the_checks(calls: _Call
     assert [v.name for v in calls.cm[0]["views"]] == ["view0 (verify)", "view1 (verify)", "view2 (verify)"]
 
 
-def test_a_prior_without_a_prediction_starts_once_and_checks_no_motion(calls: _Calls) -> None:
-    _register(ViewSetSettings(pelvis_refine=None), replace(PRIOR, femur_from_cm_predicted=None))
-    assert len(calls.cm[0]["tries"]) == 1 and calls.cm[0]["predicted"] is None
-    assert calls.init[0]["landmark_prior_world"] is None
+def test_a_prior_with_one_view_of_the_cm_starts_from_the_plan_then_the_prediction(calls: _Calls) -> None:
+    reg = _register(ViewSetSettings(), PRIOR, views=_views(detected=1))
+    F = reg.femur.world_from_bone
+    tries = calls.cm[0]["tries"]
+    assert [len(t) for t in tries] == [1, 1] and not calls.init
+    np.testing.assert_array_equal(tries[0][0], F @ PRIOR.femur_from_cm_start)
+    np.testing.assert_array_equal(tries[1][0], F @ PRIOR.femur_from_cm_predicted)
+
+
+def test_a_prior_without_a_prediction_measures_no_agreement(calls: _Calls) -> None:
+    reg = _register(ViewSetSettings(pelvis_refine=None), replace(PRIOR, femur_from_cm_predicted=None))
+    tries = calls.cm[0]["tries"]
+    np.testing.assert_array_equal(tries[0][-1], reg.femur.world_from_bone @ PRIOR.femur_from_cm_start)
+    assert not calls.motion
     assert len(calls.pelvis) == 1  # no second pelvis registration without its settings
 
 
@@ -250,8 +267,8 @@ def test_the_stages_are_recorded_in_order(calls: _Calls) -> None:
 def test_unchecked_settings_register_the_cm_from_the_first_starts(calls: _Calls) -> None:
     reg = _register(ViewSetSettings(cm_checks=None), PRIOR)
     assert not calls.cm and len(calls.unchecked) == 1
-    [start] = calls.unchecked[0]["starts"]  # the predicted pose is a second start only for checks
-    np.testing.assert_array_equal(start, reg.femur.world_from_bone @ PRIOR.femur_from_cm_start)
+    starts = calls.unchecked[0]["starts"]  # the first try's: the images' own and the prediction
+    np.testing.assert_array_equal(starts[-1], reg.femur.world_from_bone @ PRIOR.femur_from_cm_predicted)
 
 
 def test_two_views_without_a_cm_refuse_the_first_registration(calls: _Calls) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -278,3 +279,96 @@ def test_navigation_rows_take_the_final_tip_and_the_checks() -> None:
         run, HandEyeStudyConfig(workflow="navigation", trials=1, seed=0, corrections=0)
     )
     assert open_loop["reposition_tip_mm"] == 1.5
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--fault", "mirror_three"], "--fault: unknown fault 'mirror_three'; one of: none, mirror_one"),
+        (["--handeye-error-mm", "2"], "options of study navigation"),
+    ],
+)
+def test_study_fault_options_are_checked_before_anything_runs(
+    args: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from fluoronav.cli.main import main
+
+    workflow = "navigation" if args[0] == "--fault" else "multi-view"
+    out = tmp_path / "study"
+    with pytest.raises(SystemExit) as exc:
+        main(["study", workflow, "--trials", "1", "--seed", "0", "--out", str(out), *args])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_fault_handeye_errors_come_from_the_fault_unless_given(
+    monkeypatch: pytest.MonkeyPatch, tmp_path
+) -> None:
+    import fluoronav.studies.handeye_study as hs
+
+    seen: list[HandEyeStudyConfig] = []
+
+    def record(cfg: HandEyeStudyConfig, out: Path, **kw: object) -> dict[str, object]:
+        seen.append(cfg)
+        return {}
+
+    monkeypatch.setattr(hs, "run_handeye_study", record)
+    hs.run_handeye_or_navigation_study("navigation", trials=1, seed=0, out=tmp_path, fault="handeye_10mm")
+    hs.run_handeye_or_navigation_study(
+        "navigation", trials=1, seed=0, out=tmp_path, fault="handeye_10mm", handeye_error_mm=3.0
+    )
+    hs.run_handeye_or_navigation_study("navigation", trials=1, seed=0, out=tmp_path, fault="mirror_one")
+    assert [c.handeye_error_mm for c in seen] == [10.0, 3.0, 0.5]
+    assert [c.handeye_error_deg for c in seen] == [0.4, 0.4, 0.4]
+    assert seen[0].fault == "handeye_10mm"
+
+
+def test_fault_rows_record_the_check_and_the_outcome() -> None:
+    from fluoronav.navigation.pipeline import NavigationConfig
+    from fluoronav.navigation.result import NavigationRefused, NavigationResult, StageRecord
+    from fluoronav.navigation.simulated import SimulatedNavigation, SimulatedNavigationConfig
+    from fluoronav.studies.handeye_study import navigation_row
+
+    cfg = HandEyeStudyConfig(workflow="navigation", trials=1, seed=0, fault="mirror_one")
+    names = ["AP", "orbit +20", "orbit -15"]
+    res = NavigationResult(config=NavigationConfig())
+    res.stages["pelvis"] = StageRecord(diagnostics={"left_out": {"orbit +20": "mirrored: looks mirrored"}})
+    run = SimulatedNavigation(config=SimulatedNavigationConfig(), result=res, artifacts={"names": names})
+    run.errors.update(reposition_tip_mm=1.5, corrected_tip_mm=0.3, cm_tip_mm=0.4)
+    run.errors.update(cm_base_rx_deg=3.0, cm_base_ry_deg=4.0, cm_base_rz_deg=20.0)
+    row = navigation_row(run, cfg)
+    assert row["fault_outcome"] == "landed" and row["fault_handled"] and row["left_out"] == ["orbit +20"]
+    assert row["cm_axis_deg"] == pytest.approx(5.0, abs=0.1)  # the tilt of the axis, not the roll
+
+    res.refuse(NavigationRefused("pelvis", "mirrored", "view orbit +20 looks mirrored", "orbit +20"))
+    row = navigation_row(run, cfg)
+    assert (
+        row["status"] == "refused" and row["check"] == "mirrored" and row["fault_outcome"] == "refused_named"
+    )
+
+    inverted = HandEyeStudyConfig(workflow="navigation", trials=1, seed=0, fault="inverted")
+    err = SimulatedNavigation(
+        config=SimulatedNavigationConfig(),
+        artifacts={
+            "names": names,
+            "input_error": {"reason": "case: view 'AP' inverted", "check": "inverted_image"},
+        },
+    )
+    row = navigation_row(err, inverted)
+    assert row["status"] == "input_error" and row["check"] == "inverted_image"
+    assert row["fault_outcome"] == "refused_named" and row["reason"] == "case: view 'AP' inverted"
+
+
+def test_summary_flags_first_moves_from_registrations_off_the_truth() -> None:
+    from fluoronav.studies.handeye_study import _navigation_outcomes
+
+    rows = [
+        {"trial": 0, "status": "ok", "reposition_open_loop_mm": 1.0, "tip_mm": 0.5, "cm_axis_deg": 1.0},
+        {"trial": 1, "status": "refused", "reposition_open_loop_mm": 4.0, "tip_mm": 2.5, "cm_axis_deg": 1.0},
+        {"trial": 2, "status": "ok", "reposition_open_loop_mm": 1.0, "tip_mm": 1.0, "cm_axis_deg": 6.0},
+        {"trial": 3, "status": "refused", "reposition_open_loop_mm": "", "tip_mm": 9.0, "cm_axis_deg": ""},
+    ]
+    out = _navigation_outcomes(rows)
+    assert out["unflagged_first_move_failures"] == 2 and out["unflagged_first_move_failure_trials"] == [1, 2]

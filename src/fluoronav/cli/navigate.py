@@ -41,6 +41,7 @@ STAGE_LABELS = {
     "cm": "initialising and registering the CM (multi-view)",
     "plan": "planning the target pose",
     "robot": "computing the robot command (eqs. 7-8, IK)",
+    "verify_joints": "verification: the joint readings",
     "verify_detect": "verification: detecting the CM",
     "verify_pelvis": "verification: registering the pelvis",
     "verify_femur": "verification: registering the femur",

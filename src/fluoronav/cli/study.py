@@ -10,6 +10,41 @@ import typer
 from fluoronav.cli.common import DEVICE_OPTION
 from fluoronav.errors import InputError
 
+_FAULT_OPTION = typer.Option(
+    None,
+    "--fault",
+    help="navigation: inject an input fault (mirror_one, mirror_all, focal_10pct, verify_joints_3deg, "
+    "handeye_10mm, verify_no_move, view_without_cm, labels_swapped, plan_inward_300, inverted, none).",
+)
+_HANDEYE_ERROR_MM_OPTION = typer.Option(
+    None,
+    "--handeye-error-mm",
+    min=0.0,
+    help="navigation: the case's hand-eye matrix is the truth moved by this (mm; default 0.5, "
+    "10 with --fault handeye_10mm).",
+)
+_HANDEYE_ERROR_DEG_OPTION = typer.Option(
+    None,
+    "--handeye-error-deg",
+    min=0.0,
+    help="navigation: the case's hand-eye matrix is the truth turned by this (degrees; default 0.4).",
+)
+
+
+def _fault_options(
+    workflow: str, fault: str | None, handeye_error_mm: float | None, handeye_error_deg: float | None
+) -> dict[str, Any]:
+    """The navigation study's fault options, checked (an unknown fault, or one given to another
+    study, is an :class:`InputError`)."""
+    if fault is None and handeye_error_mm is None and handeye_error_deg is None:
+        return {}
+    if workflow != "navigation":
+        raise InputError("--fault", "--fault and --handeye-error-* are options of study navigation")
+    from fluoronav.navigation.faults import get_fault  # lazy: fast --help
+
+    get_fault(fault)
+    return {"fault": fault, "handeye_error_mm": handeye_error_mm, "handeye_error_deg": handeye_error_deg}
+
 
 def register(app: typer.Typer) -> None:
     @app.command("study")
@@ -58,6 +93,9 @@ def register(app: typer.Typer) -> None:
             max=1,
             help="navigation: 1: verification images after the move and one corrective move; 0: open loop.",
         ),
+        fault: str = _FAULT_OPTION,
+        handeye_error_mm: float = _HANDEYE_ERROR_MM_OPTION,
+        handeye_error_deg: float = _HANDEYE_ERROR_DEG_OPTION,
         data: Path = typer.Option(None, "--data", help="deepfluoro: the DeepFluoro HDF5 file (yours)."),
         specimen: str = typer.Option(None, "--specimen", help="deepfluoro: one specimen (ID or 1–6)."),
         xreg_gt_correction: bool = typer.Option(
@@ -70,6 +108,7 @@ def register(app: typer.Typer) -> None:
         """Run (or resume) a study; writes trials.csv, summary.json and figures/."""
         from fluoronav.device import resolve_device  # heavy: torch
 
+        faults = _fault_options(workflow, fault, handeye_error_mm, handeye_error_deg)
         if workflow == "deepfluoro":
             summary = _deepfluoro(
                 data, trials, seed, out, specimen, xreg_gt_correction, device, scheduler, workers
@@ -94,6 +133,7 @@ def register(app: typer.Typer) -> None:
                 # the hand-eye study has always used oracle landmarks; navigation the detector by default
                 oracle_landmarks=oracle_landmarks or workflow == "hand-eye",
                 calibration_bend_deg=calibration_bend_deg,
+                **faults,
             )
         else:
             from fluoronav.studies.pipeline import (  # lazy: fast --help

@@ -147,10 +147,13 @@ def check_correction(
     *,
     plan_name: str,
     predicted_tip_error_mm: float,
+    images_overrule: bool = False,
     stage: str = "correct",
 ) -> None:
     """Refuse a correction beyond ``max_correction_mm``, ``max_correction_deg``, what the
-    verification vouches for (:func:`correction_allowed_mm`) or ``max_joint_motion_deg``.
+    verification vouches for (:func:`correction_allowed_mm`; not where ``images_overrule``: the
+    images were judged unambiguous enough to be trusted over the kinematics,
+    :mod:`fluoronav.navigation.safety`) or ``max_joint_motion_deg``.
 
     Raises:
         NavigationRefused: check ``correction_length``, ``correction_rotation``,
@@ -171,7 +174,7 @@ def check_correction(
             f"more than the bound {safety.max_correction_deg:g}° (max_correction_deg)",
         )
     allowed = correction_allowed_mm(safety, predicted_tip_error_mm)
-    if m.tip_move_mm > allowed:
+    if not images_overrule and m.tip_move_mm > allowed:
         raise NavigationRefused(
             stage,
             "correction_within_uncertainty",

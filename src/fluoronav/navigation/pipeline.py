@@ -19,11 +19,15 @@ Stages, each timed and recorded with its diagnostics (:class:`StageRecord`):
    ``rbase_from_ee_target``, ``joints_target_deg``; the command measured and bounded
    (:mod:`fluoronav.navigation.commands`).
 
-With verification views (the images after the move): ``verify_detect``, ``verify_pelvis``,
-``verify_femur``, ``verify_cm`` (the CM registered from the plan on the re-registered femur) and
-``correct``: one corrective command from the verification joints that slides the registered CM so
-that its tip meets the plan (:func:`~fluoronav.navigation.targeting.tip_correction_target`),
-measured and bounded as the first move is.
+With verification views (the images after the move): ``verify_joints`` (the joints read with them
+against the command), ``verify_detect``, ``verify_pelvis``, ``verify_femur``, ``verify_cm`` (the CM
+found where the images show it: their own multi-view initialisation and the kinematic prediction
+as starts, the plan's pose as the fallback) and ``correct``: the registered CM compared with the
+robot's kinematics (a disagreement is refused or, where the images are unambiguous, overruled with
+a warning: :mod:`~fluoronav.navigation.safety`), then one corrective command from the verification
+joints that slides the registered CM so that its tip meets the plan
+(:func:`~fluoronav.navigation.targeting.tip_correction_target`), measured and bounded as the first
+move is.
 
 Stages 2–4 are :func:`~fluoronav.registration.view_set.register_view_set`, for the verification
 with the first registration and the robot's kinematics as its prior
@@ -65,10 +69,12 @@ from fluoronav.navigation.result import (
     StageRecord,
     ViewDetection,
 )
+from fluoronav.navigation.safety import SafetyConfig
 from fluoronav.navigation.targeting import (
     LeastMotionTarget,
     UnreachableTarget,
     femur_from_cm_registered,
+    joint_motion_deg,
     least_motion_target,
     predicted_femur_from_cm,
     robot_target,
@@ -98,7 +104,7 @@ __all__ = [
 ]
 
 STAGES = ("preflight", "detect", "pelvis", "femur", "cm", "plan", "robot")
-VERIFY_STAGES = ("verify_detect", "verify_pelvis", "verify_femur", "verify_cm", "correct")
+VERIFY_STAGES = ("verify_joints", "verify_detect", "verify_pelvis", "verify_femur", "verify_cm", "correct")
 
 
 #: ``on_event(kind, data)``: what the pipeline tells a listener (e.g. a live link to a viewer) as
@@ -327,6 +333,96 @@ def _preflight(case: NavigationCase, config: NavigationConfig, stage: _Stages) -
         raise NavigationRefused("preflight", plan[0].check, plan[0].reason + more)
 
 
+def _check_joint_readings(
+    stage: _Stages, joints_deg: np.ndarray, commanded_deg: np.ndarray | None, safety: SafetyConfig
+) -> None:
+    """Stage ``verify_joints``: the joints read with the verification images against the first
+    move's command; refuses (check ``joint_readings``) where any differs by more than
+    ``safety.max_joint_reading_deg``."""
+    with stage("verify_joints") as rec:
+        if commanded_deg is None:
+            return
+        dq = joint_motion_deg(commanded_deg, joints_deg)
+        rec.diagnostics["reading_minus_command_deg"] = [float(x) for x in dq]
+        if float(np.max(dq)) > safety.max_joint_reading_deg:
+            j = int(np.argmax(dq))
+            raise NavigationRefused(
+                "verify_joints",
+                "joint_readings",
+                f"the joints read with the verification images differ from the commanded ones by "
+                f"{dq[j]:.2f}° (joint {j + 1}; at most {safety.max_joint_reading_deg:g}°, "
+                "max_joint_reading_deg): the robot did not reach its command or its joint readings are "
+                "wrong; check the joint readings",
+            )
+
+
+def _judge_kinematics(
+    result: NavigationResult, ver: ViewSetRegistration, safety: SafetyConfig, diag: dict[str, Any]
+) -> bool:
+    """The verification's CM against the robot's kinematics (:mod:`fluoronav.navigation.safety`).
+
+    Returns:
+        False where they agree (within ``max_motion_tip_mm``); True where they disagree and the
+        images are unambiguous enough to be trusted over the kinematics (a warning is added to
+        ``result``).
+
+    Raises:
+        NavigationRefused: (check ``kinematics_disagree``) they disagree and the images cannot
+            overrule the kinematics, or the disagreement is beyond a correction.
+    """
+    cm_diag = result.stages["verify_cm"].diagnostics
+    tip_mm = float(cm_diag["motion_tip_mm"])
+    diag["kinematics_disagreement_mm"] = tip_mm
+    if tip_mm <= safety.max_motion_tip_mm:
+        return False
+    said = (
+        f"the CM the verification images show is {tip_mm:.1f} mm from where the robot's kinematics put "
+        f"it (at most {safety.max_motion_tip_mm:g} mm): check the hand-eye matrix and the joint readings"
+    )
+    if tip_mm > safety.max_correction_mm:
+        raise NavigationRefused(
+            "correct",
+            "kinematics_disagree",
+            f"{said}, and that the images were taken after the move; more than a correction may "
+            f"move ({safety.max_correction_mm:g} mm, max_correction_mm)",
+        )
+    why_not = _ambiguity(ver, cm_diag, safety)
+    if why_not:
+        raise NavigationRefused(
+            "correct", "kinematics_disagree", f"{said}; the images cannot overrule them: {why_not}"
+        )
+    n = len(cm_diag["views_used"])
+    worst = max(float(v["landmark_residual_mm"] or 0.0) for v in cm_diag["views"].values())
+    result.warnings.append(
+        f"{said}. Corrected from the images: {n} views agree (landmarks within {worst:.2f} mm), and a "
+        "correction measured in the images does not depend on the hand-eye translation."
+    )
+    diag["images_overrule"] = True
+    return True
+
+
+def _ambiguity(ver: ViewSetRegistration, cm_diag: dict[str, Any], safety: SafetyConfig) -> str:
+    """Why the verification's images cannot overrule the kinematics ("" where they can)."""
+    if ver.left_out or cm_diag.get("left_out"):
+        return f"views left out ({', '.join({**ver.left_out, **cm_diag.get('left_out', {})})})"
+    if int(cm_diag.get("tries", 1)) > 1:
+        return "the images' own starts failed their checks"
+    n = len(cm_diag["views_used"])
+    if n < safety.overrule_min_views:
+        return f"{n} views passed, {safety.overrule_min_views} needed (overrule_min_views)"
+    res = [
+        float(v["landmark_residual_mm"])
+        for v in cm_diag["views"].values()
+        if v["landmark_residual_mm"] is not None
+    ]
+    if len(res) < n or max(res) > safety.overrule_max_landmark_residual_mm:
+        return (
+            f"a view's landmarks are {max(res, default=float('nan')):.2f} mm from the detected ones "
+            f"(at most {safety.overrule_max_landmark_residual_mm:g} mm, overrule_max_landmark_residual_mm)"
+        )
+    return ""
+
+
 def navigate(
     case: NavigationCase,
     config: NavigationConfig | None = None,
@@ -433,9 +529,10 @@ def verify(
 ) -> NavigationResult:
     """Register the verification views of ``case`` and command one correction (updates ``result``).
 
-    The pelvis and femur are registered anew (the C-arm moved), the CM from the plan on the new
-    femur; the correction slides the registered CM so that its tip meets the plan, from the joints
-    read with the verification images.
+    The joint readings are checked against the command; the pelvis and femur are registered anew
+    (the C-arm moved), the CM from the images' own starts and the kinematic prediction, then
+    compared with the kinematics; the correction slides the registered CM so that its tip meets the
+    plan, from the joints read with the verification images.
 
     Raises:
         ValueError: the case has no verification views, or ``result`` has no first registration.
@@ -450,8 +547,7 @@ def verify(
     assert plan is not None
     target = result.femur_from_cm_target
     first = result.first
-    # where the robot's kinematics say the CM went: a second start, the gate of the detected landmarks
-    # and a check of the verification
+    # where the robot's kinematics say the CM went: one start among the images' own, then compared
     predicted = predicted_femur_from_cm(
         case.robot,
         case.joints_deg,
@@ -462,6 +558,7 @@ def verify(
     prior = ViewSetPrior(first.ct_from_femur, target, predicted, cfg.safety.max_motion_tip_mm)
     kin = CMKinematics(case.cm_config)
     try:
+        _check_joint_readings(stage, case.verification.joints_deg, result.joints_target_deg, cfg.safety)
         views = _detect(stage, case.verification.views, cfg, prefix="verify_", need=1)
         with _refusals("verify_"):
             ver = register_view_set(
@@ -479,6 +576,7 @@ def verify(
         stage.emit("registration", prefix="verify_", registration=ver)
         result.verification = ver
         with stage("correct") as rec:
+            overrule = _judge_kinematics(result, ver, cfg.safety, rec.diagnostics)
             tip_cm = _tip_cm(kin, ver.cm.control_points_deg)
             femur_from_cm_ver = femur_from_cm_registered(ver.ct_from_femur, ver.ct_from_cm)
             corr = tip_correction_target(femur_from_cm_ver, tip_cm, plan.tip_target_world_mm)
@@ -501,7 +599,11 @@ def verify(
             rec.diagnostics.update(motion.diagnostics())
             rec.diagnostics["predicted_tip_error_mm"] = predicted_error
             check_correction(
-                motion, cfg.safety, plan_name=plan.target_name, predicted_tip_error_mm=predicted_error
+                motion,
+                cfg.safety,
+                plan_name=plan.target_name,
+                predicted_tip_error_mm=predicted_error,
+                images_overrule=overrule,
             )
     except NavigationRefused as exc:
         log.warning("verification refused: %s", exc)

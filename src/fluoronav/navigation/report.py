@@ -306,6 +306,15 @@ def navigation_figures(
 
 
 def _banner(result: NavigationResult) -> str:
+    warnings = "".join(
+        "<div style='background:#fff3e0;border:2px solid #ef6c00;padding:.5em 1em;margin-top:.4em'>"
+        f"<b>Warning</b>: {html.escape(w)}</div>"
+        for w in (result.warnings if result.status == "ok" else [])
+    )
+    return _status_banner(result) + warnings
+
+
+def _status_banner(result: NavigationResult) -> str:
     if result.status == "ok" and not result.verified:
         return (
             "<div style='background:#fff8e1;border:2px solid #f9a825;padding:.6em 1em;font-size:1.1em'>"

@@ -126,7 +126,8 @@ class NavigationResult:
 
     ``first`` / ``verification`` are the registrations; ``plan`` is the plan as used (with the CM's
     registered shape where the case's plan gives none); the robot commands are set only when the
-    status is "ok".
+    status is "ok". ``warnings``: what a user must know about a result that stands (e.g. the
+    verification images and the robot's kinematics disagreed and the images were trusted).
     """
 
     config: NavigationConfig
@@ -142,6 +143,7 @@ class NavigationResult:
     correction_femur_from_cm_target: np.ndarray | None = None
     rbase_from_ee_correction: np.ndarray | None = None
     joints_correction_deg: np.ndarray | None = None
+    warnings: list[str] = field(default_factory=list)
 
     def refuse(self, exc: NavigationRefused) -> None:
         """Mark the run refused and withdraw every robot command (none may be acted on)."""
@@ -190,6 +192,7 @@ class NavigationResult:
             "status": self.status,
             "reason": self.reason,
             "verified": self.verified,
+            "warnings": list(self.warnings),
             "config": dataclasses.asdict(self.config),
             "stages": {k: v.to_dict() for k, v in self.stages.items()},
         }

@@ -3,22 +3,28 @@
 A surgical navigation must know when it is wrong. Each CM registration is checked per view
 (:mod:`fluoronav.registration.cm.checks`): the registered landmarks against the detected ones and
 the registered CM's outline against the image. A view that fails is left out and the CM registered
-again without it while enough views remain; otherwise the navigation refuses. The verification's CM
-is also checked against the robot's own account of the move: the first registration moved by the
-nominal kinematics between the two joint readings
-(:func:`fluoronav.navigation.targeting.predicted_femur_from_cm`) must agree with what the
-verification images show; where it does not, a second start from that prediction is tried, and a
-verification that still fails gives no corrective command.
+again without it while enough views remain; otherwise the navigation refuses.
 
 The robot's commands are bounded too: the first move and the correction may turn no joint by
 more than ``max_joint_motion_deg``, the first move may carry the CM tip and turn the CM only so far
 (``max_move_mm``, ``max_move_deg``), and the correction, which only translates, must be small
 (``max_correction_mm``, ``max_correction_deg``) and no larger than the agreement between the robot's
 kinematics and the verification images can vouch for: its tip translation may exceed the planned
-tip's distance from the kinematic prediction by at most ``max_motion_tip_mm``. Where the images
-demand more than that, either they or the kinematics are wrong, and the robot must not move on
-either's word. A command beyond a bound is refused with the plan's name, the measured value and the
-bound.
+tip's distance from the kinematic prediction by at most ``max_motion_tip_mm``, unless the images
+overrule the kinematics (below). A command beyond a bound is refused with the plan's name, the
+measured value and the bound.
+
+The verification finds the CM where its images show it (the kinematic prediction is one start
+among the images' own, not a gate), then compares the two. Joint readings that differ from the
+command are refused at once. A disagreement beyond ``max_motion_tip_mm`` with readings that match
+the command points at the hand-eye matrix (or the first registration): the images are then
+trusted over the kinematics only when they are unambiguous (``overrule_min_views`` views passed,
+none left out, landmarks within ``overrule_max_landmark_residual_mm``) and the correction is within
+``max_correction_mm``. That is safe because the correction is a relative move measured in the
+images: a translation of the CM from where the images show it, executed from the current joints,
+so a hand-eye translation error cancels and a hand-eye rotation error δ turns the correction by δ
+(a 10 mm correction with a 3° error errs by 0.5 mm). The result then carries a warning naming the
+disagreement.
 
 The thresholds live in :class:`SafetyConfig`; docs/validation.md ("The checks' thresholds") gives
 the data they were chosen on.
@@ -58,6 +64,17 @@ class SafetyConfig:
             fixes the robot's residual error after a move that reached the plan, not a new approach.
         max_correction_deg: the correction may turn the CM at most this much (degrees); it only
             translates, so anything above numerical noise is a fault.
+        max_joint_reading_deg: the joints read with the verification images may differ from the
+            commanded ones by at most this (degrees, any joint). A robot that did not reach its
+            command, or readings that are wrong, make every kinematic account of the move wrong,
+            and a correction computed from those readings would be too.
+        overrule_min_views: where the verification's CM disagrees with the kinematics by more than
+            ``max_motion_tip_mm``, it is corrected from the images only when at least this many
+            verification views passed the CM's checks and none was left out, from the images' own
+            start ...
+        overrule_max_landmark_residual_mm: ... and every view's registered landmarks lie within
+            this of the detected ones (mm at the detector). Otherwise the navigation refuses,
+            naming the hand-eye matrix and the joint readings.
     """
 
     max_landmark_residual_mm: float = CMCheckConfig.max_landmark_residual_mm
@@ -69,6 +86,9 @@ class SafetyConfig:
     max_move_deg: float = 90.0
     max_correction_mm: float = 10.0
     max_correction_deg: float = 5.0
+    max_joint_reading_deg: float = 0.5
+    overrule_min_views: int = 3
+    overrule_max_landmark_residual_mm: float = 1.0
 
     def cm_checks(self) -> CMCheckConfig:
         """The per-view thresholds of a CM registration."""

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 from fluoronav.anatomy.volume import Volume
+from fluoronav.errors import InputError
 from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.carm import centre_on, orbit_camera
@@ -53,9 +54,17 @@ from fluoronav.navigation.case import (
     load_navigation_case,
     write_navigation_case,
 )
+from fluoronav.navigation.faults import (
+    apply_case_fault,
+    apply_first_fault,
+    apply_verification_fault,
+    get_fault,
+    view_without_cm,
+)
 from fluoronav.navigation.pipeline import EventCallback, NavigationConfig, NavigationResult, navigate, verify
 from fluoronav.navigation.planning import Plan, neck_entry_plan, planned_femur_from_cm
-from fluoronav.navigation.targeting import robot_target
+from fluoronav.navigation.preflight import preflight
+from fluoronav.navigation.targeting import UnreachableTarget, least_motion_target, robot_target
 from fluoronav.registration.metrics import axis_error_deg, cm_errors
 from fluoronav.simulation.articulated import ArticulatedSimulator, anatomy_and_simulator
 from fluoronav.simulation.robot_scene import (
@@ -95,6 +104,17 @@ class SimulatedNavigationConfig:
         device: torch device of the detector, renderers and similarities.
         oracle_landmarks: the case gives the true landmarks + U(−3, 3) full-detector px and the true
             CM mask for every view instead of leaving them to the detector.
+        working_pose_max_joint_deg: the person who brings the robot to its working pose before
+            imaging points the CM roughly along the planned approach: a scene is redrawn (up to
+            ``max_scene_draws`` times) until the plan, reached from the true poses with the least
+            joint motion, turns no joint by more than this (degrees; a few below the command's
+            bound ``SafetyConfig.max_joint_motion_deg``, so the registrations' errors do not push
+            a gentle move over it). None: the first draw, however far from the plan.
+        max_scene_draws: how many scenes that search draws at most (the last is kept).
+        fault: an input fault of :data:`fluoronav.navigation.faults.FAULTS` injected into the case
+            (None: none). With a fault, an :class:`~fluoronav.errors.InputError` of the pipeline's
+            preflight is an outcome, not an error: ``artifacts["input_error"]`` holds its ``reason``
+            and ``check``, and the run stops there.
     """
 
     seed: int = 0
@@ -107,6 +127,9 @@ class SimulatedNavigationConfig:
     verify: bool = True
     device: str = "cpu"
     oracle_landmarks: bool = False
+    working_pose_max_joint_deg: float | None = 25.0
+    max_scene_draws: int = 20
+    fault: str | None = None
 
 
 @dataclass
@@ -242,7 +265,7 @@ def _scenario(
         phantom_seed = cfg.seed if cfg.phantom_seed is None else cfg.phantom_seed
         volume, simulator = anatomy_and_simulator(ct, phantom_seed, cfg.image_size, cfg.device)
     with T("scene"):
-        sc = sample_handeye_scenario(volume, np.random.default_rng(scene_seed), n_poses=0)
+        sc = _working_scene(volume, cfg, np.random.default_rng(scene_seed))
         tr = sc.trial
         kin = CMKinematics(sc.cm_config)
         cp_true = np.asarray(sc.control_points_deg, np.float64)
@@ -258,6 +281,42 @@ def _scenario(
     return _Scenario(
         cfg, volume, simulator, sc, cp_true, tip_cm, q_regi, W_regi, cams, names, plan, ee_from_cm_used
     )
+
+
+def _working_scene(
+    volume: Volume, cfg: SimulatedNavigationConfig, rng: np.random.Generator
+) -> HandEyeScenario:
+    """A scene whose working pose reaches the plan gently (``cfg.working_pose_max_joint_deg``)."""
+    for draw in range(max(1, cfg.max_scene_draws)):
+        sc = sample_handeye_scenario(volume, rng, n_poses=0)
+        if cfg.working_pose_max_joint_deg is None:
+            return sc
+        motion = _true_first_move_deg(sc)
+        if motion <= cfg.working_pose_max_joint_deg:
+            return sc
+        log.debug("scene draw %d: the plan needs a %.1f° joint turn; redrawn", draw, motion)
+    return sc
+
+
+def _true_first_move_deg(sc: HandEyeScenario) -> float:
+    """The largest joint turn of the least-motion move to the plan with true poses (inf: unreachable)."""
+    tr = sc.trial
+    kin = CMKinematics(sc.cm_config)
+    plan = dataclasses.replace(
+        neck_entry_plan(tr.entry_ct, tr.femoral_head_ct), control_points_deg=np.asarray(sc.control_points_deg)
+    )
+    try:
+        chosen = least_motion_target(
+            sc.nominal,
+            sc.q_work_deg,
+            lambda roll: planned_femur_from_cm(plan, kinematics=kin, roll_deg=roll),
+            ee_from_cm=sc.ee_from_cm,
+            carm_from_femur=tr.world_from_femur,
+            carm_from_cm=sc.true_world_from_cm(sc.q_work_deg),
+        )
+    except UnreachableTarget:
+        return float("inf")
+    return float(chosen.joint_motion_deg)
 
 
 def _first_case(
@@ -278,6 +337,7 @@ def _first_case(
         ee_from_cm=s.ee_from_cm_used,
         views=_views(images, s.names, tr.initial_world_from_patient, oracle=cfg.oracle_landmarks, rng=rng),
     )
+    case = _first_fault(s, case, seed)
     run.truth = _truth_poses(
         tr.world_from_patient,
         s.W_regi,
@@ -335,12 +395,17 @@ def _verification_case(
     centre = centre + rng.uniform(-cfg.aim_error_mm, cfg.aim_error_mm, 3)
     ap2 = centre_on(s.cams[0], centre)
     cams2 = [ap2] + [orbit_camera(ap2, angle_deg=a, isocenter_world=centre) for a in cfg.orbit_deg]
-    images2 = s.simulate(W_after, cams2, seed)
+    fault = get_fault(cfg.fault)
+    # the fault's verification images show the CM where it was before the move
+    images2 = s.simulate(
+        s.W_regi if fault is not None and fault.verify_images_before_move else W_after, cams2, seed
+    )
     names2 = [f"{n} after the move" for n in s.names]
     views2 = _views(images2, names2, tr.initial_world_from_patient, oracle=cfg.oracle_landmarks, rng=rng)
     case = dataclasses.replace(
         case, verification=VerificationViews(np.asarray(res.joints_target_deg), views2)
     )
+    case = apply_verification_fault(case, fault)
     run.truth["verification"] = _truth_poses(
         tr.world_from_patient, W_after, tr.world_from_femur, s.cp_true, s.tip_cm, cams2, names2
     )
@@ -391,7 +456,13 @@ def run_simulated_navigation(
     if until == "case":
         return run
 
-    res = navigate(case, nav_cfg, on_stage=on_stage, on_event=on_event)
+    try:
+        res = navigate(case, nav_cfg, on_stage=on_stage, on_event=on_event)
+    except InputError as exc:
+        if cfg.fault is None:
+            raise
+        A["input_error"] = {"reason": str(exc), "check": _input_check(case, nav_cfg)}
+        return run
     run.result = res
     _first_errors(run, s.sc, dict(zip(s.names, images, strict=True)), s.W_regi, s.cp_true)
     if res.status != "ok" or res.joints_target_deg is None:
@@ -418,6 +489,35 @@ def run_simulated_navigation(
     run.truth["world_from_cm_corrected"] = W_final.tolist()
     A["W_final"] = W_final
     return run
+
+
+def _first_fault(s: _Scenario, case: NavigationCase, seed: int) -> NavigationCase:
+    """The case with the config's fault (:mod:`fluoronav.navigation.faults`) in its first views, CT
+    labels or plan; a view without the CM is simulated anew (its seed as the first images')."""
+    fault = get_fault(s.config.fault)
+    if fault is None:
+        return case
+    if fault.without_cm and fault.view_index is not None:
+        k, tr = fault.view_index, s.sc.trial
+        bare = s.simulator.simulate(
+            s.cams[k],
+            world_from_patient=tr.world_from_patient,
+            world_from_femur=tr.world_from_femur,
+            cm=None,
+            seed=seed + k,
+            image_size=s.config.image_size,
+            cm_config=s.sc.cm_config,
+        )
+        views = list(case.views)
+        views[k] = view_without_cm(views[k], bare.image)
+        case = dataclasses.replace(case, views=tuple(views))
+    return apply_case_fault(apply_first_fault(case, fault), fault)
+
+
+def _input_check(case: NavigationCase, config: NavigationConfig) -> str:
+    """The check of the preflight's first input finding (what the InputError reports), or ""."""
+    found = [f for f in preflight(case, config.preflight) if f.kind == "input"]
+    return found[0].check if found else ""
 
 
 def _ct_path(case_dir: Path) -> str | None:

@@ -14,8 +14,10 @@ multi-view study share, :func:`register_view_set`, in three stages:
    registered again without it.
 3. ``cm``: the CM's landmarks triangulated over the views and its roll scanned against the
    centrelines (:func:`~fluoronav.registration.centerline.centerline_initialize_multiview`), then
-   the CM registered (pose and shape) from the best roll minima, or after a move from the prior's
-   start, and checked view by view (:mod:`fluoronav.registration.cm.checks`).
+   the CM registered (pose and shape) from the best roll minima and checked view by view
+   (:mod:`fluoronav.registration.cm.checks`). After a move the images' own starts are screened
+   together with the kinematic prediction, the plan's pose is the fallback, and the result is
+   compared with the prediction (reported, not judged).
 
 :func:`register_view_set_bones` and :func:`register_view_set_cm` are the two halves, for workflows
 that keep their own CM registration or know their cameras. What differs in a later registration of
@@ -33,15 +35,12 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-import torch
 
 from fluoronav.anatomy.volume import Volume
 from fluoronav.detection.instrument import instrument_masks
 from fluoronav.errors import RegistrationRefused
-from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
-from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.bone import (
     PELVIS_PRESET,
     PELVIS_REFINE_PRESET,
@@ -65,6 +64,7 @@ from fluoronav.registration.cm.checks import (
     MAX_MOTION_TIP_MM,
     CMCheckConfig,
     PredictedCMPose,
+    motion_agreement,
     register_cm_checked,
 )
 from fluoronav.registration.cm.multistart import register_cm_multistart
@@ -184,10 +184,11 @@ class ViewSetPrior:
         femur_from_cm_start: (4, 4) the CM's start in the frame of the femur registered anew (the
             plan's pose, where the robot was sent).
         femur_from_cm_predicted: (4, 4) where another account (the robot's kinematics) puts the CM
-            in the femur frame, or None: the second start where the first fails its checks, the
-            gate of the detected landmarks (one far from its landmarks is left out of their
-            triangulation) and a check (the registered tip within ``max_motion_tip_mm`` of it).
-        max_motion_tip_mm: that check's tolerance.
+            in the femur frame, or None: one start among the images' own, and the pose the
+            registration is compared with afterwards (the CM stage's ``motion_tip_mm``,
+            ``motion_rotation_deg``). It is not a gate: the CM is found where the images show it,
+            and what a disagreement means is for the caller to judge.
+        max_motion_tip_mm: the tolerance of that comparison the caller applies.
     """
 
     ct_from_femur: np.ndarray
@@ -551,8 +552,10 @@ def register_view_set_cm(
         seed: the CM registration's seed.
         ct_from_femur: (4, 4) the registered femur; needed with a prior (its poses are relative
             to the femur).
-        diagnostics: filled in place (JSON-ready): ``init_cost_px``, ``landmarks_replaced`` and the
-            registration's (:func:`~fluoronav.registration.cm.checks.register_cm_checked`).
+        diagnostics: filled in place (JSON-ready): ``init_cost_px``, ``landmarks_replaced``, the
+            registration's (:func:`~fluoronav.registration.cm.checks.register_cm_checked`) and, with
+            a prediction, its agreement with it
+            (:func:`~fluoronav.registration.cm.checks.motion_agreement`).
 
     Returns:
         The CM registration (world frame of ``cameras``) and the initialisation (None with fewer
@@ -562,26 +565,20 @@ def register_view_set_cm(
         RegistrationRefused: see :func:`register_view_set`.
     """
     diag = diagnostics if diagnostics is not None else {}
-    starts: list[list[np.ndarray]] = []  # the prior's start, then (tried only where it fails) the prediction
+    init, lm_views = _initialize(views, cameras, cm_config, initial_control_points_deg, diag)
+    image_starts = [] if init is None else multiview_start_poses(init, max_starts=settings.max_cm_starts)
     predicted: PredictedCMPose | None = None
-    if prior is not None:
+    if prior is None:
+        if not image_starts:
+            seen = sum(v.detection is not None for v in views)
+            raise RegistrationRefused(
+                "cm", "views_with_cm", f"the CM was found in {seen} of {len(views)} views, 2 needed"
+            )
+        tries = [image_starts]
+    else:
         if ct_from_femur is None:
             raise ValueError("a prior's poses need the registered ct_from_femur")
-        starts.append([ct_from_femur @ prior.femur_from_cm_start])
-        if prior.femur_from_cm_predicted is not None:
-            predicted = PredictedCMPose(ct_from_femur, prior.femur_from_cm_predicted, prior.max_motion_tip_mm)
-            starts.append([predicted.world_from_cm])
-    expected = None if predicted is None else predicted.world_from_cm
-    init, lm_views = _initialize(views, cameras, cm_config, initial_control_points_deg, expected, diag)
-    if starts:
-        tries = starts
-    elif init is not None:
-        tries = [multiview_start_poses(init, max_starts=settings.max_cm_starts)]
-    else:
-        seen = sum(v.detection is not None for v in views)
-        raise RegistrationRefused(
-            "cm", "views_with_cm", f"the CM was found in {seen} of {len(views)} views, 2 needed"
-        )
+        tries, predicted = _prior_tries(prior, ct_from_femur, image_starts)
     tag = f" ({name})" if name else ""
     cm_views = [
         CMView(np.asarray(v.image, np.float32), c, landmarks_px=lm, name=f"{v.name}{tag}")
@@ -607,9 +604,28 @@ def register_view_set_cm(
         config=cm_settings,
         checks=settings.cm_checks,
         seed=seed,
-        predicted=predicted,
     )
+    if predicted is not None:  # reported, not judged here: the caller knows what a disagreement means
+        diag.update(motion_agreement(predicted, cm, cm_config))
     return cm, init
+
+
+def _prior_tries(
+    prior: ViewSetPrior, ct_from_femur: np.ndarray, image_starts: list[np.ndarray]
+) -> tuple[list[list[np.ndarray]], PredictedCMPose | None]:
+    """The starts of a registration after a move, in the order they are tried: the images' own
+    (the multi-view initialisation's roll minima) together with the kinematic prediction, screened
+    as one multi-start; then the prior's start (the plan) where those fail their checks. Without
+    two views with a CM: the prior's start, then the prediction."""
+    start = ct_from_femur @ prior.femur_from_cm_start
+    predicted = None
+    if prior.femur_from_cm_predicted is not None:
+        predicted = PredictedCMPose(ct_from_femur, prior.femur_from_cm_predicted, prior.max_motion_tip_mm)
+    if image_starts:
+        first = [*image_starts, start if predicted is None else predicted.world_from_cm]
+        return [first, [start]], predicted
+    tries = [[start]] + ([] if predicted is None else [[predicted.world_from_cm]])
+    return tries, predicted
 
 
 def _initialize(
@@ -617,13 +633,10 @@ def _initialize(
     cameras: Sequence[Camera],
     cm_config: CMConfig,
     initial_control_points_deg: np.ndarray,
-    expected_world_from_cm: np.ndarray | None,
     diag: dict[str, Any],
 ) -> tuple[MultiViewInitResult | None, list[np.ndarray | None]]:
     """The multi-view centreline initialisation where two views have a CM, and each view's landmarks
-    for the registration (the detected ones, or the consensus where they disagreed); detected
-    landmarks far from those of the CM at ``expected_world_from_cm`` are left out of their
-    triangulation."""
+    for the registration (the detected ones, or the consensus where they disagreed)."""
     lm_views: list[np.ndarray | None] = [
         None if v.detection is None else v.detection.landmarks_px for v in views
     ]
@@ -633,10 +646,6 @@ def _initialize(
     # landmarks triangulated over the views; one that disagrees with the others (a detection of A
     # where the CM leaves the image, say) gives way to the consensus, in the registration's ROI and
     # landmark prior as in its start
-    gate = None
-    if expected_world_from_cm is not None:
-        cp = torch.as_tensor(initial_control_points_deg, dtype=torch.float64)
-        gate = se3.apply(expected_world_from_cm, CMKinematics(cm_config).landmarks_cm(cp).numpy())
     init = centerline_initialize_multiview(
         [cameras[k] for k, _ in seen],
         np.stack([d.landmarks_px for _, d in seen]),
@@ -644,7 +653,6 @@ def _initialize(
         initial_control_points_deg,
         config=cm_config,
         landmark_confidence=np.stack([d.confidence for _, d in seen]),
-        landmark_prior_world=gate,
     )
     for i, (k, _) in enumerate(seen):
         lm_views[k] = init.landmarks_px[i]

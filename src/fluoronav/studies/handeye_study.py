@@ -10,6 +10,7 @@ import dataclasses
 import functools
 import json
 import logging
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,7 @@ import numpy as np
 from fluoronav import __version__
 from fluoronav.anatomy.io import resolve_ct
 from fluoronav.errors import InputError
+from fluoronav.navigation.faults import get_fault
 from fluoronav.runner import CsvLog, run_tasks
 from fluoronav.studies.figures import column, study_figures
 from fluoronav.studies.handeye_trials import (
@@ -61,8 +63,11 @@ def _columns(cfg: HandEyeStudyConfig) -> list[str]:
             "landmarks",
             "joint_motion_deg",
             "reposition_reason",
+            "check",
+            "cm_axis_deg",
             *tail,
             "seconds_verification",
+            *(("fault", "fault_outcome", "fault_handled", "left_out") if cfg.fault is not None else ()),
         ]
     per_m = [
         f"{k}_m{m}"
@@ -156,20 +161,53 @@ def _figures(rows: list[dict[str, Any]], out: Path, cfg: HandEyeStudyConfig) -> 
 
 #: a navigation that said "ok" and left the true tip further than this from the plan failed unflagged
 GROSS_FAILURE_MM = 2.0
+#: a first command from a registration whose CM tip (mm) or axis (degrees) is further than these
+#: from the truth went unflagged: it runs before any verification
+FIRST_MOVE_TIP_MM = 2.0
+FIRST_MOVE_AXIS_DEG = 5.0
+
+
+def _cell(r: dict[str, Any], key: str) -> float:
+    """A row's number (nan where empty or not a number)."""
+    try:
+        return float(r.get(key) or "nan")
+    except (TypeError, ValueError):
+        return float("nan")
 
 
 def _navigation_outcomes(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """``unflagged_gross_failures``: rows with status ok whose final true tip is more than
-    :data:`GROSS_FAILURE_MM` from the plan (docs/data-formats.md, study output), with their trial numbers."""
-    bad = []
+    :data:`GROSS_FAILURE_MM` from the plan; ``unflagged_first_move_failures``: rows whose first
+    command was carried out from a registration with its CM tip more than :data:`FIRST_MOVE_TIP_MM`
+    or its axis more than :data:`FIRST_MOVE_AXIS_DEG` from the truth (docs/data-formats.md, study
+    output); each with their trial numbers."""
+    bad = [
+        int(r["trial"])
+        for r in rows
+        if str(r.get("status")) == "ok" and _cell(r, "reposition_tip_mm") > GROSS_FAILURE_MM
+    ]
+    first = [
+        int(r["trial"])
+        for r in rows
+        if math.isfinite(_cell(r, "reposition_open_loop_mm"))
+        and (_cell(r, "tip_mm") > FIRST_MOVE_TIP_MM or _cell(r, "cm_axis_deg") > FIRST_MOVE_AXIS_DEG)
+    ]
+    return {
+        "unflagged_gross_failures": len(bad),
+        "unflagged_gross_failure_trials": bad,
+        "unflagged_first_move_failures": len(first),
+        "unflagged_first_move_failure_trials": first,
+    }
+
+
+def _fault_outcomes(rows: list[dict[str, Any]], fault: str) -> dict[str, Any]:
+    """A fault study's ``fault`` and its rows' counts per ``fault_outcome`` and handled."""
+    counts = {k: 0 for k in ("landed", "refused_named", "refused_other", "unsafe", "failed")}
     for r in rows:
-        try:
-            tip = float(r.get("reposition_tip_mm") or "nan")
-        except ValueError:
-            continue
-        if str(r.get("status")) == "ok" and tip > GROSS_FAILURE_MM:
-            bad.append(int(r["trial"]))
-    return {"unflagged_gross_failures": len(bad), "unflagged_gross_failure_trials": bad}
+        key = str(r.get("fault_outcome") or "failed")
+        counts[key] = counts.get(key, 0) + 1
+    handled = sum(str(r.get("fault_handled")) == "True" for r in rows)
+    return {"fault": fault, "fault_outcomes": counts, "fault_handled": handled}
 
 
 def run_handeye_study(
@@ -183,6 +221,10 @@ def run_handeye_study(
         raise InputError("--poses", "numbers of poses must be positive")
     if cfg.corrections not in (0, 1):
         raise InputError("--corrections", "0 (open loop) or 1 (one corrective move)")
+    if cfg.fault is not None:
+        if cfg.workflow != "navigation":
+            raise InputError("--fault", "faults are injected into study navigation only")
+        get_fault(cfg.fault)
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "config.json"
     cfg_dict = {**dataclasses.asdict(cfg), "version": __version__}
@@ -231,6 +273,7 @@ def run_handeye_study(
             "poses": list(cfg.poses),
             "landmarks": "oracle" if cfg.oracle_landmarks else "detector",
             **(_navigation_outcomes(rows) if cfg.workflow == "navigation" else {}),
+            **(_fault_outcomes(rows, cfg.fault) if cfg.fault is not None else {}),
             "image_size": cfg.image_size,
         },
     )
@@ -254,8 +297,19 @@ def run_handeye_or_navigation_study(
     corrections: int = 1,
     oracle_landmarks: bool = True,
     calibration_bend_deg: float | None = 2.5,
+    fault: str | None = None,
+    handeye_error_mm: float | None = None,
+    handeye_error_deg: float | None = None,
 ) -> dict[str, Any]:
-    """Entry point of ``fluoronav study hand-eye|navigation`` → the summary dict."""
+    """Entry point of ``fluoronav study hand-eye|navigation`` → the summary dict.
+
+    ``fault``: an input fault (:data:`fluoronav.navigation.faults.FAULTS`) for navigation;
+    ``handeye_error_mm`` / ``handeye_error_deg``: the navigation's hand-eye error (None: the fault's,
+    else :class:`HandEyeStudyConfig`'s default).
+    """
+    spec = get_fault(fault)
+    if handeye_error_mm is None and spec is not None:
+        handeye_error_mm = spec.handeye_error_mm
     cfg = HandEyeStudyConfig(
         workflow=workflow,
         trials=trials,
@@ -267,5 +321,12 @@ def run_handeye_or_navigation_study(
         corrections=corrections,
         oracle_landmarks=oracle_landmarks,
         calibration_bend_deg=calibration_bend_deg,
+        fault=fault,
+        handeye_error_mm=HandEyeStudyConfig.handeye_error_mm
+        if handeye_error_mm is None
+        else handeye_error_mm,
+        handeye_error_deg=HandEyeStudyConfig.handeye_error_deg
+        if handeye_error_deg is None
+        else handeye_error_deg,
     )
     return run_handeye_study(cfg, Path(out), scheduler=scheduler, workers=workers)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import re
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -48,6 +49,7 @@ from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker
 from fluoronav.errors import FluoronavError
 from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.navigation.faults import fault_outcome, get_fault
 from fluoronav.navigation.simulated import SimulatedNavigationConfig, run_simulated_navigation
 from fluoronav.registration.cm import CMView
 from fluoronav.registration.metrics import cm_errors
@@ -72,6 +74,7 @@ __all__ = [
     "axis_and_roll_deg",
     "detector_or_none",
     "navigation_row",
+    "refusal_check",
     "run_handeye_trial",
     "run_navigation_trial",
     "tip_rbase",
@@ -149,6 +152,9 @@ class HandEyeStudyConfig:
         calibration_bend_deg: hand-eye: the CM's bend during calibration, degrees per control point
             (each + U(−0.5, 0.5), one sign); None: the protocol's random working shape (U(−5, 5)°).
         oracle_landmarks: use truth + U(−3, 3) px (and the true CM mask) instead of the detector.
+        fault: navigation: an input fault of :data:`fluoronav.navigation.faults.FAULTS` injected
+            into every trial's case (None: none); rows then carry ``fault``, ``fault_outcome`` and
+            ``fault_handled``.
     """
 
     workflow: str
@@ -168,6 +174,7 @@ class HandEyeStudyConfig:
     tracker_sigma_mm: float = 0.1
     calibration_bend_deg: float | None = 2.5
     oracle_landmarks: bool = True
+    fault: str | None = None
 
 
 # ----- per-process caches -------------------------------------------------------------------------
@@ -383,6 +390,8 @@ def navigation_row(run: Any, cfg: HandEyeStudyConfig) -> dict[str, Any]:
         "joint_motion_deg": "joint_motion_deg",
     }
     row.update({k: E[v] for k, v in pairs.items() if v in E})
+    if "cm_base_rx_deg" in E:
+        row["cm_axis_deg"] = _cm_axis_deg(E)
     final = "corrected" if cfg.corrections else "reposition"
     if f"{final}_tip_mm" in E:
         row["reposition_tip_mm"] = E[f"{final}_tip_mm"]
@@ -394,7 +403,67 @@ def navigation_row(run: Any, cfg: HandEyeStudyConfig) -> dict[str, Any]:
         row["seconds_registration"] = st["cm"].seconds if "cm" in st else None
         row["seconds_bones"] = sum(st[k].seconds for k in ("pelvis", "femur") if k in st)
         row["seconds_verification"] = sum(v.seconds for k, v in st.items() if k.startswith("verify_"))
+    input_error = run.artifacts.get("input_error")
+    if input_error is not None:
+        row.update(status="input_error", reason=input_error["reason"], check=input_error["check"])
+    else:
+        row["check"] = refusal_check(run.reason)[1]
+    if cfg.fault is not None:
+        row.update(_fault_fields(run, row, cfg.fault))
     return row
+
+
+def refusal_check(reason: str) -> tuple[str, str]:
+    """(stage, check) of a refusal's reason (``stage X[, view V], check C: detail``); ("", "") else."""
+    stage = re.match(r"stage ([^,]+),", reason)
+    check = re.search(r", check (\w+):", reason)
+    return (stage.group(1) if stage else "", check.group(1) if check else "")
+
+
+def _cm_axis_deg(E: dict[str, float]) -> float:
+    """The first registration's CM axis (z) against the true one, degrees, from the base rotation
+    error's rotation vector (in the CM frame)."""
+    rv = np.radians([E["cm_base_rx_deg"], E["cm_base_ry_deg"], E["cm_base_rz_deg"]])
+    return math.degrees(math.acos(float(np.clip(Rotation.from_rotvec(rv).as_matrix()[2, 2], -1.0, 1.0))))
+
+
+def _left_out(run: Any) -> tuple[str, ...]:
+    """The first views the navigation left out: no CM found, or left out by the bones' or CM's checks."""
+    if run.result is None:
+        return ()
+    out: set[str] = set()
+    for name in ("detect", "pelvis", "femur", "cm"):
+        st = run.result.stages.get(name)
+        if st is None:
+            continue
+        out.update(st.diagnostics.get("left_out", {}))
+        if name == "detect":
+            out.update(v for v, d in st.diagnostics.get("views", {}).items() if not d.get("found", True))
+    return tuple(sorted(out))
+
+
+def _fault_fields(run: Any, row: dict[str, Any], name: str) -> dict[str, Any]:
+    """``fault``, ``fault_outcome``, ``fault_handled`` and ``left_out`` of a fault trial's row."""
+    fault = get_fault(name)
+    assert fault is not None
+    left_out = _left_out(run)
+    names = run.artifacts.get("names") or []
+    faulty_view = (
+        names[fault.view_index] if fault.view_index is not None and fault.view_index < len(names) else None
+    )
+    stage = refusal_check(run.reason)[0] if run.result is not None else "preflight"
+    outcome, handled = fault_outcome(
+        fault,
+        status=str(row["status"]),
+        stage=stage,
+        check=str(row.get("check") or ""),
+        final_tip_mm=row.get("reposition_tip_mm"),
+        first_tip_mm=row.get("tip_mm"),
+        commanded="reposition_open_loop_mm" in row,
+        left_out=left_out,
+        faulty_view=faulty_view,
+    )
+    return {"fault": name, "fault_outcome": outcome, "fault_handled": handled, "left_out": list(left_out)}
 
 
 def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, Any]:
@@ -414,11 +483,14 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
             verify=cfg.corrections > 0,
             device=cfg.device,
             oracle_landmarks=cfg.oracle_landmarks,
+            fault=cfg.fault,
         )
         row["landmarks"] = "oracle" if cfg.oracle_landmarks else "detector"
         row.update(navigation_row(run_simulated_navigation(sim, ct=cfg.ct), cfg))
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
         mark_failed(row, exc, trial_id)
+        if cfg.fault is not None:
+            row.update(fault=cfg.fault, fault_outcome="failed", fault_handled=False)
     return finish_row(row, t0)
 
 
