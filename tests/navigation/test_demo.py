@@ -19,6 +19,7 @@ import SimpleITK as sitk  # noqa: N813
 from fluoronav.navigation.demo import results_json, write_demo_outputs
 from fluoronav.navigation.pipeline import NavigationConfig, NavigationRefused, NavigationResult, StageRecord
 from fluoronav.navigation.simulated import SimulatedNavigation, SimulatedNavigationConfig
+from fluoronav.simulation.world import IDEAL
 
 
 def test_results_of_a_refused_run_say_so_and_carry_no_move() -> None:
@@ -33,6 +34,8 @@ def test_results_of_a_refused_run_say_so_and_carry_no_move() -> None:
     assert d["reason"] == "stage detect, view AP, check views_with_cm: the CM was found in 1 of 3 views"
     assert d["errors"]["reposition_tip_mm"] is None and d["errors"]["corrected_tip_mm"] is None
     assert d["errors"]["landmark_px"] == 0.7 and d["config"]["seed"] == 3
+    assert d["world"] == {**IDEAL.to_dict(), "name": "ideal"}
+    json.dumps(d)  # the world's magnitudes are JSON
     assert res.joints_target_deg is None and res.stages["detect"].passed is False
     assert "joints_target_deg" not in res.to_json()
 

@@ -286,6 +286,8 @@ def test_navigation_rows_take_the_final_tip_and_the_checks() -> None:
     [
         (["--fault", "mirror_three"], "--fault: unknown fault 'mirror_three'; one of: none, mirror_one"),
         (["--handeye-error-mm", "2"], "options of study navigation"),
+        (["--world", "realistic"], "--world: only study navigation takes a simulated world so far"),
+        (["--fault", "none", "--world", "atlantis"], "atlantis: unknown world"),
     ],
 )
 def test_study_fault_options_are_checked_before_anything_runs(
@@ -372,3 +374,47 @@ def test_summary_flags_first_moves_from_registrations_off_the_truth() -> None:
     ]
     out = _navigation_outcomes(rows)
     assert out["unflagged_first_move_failures"] == 2 and out["unflagged_first_move_failure_trials"] == [1, 2]
+
+
+def test_the_world_of_a_navigation_study_reaches_its_trials_and_its_records(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """``--world realistic``: the trials' simulations get the world, config.json and summary.json
+    record it (name and every magnitude)."""
+    import json
+
+    import fluoronav.studies.handeye_study as hs
+    import fluoronav.studies.handeye_trials as ht
+    from fluoronav.cli.main import main
+    from fluoronav.simulation.world import REALISTIC
+
+    worlds = []
+
+    def trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, object]:
+        worlds.append(cfg.world)
+        row = ht.new_row(trial_id, seed, cfg.workflow)
+        row.update(status="refused", reason="stage robot, check reachable: x")
+        return ht.finish_row(row, 0.0)
+
+    monkeypatch.setattr(hs, "run_navigation_trial", trial)
+    monkeypatch.setattr(hs, "detector_or_none", lambda device: None)
+    out = tmp_path / "study"
+    main(
+        [
+            "study",
+            "navigation",
+            "--trials",
+            "2",
+            "--seed",
+            "1",
+            "--out",
+            str(out),
+            "--world",
+            "realistic",
+            "--workers",
+            "0",
+        ]
+    )
+    assert worlds == [REALISTIC, REALISTIC]
+    for name in ("config.json", "summary.json"):
+        assert json.loads((out / name).read_text())["world"] == REALISTIC.to_dict()

@@ -26,6 +26,7 @@ def run(
     image_size: int,
     oracle_landmarks: bool,
     igtl: str | None = None,
+    world: str = "ideal",
 ) -> int:
     """Run the demo, print its table, write its files; returns the exit status (3: refused). With
     ``igtl`` (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer)."""
@@ -42,6 +43,7 @@ def run(
         SIMULATION_STAGES,
         SimulatedNavigationConfig,
     )  # lazy: fast --help
+    from fluoronav.simulation.world import load_world  # lazy: fast --help
 
     link = IGTLinkStreamer(igtl) if igtl is not None else None  # a malformed address is bad input
     console = Console(stderr=True)
@@ -50,6 +52,7 @@ def run(
         image_size=image_size,
         device=str(resolve_device(device)),
         oracle_landmarks=oracle_landmarks,
+        world=load_world(world),
     )
     total = len(SIMULATION_STAGES) + len(STAGES) + len(VERIFY_STAGES)
     with stage_progress(total, "demo") as progress, link or nullcontext():
@@ -101,6 +104,11 @@ def register(app: typer.Typer) -> None:
             False, "--oracle-landmarks", help="True landmarks + U(-3, 3) px instead of the detector."
         ),
         igtl: str | None = IGTL_OPTION,
+        world: str = typer.Option(
+            "ideal",
+            "--world",
+            help="The simulated world's error sources: ideal, realistic, or a JSON file of magnitudes.",
+        ),
     ) -> None:
         """Simulated navigation on the built-in phantom: a simulated case written to files, then the
         navigate pipeline on them (detection → registration → robot command), the move, verification
@@ -113,5 +121,6 @@ def register(app: typer.Typer) -> None:
             image_size=image_size,
             oracle_landmarks=oracle_landmarks,
             igtl=igtl,
+            world=world,
         )
         raise typer.Exit(code)

@@ -31,19 +31,49 @@ _HANDEYE_ERROR_DEG_OPTION = typer.Option(
 )
 
 
-def _fault_options(
-    workflow: str, fault: str | None, handeye_error_mm: float | None, handeye_error_deg: float | None
-) -> dict[str, Any]:
-    """The navigation study's fault options, checked (an unknown fault, or one given to another
-    study, is an :class:`InputError`)."""
-    if fault is None and handeye_error_mm is None and handeye_error_deg is None:
-        return {}
-    if workflow != "navigation":
-        raise InputError("--fault", "--fault and --handeye-error-* are options of study navigation")
-    from fluoronav.navigation.faults import get_fault  # lazy: fast --help
+_WORLD_OPTION = typer.Option(
+    "ideal",
+    "--world",
+    help="navigation: the simulated world's error sources: ideal, realistic, or a JSON file of "
+    "magnitudes (docs/simulation.md).",
+)
 
-    get_fault(fault)
-    return {"fault": fault, "handeye_error_mm": handeye_error_mm, "handeye_error_deg": handeye_error_deg}
+
+def _navigation_options(
+    workflow: str,
+    fault: str | None,
+    handeye_error_mm: float | None,
+    handeye_error_deg: float | None,
+    world: str,
+) -> dict[str, Any]:
+    """The navigation study's own options, checked (an unknown fault or world, or one given to
+    another study, is an :class:`InputError`)."""
+    out: dict[str, Any] = {}
+    if fault is not None or handeye_error_mm is not None or handeye_error_deg is not None:
+        if workflow != "navigation":
+            raise InputError("--fault", "--fault and --handeye-error-* are options of study navigation")
+        from fluoronav.navigation.faults import get_fault  # lazy: fast --help
+
+        get_fault(fault)
+        out.update(fault=fault, handeye_error_mm=handeye_error_mm, handeye_error_deg=handeye_error_deg)
+    if world != "ideal":
+        if workflow != "navigation":
+            raise InputError("--world", "only study navigation takes a simulated world so far")
+        from fluoronav.simulation.world import load_world  # lazy: fast --help
+
+        out["world"] = load_world(world)
+    return out
+
+
+def _echo_summary(workflow: str, summary: dict[str, Any]) -> None:
+    m = summary.get("metrics", {})
+    parts = [f"{k} {v['mean']:.3g}±{v['std']:.2g}" for k, v in m.items()]
+    if summary.get("within_1deg") is not None:
+        parts.append(f"within 1° {100 * summary['within_1deg']:.0f} %")
+    typer.echo(
+        f"{workflow}: {summary['completed']}/{summary['trials']} trials, {summary['failed']} failed; "
+        + ", ".join(parts)
+    )
 
 
 def register(app: typer.Typer) -> None:
@@ -94,6 +124,7 @@ def register(app: typer.Typer) -> None:
             help="navigation: 1: verification images after the move and one corrective move; 0: open loop.",
         ),
         fault: str = _FAULT_OPTION,
+        world: str = _WORLD_OPTION,
         handeye_error_mm: float = _HANDEYE_ERROR_MM_OPTION,
         handeye_error_deg: float = _HANDEYE_ERROR_DEG_OPTION,
         data: Path = typer.Option(None, "--data", help="deepfluoro: the DeepFluoro HDF5 file (yours)."),
@@ -108,7 +139,7 @@ def register(app: typer.Typer) -> None:
         """Run (or resume) a study; writes trials.csv, summary.json and figures/."""
         from fluoronav.device import resolve_device  # heavy: torch
 
-        faults = _fault_options(workflow, fault, handeye_error_mm, handeye_error_deg)
+        navigation = _navigation_options(workflow, fault, handeye_error_mm, handeye_error_deg, world)
         if workflow == "deepfluoro":
             summary = _deepfluoro(
                 data, trials, seed, out, specimen, xreg_gt_correction, device, scheduler, workers
@@ -133,7 +164,7 @@ def register(app: typer.Typer) -> None:
                 # the hand-eye study has always used oracle landmarks; navigation the detector by default
                 oracle_landmarks=oracle_landmarks or workflow == "hand-eye",
                 calibration_bend_deg=calibration_bend_deg,
-                **faults,
+                **navigation,
             )
         else:
             from fluoronav.studies.pipeline import (  # lazy: fast --help
@@ -156,14 +187,7 @@ def register(app: typer.Typer) -> None:
                 init=init,
             )
             summary = run_study(cfg, out, scheduler=scheduler, workers=workers)
-        m = summary.get("metrics", {})
-        parts = [f"{k} {v['mean']:.3g}±{v['std']:.2g}" for k, v in m.items()]
-        if summary.get("within_1deg") is not None:
-            parts.append(f"within 1° {100 * summary['within_1deg']:.0f} %")
-        typer.echo(
-            f"{workflow}: {summary['completed']}/{summary['trials']} trials, {summary['failed']} failed; "
-            + ", ".join(parts)
-        )
+        _echo_summary(workflow, summary)
 
 
 def _deepfluoro(

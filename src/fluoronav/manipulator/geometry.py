@@ -8,6 +8,9 @@ Link ``k`` owns the material with ``z`` in ``link_z_ranges_mm()[k]`` and moves r
 
 ``region="notched"`` restricts everything to the straight-frame slab ``0 ≤ z ≤ distal_notch_plane``
 (between landmarks A and B), which is what the 2D segmentation labels mark.
+
+An as-built instrument (:class:`NotchGeometry`: each notch where it was really cut, with its own width
+and depth) is voxelised by :func:`voxelize_cm_links` from explicit link transforms.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from fluoronav.manipulator.kinematics import CMKinematics
 
 __all__ = [
     "LinkTable",
+    "NotchGeometry",
     "VoxelizedCM",
     "compile_kernels",
     "inside_cm",
@@ -34,6 +38,7 @@ __all__ = [
     "link_table",
     "region_z_range_mm",
     "voxelize_cm",
+    "voxelize_cm_links",
 ]
 
 logger = logging.getLogger(__name__)
@@ -51,6 +56,8 @@ class LinkTable:
             entry has ``z_lo == z_hi``.
         r_in_mm, r_out_mm: tube radii.
         cut_mm: a notch removes ``side · y > cut_mm``.
+        notch_cut_mm: (L, 2) cut level of each half-notch where the notches differ in depth (an
+            as-built instrument; only the voxeliser reads it); None: every notch at ``cut_mm``.
     """
 
     z_range_mm: np.ndarray
@@ -58,11 +65,99 @@ class LinkTable:
     r_in_mm: float
     r_out_mm: float
     cut_mm: float
+    notch_cut_mm: np.ndarray | None = None
+
+    def half_notch_cuts(self) -> np.ndarray:
+        """(L, 2) cut level of every half-notch entry, mm."""
+        if self.notch_cut_mm is not None:
+            return self.notch_cut_mm
+        return np.full(self.notches.shape[:2], self.cut_mm)
+
+
+@dataclass(frozen=True)
+class NotchGeometry:
+    """Per-notch dimensions of one instrument (straight frame, mm), replacing the config's uniform ones.
+
+    Attributes:
+        z_mm: (N,) axial centre of each notch (its joint's rotation centre), mm.
+        width_mm: (N,) axial width of each notch, mm.
+        depth_mm: (N,) depth of each notch from the outer surface, mm.
+
+    Tuples, so that the geometry is hashable (the link table is cached per geometry).
+    """
+
+    z_mm: tuple[float, ...]
+    width_mm: tuple[float, ...]
+    depth_mm: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        n = len(self.z_mm)
+        if len(self.width_mm) != n or len(self.depth_mm) != n:
+            raise ValueError("z_mm, width_mm and depth_mm must have one value per notch")
+        if n > 1 and not all(b > a for a, b in zip(self.z_mm[:-1], self.z_mm[1:], strict=True)):
+            raise ValueError("notch centres z_mm must increase")
+        if min(self.width_mm) <= 0 or min(self.depth_mm) <= 0:
+            raise ValueError("notch widths and depths must be positive")
+
+    @classmethod
+    def nominal(cls, config: CMConfig) -> NotchGeometry:
+        """The config's uniform notches."""
+        n = config.n_notches
+        return cls(
+            z_mm=tuple(config.notch_z_mm(j) for j in range(n)),
+            width_mm=(config.notch_width_mm,) * n,
+            depth_mm=(config.notch_depth_mm,) * n,
+        )
+
+    @property
+    def distal_plane_mm(self) -> float:
+        """Axial position of the last notch's distal plane (landmark B when straight), mm."""
+        return self.z_mm[-1] + self.width_mm[-1] / 2.0
 
 
 @functools.lru_cache(maxsize=16)
-def link_table(config: CMConfig) -> LinkTable:
-    """Split every notch between the two links that own its halves (cached per config)."""
+def link_table(config: CMConfig, notches: NotchGeometry | None = None) -> LinkTable:
+    """Split every notch between the two links that own its halves (cached per config and notches).
+
+    Args:
+        config: CM geometry (radii, base and tip, notch sides).
+        notches: per-notch centres, widths and depths of an as-built instrument; None: the config's.
+    """
+    if notches is None:
+        return _nominal_link_table(config)
+    if len(notches.z_mm) != config.n_notches:
+        raise ValueError(f"notches must describe {config.n_notches} notches, got {len(notches.z_mm)}")
+    centres = np.asarray(notches.z_mm, dtype=np.float64)
+    zr = _z_ranges(config, centres)
+    L = zr.shape[0]
+    table = np.zeros((L, 2, 3))
+    cuts = np.zeros((L, 2))
+    count = np.zeros(L, dtype=int)
+    for j in range(config.n_notches):
+        zc, hw = centres[j], notches.width_mm[j] / 2.0
+        for k in range(L):
+            lo, hi = max(zc - hw, zr[k, 0]), min(zc + hw, zr[k, 1])
+            if hi > lo:
+                table[k, count[k]] = (lo, hi, float(config.notch_side(j)))
+                cuts[k, count[k]] = config.outer_radius_mm - notches.depth_mm[j]
+                count[k] += 1
+    return LinkTable(
+        z_range_mm=zr,
+        notches=table,
+        r_in_mm=config.inner_radius_mm,
+        r_out_mm=config.outer_radius_mm,
+        cut_mm=config.notch_cut_level_mm,
+        notch_cut_mm=cuts,
+    )
+
+
+def _z_ranges(config: CMConfig, centres: np.ndarray) -> np.ndarray:
+    """(N+1, 2) straight axial extent of each link's material for joint centres ``centres``."""
+    bounds = np.concatenate([[-config.base_length_mm], centres, [config.tip_z_mm]])
+    return np.stack([bounds[:-1], bounds[1:]], axis=1)
+
+
+def _nominal_link_table(config: CMConfig) -> LinkTable:
     kin = CMKinematics(config)
     zr = kin.link_z_ranges_mm()
     L = zr.shape[0]
@@ -85,12 +180,15 @@ def link_table(config: CMConfig) -> LinkTable:
     )
 
 
-def region_z_range_mm(config: CMConfig, region: Region) -> tuple[float, float]:
-    """Straight-frame axial clip of a region: the whole tube or the notched part A–B."""
+def region_z_range_mm(
+    config: CMConfig, region: Region, notches: NotchGeometry | None = None
+) -> tuple[float, float]:
+    """Straight-frame axial clip of a region: the whole tube or the notched part A–B (B at the
+    distal plane of ``notches``' last notch where given)."""
     if region == "solid":
         return (-math.inf, math.inf)
     if region == "notched":
-        return (0.0, config.distal_notch_plane_mm)
+        return (0.0, config.distal_notch_plane_mm if notches is None else notches.distal_plane_mm)
     raise ValueError(f"unknown region {region!r}; use 'solid' or 'notched'")
 
 
@@ -170,9 +268,9 @@ def inside_cm(
         link_from_cm,
         zr,
         np.ascontiguousarray(table.notches),
+        np.ascontiguousarray(table.half_notch_cuts()),
         table.r_in_mm**2,
         table.r_out_mm**2,
-        table.cut_mm,
     )
     return out
 
@@ -200,9 +298,9 @@ def _inside_link(
     z0: float,
     z1: float,
     notches: np.ndarray,  # pragma: no cover
+    cuts: np.ndarray,
     r_in2: float,
     r_out2: float,
-    cut: float,
 ) -> bool:
     if z < z0 or z > z1:
         return False
@@ -210,7 +308,11 @@ def _inside_link(
     if r2 < r_in2 or r2 > r_out2:
         return False
     for m in range(notches.shape[0]):
-        if notches[m, 1] > notches[m, 0] and notches[m, 0] <= z <= notches[m, 1] and notches[m, 2] * y > cut:
+        if (
+            notches[m, 1] > notches[m, 0]
+            and notches[m, 0] <= z <= notches[m, 1]
+            and notches[m, 2] * y > cuts[m]
+        ):
             return False
     return True
 
@@ -222,9 +324,9 @@ def _inside_links(  # pragma: no cover - jitted
     link_from_cm: np.ndarray,
     z_range: np.ndarray,
     notches: np.ndarray,
+    cuts: np.ndarray,
     r_in2: float,
     r_out2: float,
-    cut: float,
 ) -> None:
     for p in prange(pts.shape[0]):
         x, y, z = pts[p, 0], pts[p, 1], pts[p, 2]
@@ -233,7 +335,7 @@ def _inside_links(  # pragma: no cover - jitted
             qx = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + R[0, 3]
             qy = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + R[1, 3]
             qz = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + R[2, 3]
-            if _inside_link(qx, qy, qz, z_range[k, 0], z_range[k, 1], notches[k], r_in2, r_out2, cut):
+            if _inside_link(qx, qy, qz, z_range[k, 0], z_range[k, 1], notches[k], cuts[k], r_in2, r_out2):
                 out[p] = True
                 break
 
@@ -250,9 +352,9 @@ def _voxelize_link(  # pragma: no cover - jitted
     z0: float,
     z1: float,
     notches: np.ndarray,
+    cuts: np.ndarray,
     r_in2: float,
     r_out2: float,
-    cut: float,
 ) -> None:
     """Add, for one link, the number of inside sub-samples of each voxel in the index box [lo, hi)."""
     R = link_from_cm[:3, :3]
@@ -276,7 +378,7 @@ def _voxelize_link(  # pragma: no cover - jitted
                             qx = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
                             qy = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
                             qz = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
-                            if _inside_link(qx, qy, qz, z0, z1, notches, r_in2, r_out2, cut):
+                            if _inside_link(qx, qy, qz, z0, z1, notches, cuts, r_in2, r_out2):
                                 n += 1
                 counts[k, j, i] += n
 
@@ -304,7 +406,7 @@ _VOXELIZE_LINK_ARGS = (
         _F64,
         _F64,
         types.Array(_F64, 2, "C"),
-        _F64,
+        types.Array(_F64, 1, "C"),
         _F64,
         _F64,
     ),
@@ -352,7 +454,56 @@ def voxelize_cm(
     T = _links_np(config, control_points_deg)
     table = link_table(config)
     zclip = region_z_range_mm(config, region)
+    return _voxelize(T, table, zclip, float(spacing_mm), int(supersample), margin_mm)
+
+
+def voxelize_cm_links(
+    config: CMConfig,
+    cm_from_link: np.ndarray,
+    *,
+    notches: NotchGeometry | None = None,
+    spacing_mm: float = 0.05,
+    supersample: int = 2,
+    margin_mm: float = 0.5,
+    region: Region = "solid",
+) -> VoxelizedCM:
+    """Voxelise a CM posed by explicit link transforms, with its own notches (an as-built instrument).
+
+    Same grid and partial volumes as :func:`voxelize_cm`, which it equals for the config's notches
+    and the spline's link transforms.
+
+    Args:
+        config: CM geometry (radii, base and tip, notch sides).
+        cm_from_link: (N+1, 4, 4) link poses, e.g.
+            :meth:`~fluoronav.manipulator.kinematics.CMKinematics.link_transforms_from_angles`.
+        notches: per-notch centres, widths and depths; None: the config's.
+        spacing_mm, supersample, margin_mm, region: as for :func:`voxelize_cm` (``"notched"`` ends at
+            the distal plane of ``notches``' last notch).
+
+    Returns:
+        :class:`VoxelizedCM` in the CM base frame (axis-aligned grid).
+    """
+    if spacing_mm <= 0 or supersample < 1:
+        raise ValueError("spacing_mm must be positive and supersample ≥ 1")
+    T = np.asarray(cm_from_link, dtype=np.float64)
+    if T.shape != (config.n_notches + 1, 4, 4):
+        raise ValueError(f"cm_from_link must have shape ({config.n_notches + 1}, 4, 4), got {T.shape}")
+    table = link_table(config, notches)
+    zclip = region_z_range_mm(config, region, notches)
+    return _voxelize(T, table, zclip, float(spacing_mm), int(supersample), margin_mm)
+
+
+def _voxelize(
+    T: np.ndarray,
+    table: LinkTable,
+    zclip: tuple[float, float],
+    spacing_mm: float,
+    supersample: int,
+    margin_mm: float,
+) -> VoxelizedCM:
+    """Partial-volume voxelisation of the links ``T`` (L, 4, 4) of ``table``, clipped to ``zclip``."""
     L = T.shape[0]
+    cuts = table.half_notch_cuts()
     corners = np.stack([_link_corners(table, k) @ T[k, :3, :3].T + T[k, :3, 3] for k in range(L)])
     lo_w = corners.reshape(-1, 3).min(axis=0) - margin_mm
     hi_w = corners.reshape(-1, 3).max(axis=0) + margin_mm
@@ -383,9 +534,9 @@ def voxelize_cm(
             float(z0),
             float(z1),
             np.ascontiguousarray(table.notches[k]),
+            np.ascontiguousarray(cuts[k]),
             table.r_in_mm**2,
             table.r_out_mm**2,
-            table.cut_mm,
         )
     occupancy = np.minimum(counts.astype(np.float32) / np.float32(supersample**3), np.float32(1.0))
     world_from_index = np.eye(4)

@@ -65,11 +65,29 @@ class CMKinematics:
 
     def link_transforms(self, control_points_deg: torch.Tensor) -> torch.Tensor:
         """(..., n) control points in degrees → (..., N+1, 4, 4) ``cm_from_link`` transforms."""
-        phi = torch.deg2rad(self.joint_angles_deg(control_points_deg))  # (..., N)
+        return self.link_transforms_from_angles(self.joint_angles_deg(control_points_deg))
+
+    def link_transforms_from_angles(
+        self, joint_angles_deg: torch.Tensor, *, notch_z_mm: np.ndarray | None = None
+    ) -> torch.Tensor:
+        """``cm_from_link`` transforms of explicit joint angles (not necessarily a spline's).
+
+        Args:
+            joint_angles_deg: (..., N) notch joint angles in degrees.
+            notch_z_mm: (N,) straight-frame joint centres, mm; the config's (uniform pitch) if None.
+                An as-built instrument's notches sit where they were really cut.
+
+        Returns:
+            (..., N+1, 4, 4) ``cm_from_link`` transforms.
+        """
+        phi = torch.deg2rad(joint_angles_deg)  # (..., N)
         batch = phi.shape[:-1]
         zeros = torch.zeros(*batch, 1, dtype=phi.dtype, device=phi.device)
         Phi = torch.cat([zeros, torch.cumsum(phi, dim=-1)], dim=-1)  # (..., N+1) cumulative angle
-        z = torch.as_tensor(self.notch_z_mm, dtype=phi.dtype, device=phi.device)  # straight centres
+        centres = self.notch_z_mm if notch_z_mm is None else np.asarray(notch_z_mm, dtype=np.float64)
+        if centres.shape != (self.config.n_notches,):
+            raise ValueError(f"notch_z_mm must have shape ({self.config.n_notches},), got {centres.shape}")
+        z = torch.as_tensor(centres, dtype=phi.dtype, device=phi.device)  # straight centres
         # bent position of joint j: p_j = p_{j−1} + R_x(Φ_j)·(0, 0, z_j − z_{j−1}); p_0 = (0, 0, z_0)
         seg = torch.diff(z, prepend=torch.zeros(1, dtype=z.dtype, device=z.device))  # (N,)
         seg = seg.expand(*batch, -1)

@@ -70,7 +70,8 @@ def run_demo(
 
 
 def results_json(run: SimulatedNavigation) -> dict[str, Any]:
-    """``results.json``: status, reason, errors against the truth, timings, config, version."""
+    """``results.json``: status, reason, errors against the truth, timings, config, the simulated
+    world, version."""
     errors: dict[str, float | None] = {
         k: (float(v) if math.isfinite(v) else None) for k, v in run.errors.items()
     }
@@ -84,6 +85,7 @@ def results_json(run: SimulatedNavigation) -> dict[str, Any]:
         "status": run.status,
         "reason": run.reason,
         "config": dataclasses.asdict(run.config),
+        "world": run.config.world.to_dict(),
         "errors": errors,
         "timings_s": timings,
     }

@@ -64,9 +64,15 @@ from fluoronav.navigation.faults import (
 from fluoronav.navigation.pipeline import EventCallback, NavigationConfig, NavigationResult, navigate, verify
 from fluoronav.navigation.planning import Plan, neck_entry_plan, planned_femur_from_cm
 from fluoronav.navigation.preflight import preflight
-from fluoronav.navigation.targeting import UnreachableTarget, least_motion_target, robot_target
-from fluoronav.registration.metrics import axis_error_deg, cm_errors
-from fluoronav.simulation.articulated import ArticulatedSimulator, anatomy_and_simulator
+from fluoronav.navigation.simulated_errors import (
+    first_registration_errors,
+    robot_only_error,
+    verification_errors,
+)
+from fluoronav.navigation.targeting import UnreachableTarget, least_motion_target
+from fluoronav.registration.metrics import axis_error_deg
+from fluoronav.simulation.articulated import ArticulatedSimulator
+from fluoronav.simulation.instrument import BuiltCM, build_instrument, built_tip_cm
 from fluoronav.simulation.robot_scene import (
     HandEyeScenario,
     perturb_transform,
@@ -74,6 +80,8 @@ from fluoronav.simulation.robot_scene import (
     verification_view_centre,
     working_view_centre,
 )
+from fluoronav.simulation.world import IDEAL, World, case_camera, fbg_reading, flexed_camera, patient_motion
+from fluoronav.simulation.world_anatomy import world_anatomy
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +119,9 @@ class SimulatedNavigationConfig:
             bound ``SafetyConfig.max_joint_motion_deg``, so the registrations' errors do not push
             a gentle move over it). None: the first draw, however far from the plan.
         max_scene_draws: how many scenes that search draws at most (the last is kept).
+        world: the simulated world's error sources (:mod:`fluoronav.simulation.world`): the CT
+            against the patient, the C-arm's calibration and flex, the FBG reading, patient motion.
+            The ideal world (default) renders the images from the case's CT with the case's cameras.
         fault: an input fault of :data:`fluoronav.navigation.faults.FAULTS` injected into the case
             (None: none). With a fault, an :class:`~fluoronav.errors.InputError` of the pipeline's
             preflight is an outcome, not an error: ``artifacts["input_error"]`` holds its ``reason``
@@ -130,6 +141,7 @@ class SimulatedNavigationConfig:
     working_pose_max_joint_deg: float | None = 25.0
     max_scene_draws: int = 20
     fault: str | None = None
+    world: World = IDEAL
 
 
 @dataclass
@@ -155,11 +167,6 @@ class SimulatedNavigation:
     @property
     def reason(self) -> str:
         return "" if self.result is None else self.result.reason
-
-
-def _rotation_deg(R: np.ndarray) -> float:
-    c = (np.trace(R[:3, :3]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 class _Timer:
@@ -188,11 +195,14 @@ def _views(
     *,
     oracle: bool,
     rng: np.random.Generator,
+    cameras: list[Camera] | None = None,
 ) -> tuple[CaseView, ...]:
-    """Case views of simulated images: each camera with the CT where the registration starts."""
+    """Case views of simulated images: each camera (the image's, or the case's ``cameras`` at the
+    stored size) with the CT where the registration starts."""
     out = []
-    for im, name in zip(images, names, strict=True):
-        cam: Camera = im.camera.with_pose(im.camera.camera_from_world @ world_from_ct_initial)
+    for k, (im, name) in enumerate(zip(images, names, strict=True)):
+        given = im.camera if cameras is None else cameras[k]
+        cam: Camera = given.with_pose(given.camera_from_world @ world_from_ct_initial)
         lm = mask = None
         if oracle:
             binning = max(1, round(1536 / cam.cols))
@@ -239,37 +249,89 @@ class _Scenario:
     names: list[str]
     plan: Plan
     ee_from_cm_used: np.ndarray
+    patient: Volume
+    world_rng: np.random.Generator
+    built: BuiltCM | None = None
 
-    def simulate(self, world_from_cm: np.ndarray, cameras: list[Camera], seed: int) -> list[Any]:
-        """Physics images of the CM at ``world_from_cm`` (seeds ``seed + k``)."""
-        tr = self.sc.trial
-        return [
-            self.simulator.simulate(
-                cam,
-                world_from_patient=tr.world_from_patient,
-                world_from_femur=tr.world_from_femur,
-                cm=(world_from_cm, self.cp_true),
-                seed=seed + k,
-                image_size=self.config.image_size,
-                cm_config=self.sc.cm_config,
+    def simulate(
+        self,
+        world_from_cm: np.ndarray,
+        cameras: list[Camera],
+        seed: int,
+        *,
+        moved_from_world: np.ndarray | None = None,
+    ) -> list[Any]:
+        """Physics images of the CM at ``world_from_cm`` (seeds ``seed + k``), each taken by its
+        nominal camera flexed as the world says, the anatomy moved by ``moved_from_world`` and, view
+        by view, by the world's motion within a set."""
+        tr, w = self.sc.trial, self.config.world
+        centre = se3.apply(tr.world_from_patient, tr.pelvis_center_ct)
+        out = []
+        for k, cam in enumerate(cameras):
+            wp, wf = tr.world_from_patient, tr.world_from_femur
+            M = patient_motion(
+                w.motion.within_set_mm, w.motion.within_set_deg, self.world_rng, center_world=centre
             )
-            for k, cam in enumerate(cameras)
-        ]
+            if moved_from_world is not None:
+                M = M @ moved_from_world
+            if w.motion.enabled:
+                wp, wf = M @ wp, M @ wf
+            out.append(
+                self.simulator.simulate(
+                    flexed_camera(cam, w.carm, self.world_rng),
+                    world_from_patient=wp,
+                    world_from_femur=wf,
+                    cm=(world_from_cm, self.cp_true),
+                    seed=seed + k,
+                    image_size=self.config.image_size,
+                    cm_config=self.sc.cm_config,
+                    built_cm=self.built,
+                )
+            )
+        return out
+
+    @property
+    def tip_cm_true(self) -> np.ndarray | None:
+        """(3,) the tip of the instrument as built (base frame), where it is not the model."""
+        return None if self.built is None else self.tip_cm
+
+    def case_cameras(self, cameras: list[Camera]) -> list[Camera] | None:
+        """The cameras the case records for images by the nominal ``cameras``, at the stored size:
+        with the world's calibration error (None where it has none: the images' own)."""
+        carm = self.config.world.carm
+        if carm.sdd_error_sd_frac <= 0 and carm.principal_point_error_sd_px <= 0:
+            return None
+        n = self.config.image_size
+        return [self.simulator.stored_camera(case_camera(c, carm, self.world_rng), n) for c in cameras]
 
 
 def _scenario(
-    cfg: SimulatedNavigationConfig, ct: str, T: _Timer, rng: np.random.Generator, scene_seed: int
+    cfg: SimulatedNavigationConfig,
+    ct: str,
+    T: _Timer,
+    rng: np.random.Generator,
+    scene_seed: int,
+    world_seed: int,
 ) -> _Scenario:
-    """Stages ``anatomy`` and ``scene``: the CT, the robot holding the CM, the C-arm views, the plan."""
+    """Stages ``anatomy`` and ``scene``: the patient and the case's CT, the robot holding the CM,
+    the C-arm views, the plan."""
+    world_rng = np.random.default_rng(world_seed)  # its own stream: the ideal world draws nothing
     with T("anatomy"):
         phantom_seed = cfg.seed if cfg.phantom_seed is None else cfg.phantom_seed
-        volume, simulator = anatomy_and_simulator(ct, phantom_seed, cfg.image_size, cfg.device)
+        anatomy = world_anatomy(
+            ct, phantom_seed, cfg.world.ct, image_size=cfg.image_size, device=cfg.device, rng=world_rng
+        )
     with T("scene"):
-        sc = _working_scene(volume, cfg, np.random.default_rng(scene_seed))
+        sc = _working_scene(anatomy.patient, cfg, np.random.default_rng(scene_seed))
         tr = sc.trial
         kin = CMKinematics(sc.cm_config)
         cp_true = np.asarray(sc.control_points_deg, np.float64)
-        tip_cm = kin.tip_cm(torch.as_tensor(cp_true, dtype=torch.float64)).numpy()
+        built = None
+        if cfg.world.instrument.enabled:  # the CM in the images is not the model the registration fits
+            built = build_instrument(cfg.world.instrument, sc.cm_config, world_rng)
+            tip_cm = built_tip_cm(built, cp_true).numpy()
+        else:
+            tip_cm = kin.tip_cm(torch.as_tensor(cp_true, dtype=torch.float64)).numpy()
         q_regi = sc.q_work_deg
         W_regi = sc.execute(q_regi, rng=rng)
         iso = working_view_centre(tr)
@@ -279,7 +341,21 @@ def _scenario(
         plan = neck_entry_plan(tr.entry_ct, tr.femoral_head_ct)
         ee_from_cm_used = perturb_transform(sc.ee_from_cm, rng, cfg.handeye_error_deg, cfg.handeye_error_mm)
     return _Scenario(
-        cfg, volume, simulator, sc, cp_true, tip_cm, q_regi, W_regi, cams, names, plan, ee_from_cm_used
+        cfg,
+        anatomy.case_ct,
+        anatomy.simulator,
+        sc,
+        cp_true,
+        tip_cm,
+        q_regi,
+        W_regi,
+        cams,
+        names,
+        plan,
+        ee_from_cm_used,
+        anatomy.patient,
+        world_rng,
+        built,
     )
 
 
@@ -326,16 +402,22 @@ def _first_case(
     the truth into ``run.truth``."""
     cfg, tr = s.config, s.sc.trial
     images = s.simulate(s.W_regi, s.cams, seed)
+    fbg = tr.initial_control_points_deg
+    if cfg.world.fbg.enabled:  # the reading of the true shape, as the FBG literature measures it
+        fbg = fbg_reading(s.cp_true, cfg.world.fbg, s.world_rng)
+    W0 = tr.initial_world_from_patient
     case = NavigationCase(
         volume=s.volume,
         plan=s.plan,
         side=tr.side,
         cm_config=s.sc.cm_config,
-        fbg_control_points_deg=np.asarray(tr.initial_control_points_deg, np.float64),
+        fbg_control_points_deg=np.asarray(fbg, np.float64),
         robot=UR10,
         joints_deg=np.asarray(s.q_regi, np.float64),
         ee_from_cm=s.ee_from_cm_used,
-        views=_views(images, s.names, tr.initial_world_from_patient, oracle=cfg.oracle_landmarks, rng=rng),
+        views=_views(
+            images, s.names, W0, oracle=cfg.oracle_landmarks, rng=rng, cameras=s.case_cameras(s.cams)
+        ),
     )
     case = _first_fault(s, case, seed)
     run.truth = _truth_poses(
@@ -367,8 +449,8 @@ def _move(
     E["reposition_tip_mm"] = float(np.linalg.norm(se3.apply(W_after, s.tip_cm) - planned_tip_world))
     E["reposition_axis_deg"] = axis_error_deg(W_after[:3, 2], W_plan_true[:3, 2])
     E["joint_motion_deg"] = float(res.stages["robot"].diagnostics["joint_motion_deg"])
-    E["reposition_robot_mm"] = _robot_only_error(
-        s.sc, run, s.q_regi, s.W_regi, s.ee_from_cm_used, rng, s.tip_cm
+    E["reposition_robot_mm"] = robot_only_error(
+        s.sc, res, s.q_regi, s.W_regi, s.ee_from_cm_used, rng, s.tip_cm
     )
     return W_after, planned_tip_world, W_plan_true
 
@@ -381,9 +463,11 @@ def _verification_case(
     rng: np.random.Generator,
     seed: int,
     case_dir: Path | None,
+    moved: np.ndarray,
 ) -> tuple[NavigationCase, list[Any]]:
     """Stage ``verify_simulate``: the C-arm aimed where the registrations put the femoral head and
-    the planned CM, images of the CM after the move → (the case with them, the images)."""
+    the planned CM, images of the CM after the move, the patient moved by ``moved`` (4, 4,
+    ``moved_from_world``) since the first images → (the case with them, the images)."""
     cfg, tr, res = s.config, s.sc.trial, run.result
     assert res is not None and res.joints_target_deg is not None
     first, target = res.first, res.femur_from_cm_target
@@ -398,16 +482,26 @@ def _verification_case(
     fault = get_fault(cfg.fault)
     # the fault's verification images show the CM where it was before the move
     images2 = s.simulate(
-        s.W_regi if fault is not None and fault.verify_images_before_move else W_after, cams2, seed
+        s.W_regi if fault is not None and fault.verify_images_before_move else W_after,
+        cams2,
+        seed,
+        moved_from_world=moved,
     )
     names2 = [f"{n} after the move" for n in s.names]
-    views2 = _views(images2, names2, tr.initial_world_from_patient, oracle=cfg.oracle_landmarks, rng=rng)
+    W0 = tr.initial_world_from_patient
+    views2 = _views(images2, names2, W0, oracle=cfg.oracle_landmarks, rng=rng, cameras=s.case_cameras(cams2))
     case = dataclasses.replace(
         case, verification=VerificationViews(np.asarray(res.joints_target_deg), views2)
     )
     case = apply_verification_fault(case, fault)
     run.truth["verification"] = _truth_poses(
-        tr.world_from_patient, W_after, tr.world_from_femur, s.cp_true, s.tip_cm, cams2, names2
+        moved @ tr.world_from_patient,
+        W_after,
+        moved @ tr.world_from_femur,
+        s.cp_true,
+        s.tip_cm,
+        [im.camera for im in images2],
+        names2,
     )
     if case_dir is not None:
         path = write_navigation_case(case, case_dir, ct_path=_ct_path(case_dir))
@@ -449,7 +543,7 @@ def run_simulated_navigation(
     rng = np.random.default_rng(rng_seed)
     seeds = rng.integers(2**31, size=8)
 
-    s = _scenario(cfg, ct, T, rng, int(seeds[0]))
+    s = _scenario(cfg, ct, T, rng, int(seeds[0]), int(seeds[3]))
     with T("simulate"):
         case, images = _first_case(s, run, rng, int(seeds[1]), case_dir)
     A.update(volume=s.volume, scene=s.sc, images=images, names=s.names, case=case)
@@ -464,7 +558,16 @@ def run_simulated_navigation(
         A["input_error"] = {"reason": str(exc), "check": _input_check(case, nav_cfg)}
         return run
     run.result = res
-    _first_errors(run, s.sc, dict(zip(s.names, images, strict=True)), s.W_regi, s.cp_true)
+    first_registration_errors(
+        run.result,
+        run.errors,
+        run.truth["tip_ct_mm"],
+        s.sc,
+        dict(zip(s.names, images, strict=True)),
+        s.W_regi,
+        s.cp_true,
+        tip_cm_true=s.tip_cm_true,
+    )
     if res.status != "ok" or res.joints_target_deg is None:
         return run
     with T("move"):
@@ -475,17 +578,34 @@ def run_simulated_navigation(
         return run
 
     with T("verify_simulate"):
-        case, images2 = _verification_case(s, run, case, W_after, rng, int(seeds[2]), case_dir)
+        # the patient between the two sets of images (the robot's base stays)
+        motion = cfg.world.motion
+        centre = se3.apply(s.sc.trial.world_from_patient, s.sc.trial.pelvis_center_ct)
+        moved = patient_motion(
+            motion.between_sets_mm, motion.between_sets_deg, s.world_rng, center_world=centre
+        )
+        case, images2 = _verification_case(s, run, case, W_after, rng, int(seeds[2]), case_dir, moved)
     A.update(images2=images2, case=case)
     verify(case, res, on_stage=on_stage, on_event=on_event)
     names2 = [v.name for v in case.verification.views] if case.verification is not None else []
-    _verification_errors(run, s.sc, dict(zip(names2, images2, strict=True)), W_after)
+    verification_errors(
+        run.result,
+        run.errors,
+        s.sc,
+        dict(zip(names2, images2, strict=True)),
+        W_after,
+        moved_from_world=moved,
+        tip_cm_true=s.tip_cm_true,
+    )
     if res.status != "ok" or res.joints_correction_deg is None:
         return run
     with T("correct_move"):
         W_final = s.sc.execute(res.joints_correction_deg, rng=rng)
-        E["corrected_tip_mm"] = float(np.linalg.norm(se3.apply(W_final, s.tip_cm) - planned_tip_world))
-        E["corrected_axis_deg"] = axis_error_deg(W_final[:3, 2], W_plan_true[:3, 2])
+        # the plan moved with the femur
+        E["corrected_tip_mm"] = float(
+            np.linalg.norm(se3.apply(W_final, s.tip_cm) - se3.apply(moved, planned_tip_world))
+        )
+        E["corrected_axis_deg"] = axis_error_deg(W_final[:3, 2], (moved @ W_plan_true)[:3, 2])
     run.truth["world_from_cm_corrected"] = W_final.tolist()
     A["W_final"] = W_final
     return run
@@ -533,120 +653,3 @@ def _ct_path(case_dir: Path) -> str | None:
 def _write_truth(run: SimulatedNavigation, case_dir: Path) -> None:
     path = case_dir.parent / "truth.json"
     path.write_text(json.dumps(run.truth, indent=1) + "\n", encoding="utf-8")
-
-
-def _first_errors(
-    run: SimulatedNavigation,
-    sc: HandEyeScenario,
-    images_by_view: dict[str, Any],
-    W_regi: np.ndarray,
-    cp_true: np.ndarray,
-) -> None:
-    """Errors of the first registration against the truth, in the C-arm frame of its first view (the
-    AP view, as the paper's, unless the bones' checks left it out)."""
-    res, E, tr = run.result, run.errors, sc.trial
-    if res is None or res.first is None:
-        return
-    first = res.first
-    images = [images_by_view[v.name] for v in first.views]  # the views the registration kept
-    det_err = [
-        np.linalg.norm(d.landmarks_px - im.landmarks_px, axis=1)
-        for d, im in zip(first.detections, images, strict=True)
-        if d is not None
-    ]
-    if det_err:
-        ps = images[0].camera.pixel_spacing_mm or float("nan")
-        E["landmark_px"] = float(np.mean(det_err))
-        E["landmark_mm_at_detector"] = float(np.mean(det_err) * ps)
-    rot, cen = [], []
-    for cam_est, im in zip(first.cameras_ct, images, strict=True):
-        delta = np.linalg.inv(im.camera.camera_from_world @ tr.world_from_patient) @ cam_est.camera_from_world
-        rot.append(_rotation_deg(delta))
-        cen.append(float(np.linalg.norm(se3.apply(delta, tr.pelvis_center_ct) - tr.pelvis_center_ct)))
-    E["pelvis_rotation_deg"], E["pelvis_center_mm"] = float(np.mean(rot)), float(np.mean(cen))
-    carm = images[0].camera.camera_from_world
-    carm_est = first.cameras_ct[0].camera_from_world
-    entry_est = se3.apply(carm_est @ first.ct_from_femur, tr.entry_ct)
-    entry_true = se3.apply(carm @ tr.world_from_femur, tr.entry_ct)
-    E["femur_entry_mm"] = float(np.linalg.norm(entry_est - entry_true))
-    E["femur_rotation_deg"] = _rotation_deg(
-        np.linalg.inv(carm @ tr.world_from_femur) @ (carm_est @ first.ct_from_femur)
-    )
-    errs = cm_errors(
-        carm_from_cm_est=carm_est @ first.ct_from_cm,
-        carm_from_cm_true=carm @ W_regi,
-        control_points_est_deg=first.cm.control_points_deg,
-        control_points_true_deg=cp_true,
-        config=sc.cm_config,
-    )
-    E.update({f"cm_{k}": float(v) for k, v in errs.items()})
-    tip_true_c = se3.apply(carm @ W_regi, _tip(sc, cp_true))
-    E["cm_relative_mm"] = float(
-        np.linalg.norm((se3.apply(carm_est, first.tip_ct_mm) - entry_est) - (tip_true_c - entry_true))
-    )
-    E["cm_tip_ct_mm"] = float(np.linalg.norm(first.tip_ct_mm - np.asarray(run.truth["tip_ct_mm"])))
-    if first.cm_init is not None:
-        E["cm_init_tip_mm"] = float(
-            np.linalg.norm(se3.apply(carm_est @ first.cm_init.world_from_cm, _tip(sc, cp_true)) - tip_true_c)
-        )
-
-
-def _tip(sc: HandEyeScenario, cp_deg: np.ndarray) -> np.ndarray:
-    return CMKinematics(sc.cm_config).tip_cm(torch.as_tensor(cp_deg, dtype=torch.float64)).numpy()
-
-
-def _verification_errors(
-    run: SimulatedNavigation, sc: HandEyeScenario, images_by_view: dict[str, Any], W_after: np.ndarray
-) -> None:
-    res, E, tr = run.result, run.errors, sc.trial
-    if res is None or res.verification is None or res.plan is None:
-        return
-    ver = res.verification
-    images2 = [images_by_view[v.name] for v in ver.views]  # the views the registration kept
-    carm2 = images2[0].camera.camera_from_world
-    carm2_est = ver.cameras_ct[0].camera_from_world
-    tip_after = se3.apply(W_after, _tip(sc, sc.control_points_deg))
-    E["verify_tip_to_plan_mm"] = float(
-        np.linalg.norm(ver.tip_ct_mm - se3.apply(ver.ct_from_femur, res.plan.tip_target_world_mm))
-    )
-    E["verify_tip_error_mm"] = float(
-        np.linalg.norm(se3.apply(carm2_est, ver.tip_ct_mm) - se3.apply(carm2, tip_after))
-    )
-    entry_est = se3.apply(carm2_est @ ver.ct_from_femur, tr.entry_ct)
-    entry_true = se3.apply(carm2 @ tr.world_from_femur, tr.entry_ct)
-    E["verify_femur_entry_mm"] = float(np.linalg.norm(entry_est - entry_true))
-    E["verify_relative_mm"] = float(
-        np.linalg.norm(
-            (se3.apply(carm2_est, ver.tip_ct_mm) - entry_est) - (se3.apply(carm2, tip_after) - entry_true)
-        )
-    )
-
-
-def _robot_only_error(
-    sc: HandEyeScenario,
-    run: SimulatedNavigation,
-    q_regi: np.ndarray,
-    W_regi: np.ndarray,
-    ee_from_cm_used: np.ndarray,
-    rng: np.random.Generator,
-    tip_cm: np.ndarray,
-) -> float:
-    """The first move's error with true registrations (the robot's and the hand-eye's share)."""
-    res, tr = run.result, sc.trial
-    assert res is not None and res.plan is not None
-    plan_true = dataclasses.replace(res.plan, control_points_deg=sc.control_points_deg)
-    # the roll the pipeline chose for a plan whose roll is free, so that the same move is measured
-    roll_deg = float(res.stages["plan"].diagnostics.get("roll_deg", 0.0)) if "plan" in res.stages else 0.0
-    target = planned_femur_from_cm(plan_true, kinematics=CMKinematics(sc.cm_config), roll_deg=roll_deg)
-    _, q = robot_target(
-        sc.nominal,
-        q_regi,
-        ee_from_cm=ee_from_cm_used,
-        carm_from_femur=tr.world_from_femur,
-        carm_from_cm=W_regi,
-        femur_from_cm_target=target,
-    )
-    W = sc.execute(q, rng=np.random.default_rng(int(rng.integers(2**31))))
-    return float(
-        np.linalg.norm(se3.apply(W, tip_cm) - se3.apply(tr.world_from_femur, res.plan.tip_target_world_mm))
-    )

@@ -34,6 +34,7 @@ from fluoronav.device import resolve_device
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.rendering.ct import CTRenderer
+from fluoronav.simulation.instrument import BuiltCM
 from fluoronav.simulation.materials import MM_PER_CM, decompose_hu
 from fluoronav.simulation.scene import Scene
 from fluoronav.simulation.xray import RENDERED_CT_MATERIALS, SimulatedImage, SimulationConfig, XraySimulator
@@ -164,8 +165,15 @@ class ArticulatedSimulator:
         return camera.scaled_to(n, n)
 
     @staticmethod
-    def _scene(camera: Camera, cm: tuple[np.ndarray, np.ndarray] | None, cm_config: CMConfig) -> Scene:
+    def _scene(
+        camera: Camera,
+        cm: tuple[np.ndarray, np.ndarray] | None,
+        cm_config: CMConfig,
+        built_cm: BuiltCM | None = None,
+    ) -> Scene:
         if cm is None:
+            if built_cm is not None:
+                raise ValueError("built_cm needs a CM pose and shape (cm)")
             return Scene(
                 camera=camera,
                 world_from_cm=np.eye(4),
@@ -179,6 +187,7 @@ class ArticulatedSimulator:
             world_from_cm=np.asarray(world_from_cm, np.float64),
             control_points_deg=np.asarray(cp, np.float64),
             cm_config=cm_config,
+            built_cm=built_cm,
         )
 
     # ----- images --------------------------------------------------------------------------
@@ -191,6 +200,7 @@ class ArticulatedSimulator:
         cm: tuple[np.ndarray, np.ndarray] | None = None,
         stored: Camera | None = None,
         cm_config: CMConfig | None = None,
+        built_cm: BuiltCM | None = None,
     ) -> dict[str, torch.Tensor]:
         """Per-material areal densities (g/cm², (H, W) tensors) at ``stored`` (default: ``camera``).
 
@@ -201,6 +211,9 @@ class ArticulatedSimulator:
             cm: ``(world_from_cm (4, 4), control_points_deg (5,))`` or None for no CM.
             stored: camera of the stored image (same view, possibly binned).
             cm_config: CM geometry (default :class:`CMConfig`).
+            built_cm: the instrument as built (:func:`~fluoronav.simulation.instrument.build_instrument`),
+                drawn at ``cm``'s pose with its own notches and joint angles for ``cm``'s control
+                points; None: the model ``cm_config`` itself.
         """
         stored = stored or camera
         cm_config = cm_config or CMConfig()
@@ -214,7 +227,7 @@ class ArticulatedSimulator:
                 img = renderer.render_poses(K, T, stored.rows, stored.cols)[0]
                 dens[m] = dens[m] + img if m in dens else img
         dens = {m: v.clamp_min(0.0) for m, v in dens.items()}
-        scene = self._scene(camera, cm, cm_config)
+        scene = self._scene(camera, cm, cm_config, built_cm)
         if scene.has_cm:
             helper = self._drill_rest
             if self.config.drill:
@@ -228,6 +241,7 @@ class ArticulatedSimulator:
                         camera,
                         (np.linalg.inv(w_body) @ scene.world_from_cm, scene.control_points_deg),
                         cm_config,
+                        built_cm,
                     )
                     body_cam = stored.with_pose(stored.camera_from_world @ w_body)
                     for m, r in sampler._drilled_densities(body_scene, body_cam).items():
@@ -250,6 +264,7 @@ class ArticulatedSimulator:
         seed: int,
         image_size: int | None = None,
         cm_config: CMConfig | None = None,
+        built_cm: BuiltCM | None = None,
     ) -> SimulatedImage:
         """A realistic image (reproducible for a seed) with its CM labels.
 
@@ -260,9 +275,12 @@ class ArticulatedSimulator:
             seed: noise seed.
             image_size: stored rows = cols (default ``config.image_size``).
             cm_config: CM geometry (default :class:`CMConfig`).
+            built_cm: the instrument as built, drawn and labelled (mask, landmarks) instead of the
+                model (see :meth:`areal_densities`); None: the model.
 
         Returns:
-            :class:`SimulatedImage` whose ``scene`` holds the full camera and the CM pose.
+            :class:`SimulatedImage` whose ``scene`` holds the full camera, the CM pose and
+            ``built_cm``.
         """
         cm_config = cm_config or CMConfig()
         stored = self.stored_camera(camera, image_size)
@@ -273,10 +291,11 @@ class ArticulatedSimulator:
             cm=cm,
             stored=stored,
             cm_config=cm_config,
+            built_cm=built_cm,
         )
         physics = self.config.physics.with_pixel_scale(camera.cols / stored.cols)
         image = physics.apply(dens, seed=seed).float().cpu().numpy()
-        scene = self._scene(camera, cm, cm_config)
+        scene = self._scene(camera, cm, cm_config, built_cm)
         mask, lm = self._drill_rest.labels(scene, stored)
         return SimulatedImage(image=image, mask=mask, landmarks_px=lm, camera=stored, scene=scene)
 

@@ -22,6 +22,7 @@ from fluoronav.geometry.camera import CIOS_FUSION, Camera, DetectorSpec
 from fluoronav.geometry.carm import carm_camera_from_world
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.simulation.instrument import BuiltCM
 
 __all__ = [
     "Scene",
@@ -102,6 +103,8 @@ class Scene:
         cm_config: the CM's geometry.
         lao_rao_deg, cran_caud_deg, source_to_isocenter_mm: the sampled C-arm angles and distance.
         isocenter_world: (3,) the C-arm isocentre, mm.
+        built_cm: the instrument as built, drawn in the images and labelled instead of the model
+            ``cm_config`` at ``control_points_deg`` (None: the model itself).
     """
 
     camera: Camera
@@ -115,6 +118,7 @@ class Scene:
     cran_caud_deg: float = float("nan")
     source_to_isocenter_mm: float = float("nan")
     isocenter_world: np.ndarray | None = None
+    built_cm: BuiltCM | None = None
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

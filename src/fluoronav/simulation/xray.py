@@ -16,12 +16,16 @@ For each scene the simulator
 The analytic CM renderer used by the registration is *not* used for the image (no inverse crime);
 it only provides the label mask, whose definition is geometric: the projection of the CM envelope
 between landmarks A and B (the notched region).
+
+A scene with an instrument as built (``Scene.built_cm``, :mod:`fluoronav.simulation.instrument`) is
+drawn, drilled and labelled with that instrument's notches, joint angles and diameters; its mask is
+the same projection of its envelope, computed from its link poses (analytic cylinder chords).
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -31,17 +35,25 @@ from fluoronav.anatomy.volume import Volume
 from fluoronav.device import resolve_device
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
-from fluoronav.manipulator.geometry import voxelize_cm
+from fluoronav.manipulator.geometry import VoxelizedCM, voxelize_cm, voxelize_cm_links
 from fluoronav.rendering.cm import CMRenderer
 from fluoronav.rendering.ct import CTRenderer, render_line_integrals
 from fluoronav.simulation._tube_numba import BINNED_TUBE_CHORDS_ARGS, binned_tube_chords
+from fluoronav.simulation.instrument import BuiltCM, built_landmarks_cm, built_link_transforms
 from fluoronav.simulation.materials import MM_PER_CM, decompose_hu, get_material
 from fluoronav.simulation.physics import XrayPhysics
 from fluoronav.simulation.scene import Scene
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SimulatedImage", "SimulationConfig", "XraySimulator", "compile_kernels", "envelope_config"]
+__all__ = [
+    "SimulatedImage",
+    "SimulationConfig",
+    "XraySimulator",
+    "built_labels",
+    "compile_kernels",
+    "envelope_config",
+]
 
 #: CT materials rendered (air is left out: outside the body it is not in the CT, inside it is < 1 %)
 RENDERED_CT_MATERIALS = ("adipose", "soft_tissue", "bone_cortical")
@@ -197,12 +209,17 @@ class XraySimulator:
         ``drill_voxel_mm``; the CT is sampled trilinearly at those voxels, decomposed, weighted by
         the envelope fraction and integrated like the CT itself.
         """
-        env = voxelize_cm(
-            envelope_config(scene.cm_config),
-            np.asarray(scene.control_points_deg, np.float64),
-            spacing_mm=self.config.drill_voxel_mm,
-            supersample=2,
-        )
+        if scene.built_cm is None:
+            env = voxelize_cm(
+                envelope_config(scene.cm_config),
+                np.asarray(scene.control_points_deg, np.float64),
+                spacing_mm=self.config.drill_voxel_mm,
+                supersample=2,
+            )
+        else:
+            env = _voxelize_built(
+                scene.built_cm, scene.control_points_deg, self.config.drill_voxel_mm, envelope=True
+            )
         occ = env.occupancy
         nz_idx = np.nonzero(occ)
         if len(nz_idx[0]) == 0:
@@ -242,13 +259,15 @@ class XraySimulator:
 
     def _cm_integral(self, scene: Scene, camera: Camera) -> torch.Tensor:
         """∫ occupancy dl (mm) of the voxelised CM at the stored resolution (area-binned)."""
-        cm = scene.cm_config
-        vox = voxelize_cm(
-            cm,
-            np.asarray(scene.control_points_deg, dtype=np.float64),
-            spacing_mm=self.config.cm_voxel_mm,
-            supersample=2,
-        )
+        if scene.built_cm is None:
+            vox = voxelize_cm(
+                scene.cm_config,
+                np.asarray(scene.control_points_deg, dtype=np.float64),
+                spacing_mm=self.config.cm_voxel_mm,
+                supersample=2,
+            )
+        else:
+            vox = _voxelize_built(scene.built_cm, scene.control_points_deg, self.config.cm_voxel_mm)
         f = self.config.cm_oversample
         fine = scene.camera.scaled_to(camera.rows * f, camera.cols * f)
         world_from_index = scene.world_from_cm @ vox.world_from_index
@@ -276,7 +295,7 @@ class XraySimulator:
 
     def _shaft_integral(self, scene: Scene, camera: Camera) -> torch.Tensor:
         """∫ dl (mm) through the hollow shaft tube (analytic chords), area-binned like the CM."""
-        cm = scene.cm_config
+        cm = scene.cm_config if scene.built_cm is None else scene.built_cm.config  # the same tube
         z1 = -float(cm.base_length_mm)
         z0 = z1 - float(self.config.shaft_length_mm)
         r_out, r_in = cm.outer_diameter_mm / 2.0, cm.inner_diameter_mm / 2.0
@@ -332,6 +351,8 @@ class XraySimulator:
         """(mask uint8 (H, W), landmarks (2, 2) or None) at ``camera``."""
         if not scene.has_cm:
             return np.zeros((camera.rows, camera.cols), np.uint8), None
+        if scene.built_cm is not None:
+            return built_labels(scene.built_cm, scene.control_points_deg, scene.world_from_cm, camera)
         env = CMRenderer(envelope_config(scene.cm_config), mu_per_mm=1.0)
         T = torch.as_tensor(camera.camera_from_world @ scene.world_from_cm)[None, None]
         cp = torch.as_tensor(np.asarray(scene.control_points_deg, dtype=np.float64))[None]
@@ -349,3 +370,65 @@ class XraySimulator:
         image = physics.apply(dens, seed=seed).float().cpu().numpy()
         mask, lm = self.labels(scene, camera)
         return SimulatedImage(image=image, mask=mask, landmarks_px=lm, camera=camera, scene=scene)
+
+
+def _voxelize_built(
+    built: BuiltCM, control_points_deg: np.ndarray, spacing_mm: float, *, envelope: bool = False
+) -> VoxelizedCM:
+    """The built instrument (or its envelope: no lumen, no notches) voxelised at its joint angles."""
+    T = built_link_transforms(built, control_points_deg).numpy()
+    if not envelope:
+        return voxelize_cm_links(built.config, T, notches=built.notches, spacing_mm=spacing_mm, supersample=2)
+    env = envelope_config(built.config)
+    notches = replace(built.notches, depth_mm=(env.notch_depth_mm,) * env.n_notches)
+    return voxelize_cm_links(env, T, notches=notches, spacing_mm=spacing_mm, supersample=2)
+
+
+def built_labels(
+    built: BuiltCM, control_points_deg: np.ndarray, world_from_cm: np.ndarray, camera: Camera
+) -> tuple[np.ndarray, np.ndarray]:
+    """Labels of a built instrument: (mask uint8 (H, W), landmarks (2, 2) pixels) at ``camera``.
+
+    The mask has the definition of :meth:`XraySimulator.labels`' (pixels whose ray crosses the
+    envelope between A and B), from the built link poses: per link, the chord through its solid
+    cylinder of the true outer radius, clipped to the link's axial slab within A–B.
+    """
+    T = built_link_transforms(built, control_points_deg).numpy()  # (L, 4, 4) cm_from_link
+    centres = np.asarray(built.notches.z_mm)
+    bounds = np.concatenate([[-built.config.base_length_mm], centres, [built.config.tip_z_mm]])
+    z0 = np.maximum(bounds[:-1], 0.0)
+    z1 = np.minimum(bounds[1:], built.notches.distal_plane_mm)
+    r = built.config.outer_radius_mm
+    camera_from_link = camera.camera_from_world @ np.asarray(world_from_cm, np.float64) @ T
+    mask = np.zeros((camera.rows, camera.cols), np.uint8)
+    live = np.nonzero(z1 > z0)[0]
+    pts = np.concatenate(
+        [
+            np.array(
+                [[sx * r, sy * r, z] for sx in (-1.0, 1.0) for sy in (-1.0, 1.0) for z in (z0[k], z1[k])]
+            )
+            @ T[k, :3, :3].T
+            + T[k, :3, 3]
+            for k in live
+        ]
+    )
+    uv = camera.project(pts @ world_from_cm[:3, :3].T + world_from_cm[:3, 3])
+    c0, r0 = np.maximum(np.floor(uv.min(axis=0)).astype(int) - 1, 0)
+    c1 = min(int(np.ceil(uv[:, 0].max())) + 2, camera.cols)
+    r1 = min(int(np.ceil(uv[:, 1].max())) + 2, camera.rows)
+    if c1 > c0 and r1 > r0:
+        rows, cols = np.mgrid[r0:r1, c0:c1]
+        pix = np.stack([cols.ravel(), rows.ravel(), np.ones(cols.size)], axis=1).astype(np.float64)
+        rays = pix @ np.linalg.inv(camera.K).T
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        chord = torch.zeros(len(rays), dtype=torch.float64)
+        for k in live:
+            R, t = camera_from_link[k, :3, :3], camera_from_link[k, :3, 3]
+            origin = torch.as_tensor(-R.T @ t)
+            dirs = torch.as_tensor(rays @ R)  # rows: R^T · ray
+            chord += tube_chord_mm(origin, dirs, r, float(z0[k]), float(z1[k]))
+        mask[r0:r1, c0:c1] = (chord > 0).numpy().reshape(rows.shape).astype(np.uint8)
+    ab = built_landmarks_cm(built, control_points_deg).numpy()
+    w = np.asarray(world_from_cm, np.float64)
+    landmarks = camera.project(ab @ w[:3, :3].T + w[:3, 3])
+    return mask, landmarks

@@ -22,6 +22,7 @@ from fluoronav.anatomy.io import resolve_ct
 from fluoronav.errors import InputError
 from fluoronav.navigation.faults import get_fault
 from fluoronav.runner import CsvLog, run_tasks
+from fluoronav.simulation.world import IDEAL, World
 from fluoronav.studies.figures import column, study_figures
 from fluoronav.studies.handeye_trials import (
     HANDEYE_DIAGNOSTICS,
@@ -229,6 +230,7 @@ def run_handeye_study(
     cfg_path = out / "config.json"
     cfg_dict = {**dataclasses.asdict(cfg), "version": __version__}
     cfg_dict["poses"] = list(cfg.poses)
+    cfg_dict["world"] = cfg.world.to_dict()
     if cfg_path.exists():
         old = json.loads(cfg_path.read_text(encoding="utf-8"))
         keep = [k for k in cfg_dict if k not in ("trials", "device", "version")]
@@ -270,6 +272,7 @@ def run_handeye_study(
         extra={
             "seed": cfg.seed,
             "ct": cfg.ct,
+            "world": cfg.world.to_dict(),
             "poses": list(cfg.poses),
             "landmarks": "oracle" if cfg.oracle_landmarks else "detector",
             **(_navigation_outcomes(rows) if cfg.workflow == "navigation" else {}),
@@ -300,8 +303,11 @@ def run_handeye_or_navigation_study(
     fault: str | None = None,
     handeye_error_mm: float | None = None,
     handeye_error_deg: float | None = None,
+    world: World = IDEAL,
 ) -> dict[str, Any]:
     """Entry point of ``fluoronav study hand-eye|navigation`` → the summary dict.
+
+    ``world``: the navigation's simulated world (:mod:`fluoronav.simulation.world`).
 
     ``fault``: an input fault (:data:`fluoronav.navigation.faults.FAULTS`) for navigation;
     ``handeye_error_mm`` / ``handeye_error_deg``: the navigation's hand-eye error (None: the fault's,
@@ -328,5 +334,6 @@ def run_handeye_or_navigation_study(
         handeye_error_deg=HandEyeStudyConfig.handeye_error_deg
         if handeye_error_deg is None
         else handeye_error_deg,
+        world=world,
     )
     return run_handeye_study(cfg, Path(out), scheduler=scheduler, workers=workers)

@@ -62,6 +62,7 @@ from fluoronav.simulation.robot_scene import (
     sample_handeye_scenario,
     simulate_scenario_images,
 )
+from fluoronav.simulation.world import IDEAL, World
 
 __all__ = [
     "CM_METRICS",
@@ -152,6 +153,7 @@ class HandEyeStudyConfig:
         calibration_bend_deg: hand-eye: the CM's bend during calibration, degrees per control point
             (each + U(−0.5, 0.5), one sign); None: the protocol's random working shape (U(−5, 5)°).
         oracle_landmarks: use truth + U(−3, 3) px (and the true CM mask) instead of the detector.
+        world: navigation: the simulated world's error sources (:mod:`fluoronav.simulation.world`).
         fault: navigation: an input fault of :data:`fluoronav.navigation.faults.FAULTS` injected
             into every trial's case (None: none); rows then carry ``fault``, ``fault_outcome`` and
             ``fault_handled``.
@@ -175,6 +177,7 @@ class HandEyeStudyConfig:
     calibration_bend_deg: float | None = 2.5
     oracle_landmarks: bool = True
     fault: str | None = None
+    world: World = IDEAL
 
 
 # ----- per-process caches -------------------------------------------------------------------------
@@ -484,6 +487,7 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
             device=cfg.device,
             oracle_landmarks=cfg.oracle_landmarks,
             fault=cfg.fault,
+            world=cfg.world,
         )
         row["landmarks"] = "oracle" if cfg.oracle_landmarks else "detector"
         row.update(navigation_row(run_simulated_navigation(sim, ct=cfg.ct), cfg))
