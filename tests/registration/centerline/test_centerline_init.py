@@ -348,6 +348,49 @@ def test_multiview_init_two_views_trusts_the_confident_landmark(bad_view: int) -
     )
 
 
+def test_multiview_init_three_views_outvoted_by_unsure_detections_trust_the_sure_one() -> None:
+    """Three views, A detected near B in two of them with low confidence (a verification whose CM
+    base lay at the skin's edge): the two wrong views agree with each other and outvote the right
+    one; with the confidences, A lies on the one confident view's ray at the model's chord length
+    from B and the pose is recovered."""
+    from fluoronav.registration.centerline import MultiViewInitConfig, centerline_initialize_multiview
+
+    kin = CMKinematics()
+    cams, cp, W, lms, cls = _multiview_scene(
+        np.random.default_rng(11), cp_max_deg=5.0, rot_max_deg=40.0, orbits_deg=(20.0, -15.0)
+    )
+    cpt = torch.as_tensor(cp)
+    tip_true = W[:3, :3] @ kin.tip_cm(cpt).numpy() + W[:3, 3]
+    bad, cls_bad = lms.copy(), list(cls)
+    for k in (0, 2):
+        bad[k, 0] = lms[k, 1] + [10.0, 4.0]  # A found next to B
+        cls_bad[k] = np.linspace(bad[k, 0], bad[k, 1], 10)
+    conf = np.array([[0.3, 0.8], [0.85, 0.8], [0.4, 0.55]])
+
+    def tip_error(res: object) -> float:
+        T = res.world_from_cm  # type: ignore[attr-defined]
+        return float(np.linalg.norm(T[:3, :3] @ kin.tip_cm(cpt).numpy() + T[:3, 3] - tip_true))
+
+    unsure = centerline_initialize_multiview(
+        cams,
+        bad,
+        cls_bad,
+        cp,
+        landmark_confidence=conf,
+        init_config=MultiViewInitConfig(min_landmark_confidence=None),
+    )
+    assert tip_error(unsure) > 5.0  # the failure the confidence is for
+    res = centerline_initialize_multiview(cams, bad, cls_bad, cp, landmark_confidence=conf)
+    np.testing.assert_array_equal(res.landmark_inliers[:, 0], [False, True, False])
+    np.testing.assert_allclose(res.landmarks_px[[0, 2], 0], lms[[0, 2], 0], atol=1.0)
+    assert tip_error(res) < 0.6
+    # consistent views: the confidences change nothing
+    same = centerline_initialize_multiview(cams, lms, cls, cp, landmark_confidence=conf)
+    np.testing.assert_array_equal(
+        same.world_from_cm, centerline_initialize_multiview(cams, lms, cls, cp).world_from_cm
+    )
+
+
 def test_shaft_width_gives_the_depth_on_a_physics_image() -> None:
     """The shaft's apparent width (physics-simulated 384² image: polychromatic, scatter, noise) gives
     its depth within 15 mm, and the initialisation with the image lands within 15 mm in depth, where

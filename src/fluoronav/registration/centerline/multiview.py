@@ -45,6 +45,13 @@ class MultiViewInitConfig:
             pixel lies farther than this from the prediction's, in mm at the prediction's depth, is
             left out (the verification's wrong detections of A lay ~11 mm off, its first moves
             0.5–2.4 mm from the plan).
+        min_landmark_confidence: with the detector's confidences, a landmark detected less
+            confidently than this is left out of its triangulation where at least one view detected
+            it confidently (with one such view, it lies on that view's ray at the model's A–B
+            distance from the other landmark: both intersections are scanned). Where no view is
+            confident, all are used. On verification views where A lay at the skin's edge, wrong
+            detections of A came with confidences of 0.18–0.42, right ones with ≥ 0.36, nearly all
+            ≥ 0.59 (docs/validation.md). None: confidences only break two-view ties.
     """
 
     n_theta: int = 360
@@ -53,6 +60,7 @@ class MultiViewInitConfig:
     max_landmark_residual_px: float | None = None
     landmark_residual_fraction: float = 0.025
     prior_gate_mm: float = 6.0
+    min_landmark_confidence: float | None = 0.5
 
 
 @dataclass(frozen=True)
@@ -194,7 +202,12 @@ def _landmark_candidates(
         if opt.max_landmark_residual_px is None
         else float(opt.max_landmark_residual_px)
     )
-    if landmark_prior_world is None:
+    lonely: list[tuple[int, int]] = []  # (landmark, its one confident view)
+    if landmark_prior_world is None and conf is not None and opt.min_landmark_confidence is not None:
+        ab, inliers, residuals, lonely = _triangulate_confident(
+            cameras, lm, conf, min_confidence=opt.min_landmark_confidence, max_residual_px=thr
+        )
+    elif landmark_prior_world is None:
         ab, inliers, residuals = triangulate_points_robust(cameras, lm, max_residual_px=thr)
     else:
         prior = checked_array(landmark_prior_world, (2, 3), "landmark_prior_world")
@@ -204,6 +217,12 @@ def _landmark_candidates(
     if conf is None or landmark_prior_world is not None:
         return [ab], inliers
     chord_mm = float((lm_cm[1] - lm_cm[0]).norm())
+    if lonely:
+        n, k = lonely[0]
+        cands = _on_ray_at_chord(cameras[k], lm[k, n], ab, n, chord_mm)
+        if cands:
+            logger.info("landmark %s: only view %d detected it confidently; placed on its ray", "AB"[n], k)
+            return cands, inliers
     return _two_view_landmark_candidates(
         cameras, lm, conf, ab, inliers, residuals, chord_mm=chord_mm, max_residual_px=thr
     )
@@ -291,6 +310,67 @@ def _roll_scan(
     return W, cost / len(scored)
 
 
+def _on_ray_at_chord(
+    camera: Camera, pixel: np.ndarray, ab: np.ndarray, n: int, chord_mm: float
+) -> list[np.ndarray]:
+    """Landmark ``n`` on ``camera``'s ray through ``pixel`` at ``chord_mm`` from the other landmark
+    ``ab[1 − n]``: the candidate (A, B) pairs, one per intersection in front of the source (none
+    where the ray misses that sphere)."""
+    m = 1 - n
+    origin = camera.source_world
+    d = camera.ray_directions_world(np.asarray(pixel, np.float64)[None])[0]
+    # |origin + s d − P_m| = L  →  s² + 2 s d·(o − P) + |o − P|² − L² = 0
+    op = origin - ab[m]
+    b, c = float(d @ op), float(op @ op - chord_mm**2)
+    disc = b * b - c
+    if disc < 0:
+        return []
+    out = []
+    for s in (-b - np.sqrt(disc), -b + np.sqrt(disc)):
+        if s > 0:
+            cand = ab.copy()
+            cand[n] = origin + s * d
+            out.append(cand)
+    return out
+
+
+def _triangulate_confident(
+    cameras: Sequence[Camera],
+    lm: np.ndarray,
+    conf: np.ndarray,
+    *,
+    min_confidence: float,
+    max_residual_px: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[tuple[int, int]]]:
+    """Each landmark triangulated (robustly) from all views; where they disagree, from the views that
+    detected it confidently (two or more), or from all where none did. ``(points (2, 3), inliers
+    (V, 2), residuals_px (V, 2), lonely)``: ``lonely`` lists (landmark, view) where one view alone
+    was confident (its point is then the all-view triangulation, to be replaced on that view's
+    ray)."""
+    V = len(cameras)
+    ab, inliers, residuals = triangulate_points_robust(cameras, lm, max_residual_px=max_residual_px)
+    lonely: list[tuple[int, int]] = []
+    for n in range(2):
+        sure = np.flatnonzero(conf[:, n] >= min_confidence)
+        if residuals[:, n].max() <= max_residual_px or len(sure) == V or len(sure) == 0:
+            continue  # every view agrees, or confidence tells nothing apart
+        if len(sure) == 1:
+            lonely.append((n, int(sure[0])))
+            inliers[:, n] = np.arange(V) == sure[0]
+            continue
+        pts, inl, _ = triangulate_points_robust(
+            [cameras[k] for k in sure], lm[sure][:, n : n + 1], max_residual_px=max_residual_px
+        )
+        ab[n] = pts[0]
+        inliers[:, n] = False
+        inliers[sure, n] = inl[:, 0]
+    for n in range(2):
+        residuals[:, n] = [
+            np.linalg.norm(c.project(ab[n][None])[0] - lm[k, n]) for k, c in enumerate(cameras)
+        ]
+    return ab, inliers, residuals, lonely
+
+
 def _two_view_landmark_candidates(
     cameras: Sequence[Camera],
     landmarks_px: np.ndarray,
@@ -318,23 +398,9 @@ def _two_view_landmark_candidates(
         if residuals_px[inl[:, m], m].max() > max_residual_px:
             continue  # both landmarks disagree: nothing to anchor the chord on
         trusted = int(voters[np.argmax(confidence[voters, n])])
-        cam = cameras[trusted]
-        origin = cam.source_world
-        d = cam.ray_directions_world(landmarks_px[trusted, n][None])[0]
-        # |origin + s d − P_m| = L  →  s² + 2 s d·(o − P) + |o − P|² − L² = 0
-        op = origin - ab[m]
-        b, c = float(d @ op), float(op @ op - chord_mm**2)
-        disc = b * b - c
-        if disc < 0:
+        out = _on_ray_at_chord(cameras[trusted], landmarks_px[trusted, n], ab, n, chord_mm)
+        if not out:
             continue
-        roots = [s for s in (-b - np.sqrt(disc), -b + np.sqrt(disc)) if s > 0]
-        if not roots:
-            continue
-        out = []
-        for s in roots:
-            cand = ab.copy()
-            cand[n] = origin + s * d
-            out.append(cand)
         inl[voters[voters != trusted], n] = False
         logger.info(
             "landmark %s: two views disagree (%.1f px); the view with confidence %.2f is trusted",
