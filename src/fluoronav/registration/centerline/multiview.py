@@ -359,7 +359,7 @@ def _triangulate_confident(
             inliers[:, n] = np.arange(V) == sure[0]
             continue
         pts, inl, _ = triangulate_points_robust(
-            [cameras[k] for k in sure], lm[sure][:, n : n + 1], max_residual_px=max_residual_px
+            [cameras[int(k)] for k in sure], lm[sure][:, n : n + 1], max_residual_px=max_residual_px
         )
         ab[n] = pts[0]
         inliers[:, n] = False
