@@ -274,6 +274,21 @@ def test_an_inverted_image_is_bad_input(case: NavigationCase) -> None:
     assert check_intensities(views, case.volume, CFG) == []
 
 
+def test_mirrored_images_are_told_from_inverted_ones(case: NavigationCase) -> None:
+    """A mirrored image correlates negatively with the DRR too; its mirror explains it better than
+    its inverse, so it is not called inverted. One mirrored view is left to the bones' per-view
+    checks; every view mirrored is the detector's orientation, bad input naming it."""
+    one = _with_view(case, 1, image=np.ascontiguousarray(case.views[1].image[:, ::-1]))
+    assert check_intensities(one, case.volume, CFG) == []
+    every = tuple(dataclasses.replace(v, image=np.ascontiguousarray(v.image[:, ::-1])) for v in case.views)
+    f = _one(check_intensities(every, case.volume, CFG), "mirrored_images")
+    assert f.subject == "all 3 views" and "detector orientation" in f.reason
+    # an inverted view is still called inverted: its inverse explains it better than its mirror
+    im = case.views[1].image
+    views = _with_view(case, 1, image=(im.max() + im.min() - im).astype(np.float32))
+    assert _checks(check_intensities(views, case.volume, CFG)) == ["inverted_image"]
+
+
 # ----- exits -------------------------------------------------------------------------------------
 def test_input_findings_raise_an_input_error_and_plan_findings_do_not() -> None:
     plan = PreflightFinding("plan", "plan 'x'", "plan 'x': the target lies far outside", "target_in_femur")

@@ -116,7 +116,7 @@ FAULTS: dict[str, Fault] = {
             "mirror_all",
             "every first view's image flipped left-right, the cameras unchanged",
             "first_views",
-            handled_by=("mirrored",),
+            handled_by=("mirrored", "mirrored_images"),
             mirror=True,
         ),
         Fault(
