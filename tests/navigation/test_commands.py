@@ -11,9 +11,12 @@ from fluoronav.geometry import se3
 from fluoronav.manipulator.robot import UR10
 from fluoronav.navigation.commands import (
     CommandMotion,
+    KinematicsVerdict,
     check_correction,
     check_first_move,
+    check_joint_readings,
     correction_allowed_mm,
+    judge_kinematics,
     measure_command,
 )
 from fluoronav.navigation.result import NavigationRefused
@@ -127,3 +130,64 @@ def test_a_command_is_measured_from_the_registered_pose_to_the_target() -> None:
     d = m.diagnostics()
     assert d["joint_motion_deg"] == pytest.approx(20.0) and len(d["joint_motion_per_joint_deg"]) == 6
     assert {"swept_path_mm", "swept_max_deviation_mm", "tip_move_mm", "rotation_deg"} <= set(d)
+
+
+def test_joint_readings_beyond_the_bound_are_refused_naming_the_joint() -> None:
+    check_joint_readings(np.array([0.1, 0.5, 0.0, 0.0, 0.0, 0.2]), SAFETY)  # at the bound: passes
+    with pytest.raises(NavigationRefused) as info:
+        check_joint_readings(np.array([0.1, 0.2, 0.0, 0.0, 3.0, 0.2]), SAFETY)
+    assert info.value.stage == "verify_joints" and info.value.check == "joint_readings"
+    assert "by 3.00° (joint 5; at most 0.5°, max_joint_reading_deg)" in info.value.detail
+
+
+def _cm_diag(tip_mm: float, residuals_mm: list[float | None], **more: object) -> dict[str, object]:
+    names = [f"view{k}" for k in range(len(residuals_mm))]
+    return {
+        "motion_tip_mm": tip_mm,
+        "views_used": names,
+        "views": {n: {"landmark_residual_mm": r} for n, r in zip(names, residuals_mm, strict=True)},
+        **more,
+    }
+
+
+def test_the_images_and_kinematics_that_agree_are_not_overruled() -> None:
+    tip_mm = SAFETY.max_motion_tip_mm
+    assert judge_kinematics(_cm_diag(tip_mm, [5.0]), {}, SAFETY) == KinematicsVerdict(False, "")
+
+
+def test_unambiguous_images_overrule_the_kinematics_with_a_warning() -> None:
+    verdict = judge_kinematics(
+        _cm_diag(5.0, [0.3, 0.8, 0.5]), {}, dataclasses.replace(SAFETY, overrule_min_views=2)
+    )
+    assert verdict.images_overrule
+    assert verdict.warning.startswith("the CM the verification images show is 5.0 mm from where the robot's")
+    assert "Corrected from the images: 3 views agree (landmarks within 0.80 mm)" in verdict.warning
+
+
+@pytest.mark.parametrize(
+    ("tip_mm", "diag", "left_out", "words"),
+    [
+        (12.0, {}, {}, "more than a correction may move (10 mm, max_correction_mm)"),
+        (5.0, {}, {"view2": "edge_ncc"}, "cannot overrule them: views left out (view2)"),
+        (5.0, {"left_out": {"view1": "ncc"}}, {}, "views left out (view1)"),
+        (5.0, {"tries": 2}, {}, "the images' own starts failed their checks"),
+        (5.0, {"few": True}, {}, "2 views passed, 3 needed (overrule_min_views)"),
+        (5.0, {"far": True}, {}, "landmarks are 1.50 mm from the detected ones (at most 1 mm"),
+        (5.0, {"unknown": True}, {}, "landmarks are 0.30 mm from the detected ones"),
+    ],
+)
+def test_ambiguous_images_cannot_overrule_the_kinematics(
+    tip_mm: float, diag: dict, left_out: dict[str, str], words: str
+) -> None:
+    residuals: list[float | None] = [0.3, 0.3, 0.3]
+    if diag.pop("few", False):
+        residuals = [0.3, 0.3]
+    if diag.pop("far", False):
+        residuals = [0.3, 1.5, 0.3]
+    if diag.pop("unknown", False):
+        residuals = [0.3, None, 0.3]
+    with pytest.raises(NavigationRefused) as info:
+        judge_kinematics(_cm_diag(tip_mm, residuals, **diag), left_out, SAFETY)
+    assert info.value.stage == "correct" and info.value.check == "kinematics_disagree"
+    assert f"{tip_mm:.1f} mm from where the robot's kinematics put it" in info.value.detail
+    assert words in info.value.detail

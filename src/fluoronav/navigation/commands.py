@@ -7,10 +7,16 @@ between its registered pose and the target. The measurements go into the stage's
 (``navigation.json``, the report); a command beyond a bound of
 :class:`~fluoronav.navigation.safety.SafetyConfig` is refused (:class:`NavigationRefused`) with a
 reason that names the plan, the measured value and the bound.
+
+The verification is judged here too: the joints read with its images against the first move's
+command (:func:`check_joint_readings`), and the CM its images show against where the robot's
+kinematics put it (:func:`judge_kinematics`: they agree, the images overrule the kinematics with a
+warning, or the navigation is refused; :mod:`fluoronav.navigation.safety`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,9 +30,12 @@ from fluoronav.navigation.targeting import SweptPath, joint_motion_deg, swept_ti
 
 __all__ = [
     "CommandMotion",
+    "KinematicsVerdict",
     "check_correction",
     "check_first_move",
+    "check_joint_readings",
     "correction_allowed_mm",
+    "judge_kinematics",
     "measure_command",
 ]
 
@@ -183,3 +192,122 @@ def check_correction(
             f"from the kinematic prediction + max_motion_tip_mm {safety.max_motion_tip_mm:g} mm)",
         )
     _refuse_joints(m, safety, stage, "correction", plan_name)
+
+
+def check_joint_readings(
+    reading_minus_command_deg: np.ndarray, safety: SafetyConfig, *, stage: str = "verify_joints"
+) -> None:
+    """Refuse joints read with the verification images that differ from the first move's command.
+
+    Args:
+        reading_minus_command_deg: (n_joints,) how far each joint read lies from its command
+            (degrees, wrapped: :func:`~fluoronav.navigation.targeting.joint_motion_deg`).
+        safety: the bound ``max_joint_reading_deg``.
+
+    Raises:
+        NavigationRefused: check ``joint_readings``, naming the joint that differs most.
+
+    Notes:
+        The differences are measured by the caller, as a command's motion is, so that they are
+        recorded in the stage's diagnostics whether or not the readings are refused.
+    """
+    dq = np.asarray(reading_minus_command_deg, np.float64)
+    if float(np.max(dq)) > safety.max_joint_reading_deg:
+        j = int(np.argmax(dq))
+        raise NavigationRefused(
+            stage,
+            "joint_readings",
+            f"the joints read with the verification images differ from the commanded ones by "
+            f"{dq[j]:.2f}° (joint {j + 1}; at most {safety.max_joint_reading_deg:g}°, "
+            "max_joint_reading_deg): the robot did not reach its command or its joint readings are "
+            "wrong; check the joint readings",
+        )
+
+
+@dataclass(frozen=True)
+class KinematicsVerdict:
+    """The verification's CM judged against the robot's kinematics (:func:`judge_kinematics`).
+
+    Attributes:
+        images_overrule: True where they disagree and the images are trusted over the kinematics.
+        warning: what the user must be told where the images overrule; "" otherwise.
+    """
+
+    images_overrule: bool
+    warning: str = ""
+
+
+def judge_kinematics(
+    cm_diagnostics: Mapping[str, Any],
+    left_out: Mapping[str, str],
+    safety: SafetyConfig,
+    *,
+    stage: str = "correct",
+) -> KinematicsVerdict:
+    """The verification's CM against the robot's kinematics (:mod:`fluoronav.navigation.safety`).
+
+    Args:
+        cm_diagnostics: the ``verify_cm`` stage's diagnostics: ``motion_tip_mm`` (how far the CM
+            tip the images show is from the kinematic prediction), ``views_used``, per view
+            ``landmark_residual_mm``, and optionally ``tries`` and ``left_out``.
+        left_out: the views the bones' checks left out of the verification, name → why.
+        safety: the bounds ``max_motion_tip_mm``, ``max_correction_mm``, ``overrule_min_views``
+            and ``overrule_max_landmark_residual_mm``.
+
+    Returns:
+        Not overruling where they agree (within ``max_motion_tip_mm``); overruling, with the
+        warning, where they disagree and the images are unambiguous enough to be trusted over the
+        kinematics.
+
+    Raises:
+        NavigationRefused: (check ``kinematics_disagree``) they disagree and the images cannot
+            overrule the kinematics, or the disagreement is beyond a correction.
+    """
+    tip_mm = float(cm_diagnostics["motion_tip_mm"])
+    if tip_mm <= safety.max_motion_tip_mm:
+        return KinematicsVerdict(images_overrule=False)
+    said = (
+        f"the CM the verification images show is {tip_mm:.1f} mm from where the robot's kinematics put "
+        f"it (at most {safety.max_motion_tip_mm:g} mm): check the hand-eye matrix and the joint readings"
+    )
+    if tip_mm > safety.max_correction_mm:
+        raise NavigationRefused(
+            stage,
+            "kinematics_disagree",
+            f"{said}, and that the images were taken after the move; more than a correction may "
+            f"move ({safety.max_correction_mm:g} mm, max_correction_mm)",
+        )
+    why_not = _ambiguity(cm_diagnostics, left_out, safety)
+    if why_not:
+        raise NavigationRefused(
+            stage, "kinematics_disagree", f"{said}; the images cannot overrule them: {why_not}"
+        )
+    n = len(cm_diagnostics["views_used"])
+    worst = max(float(v["landmark_residual_mm"] or 0.0) for v in cm_diagnostics["views"].values())
+    return KinematicsVerdict(
+        images_overrule=True,
+        warning=f"{said}. Corrected from the images: {n} views agree (landmarks within {worst:.2f} mm), "
+        "and a correction measured in the images does not depend on the hand-eye translation.",
+    )
+
+
+def _ambiguity(cm_diag: Mapping[str, Any], left_out: Mapping[str, str], safety: SafetyConfig) -> str:
+    """Why the verification's images cannot overrule the kinematics ("" where they can)."""
+    if left_out or cm_diag.get("left_out"):
+        return f"views left out ({', '.join({**left_out, **cm_diag.get('left_out', {})})})"
+    if int(cm_diag.get("tries", 1)) > 1:
+        return "the images' own starts failed their checks"
+    n = len(cm_diag["views_used"])
+    if n < safety.overrule_min_views:
+        return f"{n} views passed, {safety.overrule_min_views} needed (overrule_min_views)"
+    res = [
+        float(v["landmark_residual_mm"])
+        for v in cm_diag["views"].values()
+        if v["landmark_residual_mm"] is not None
+    ]
+    if len(res) < n or max(res) > safety.overrule_max_landmark_residual_mm:
+        return (
+            f"a view's landmarks are {max(res, default=float('nan')):.2f} mm from the detected ones "
+            f"(at most {safety.overrule_max_landmark_residual_mm:g} mm, overrule_max_landmark_residual_mm)"
+        )
+    return ""

@@ -59,7 +59,13 @@ from fluoronav.detection.centerline import extract_centerline
 from fluoronav.errors import RegistrationRefused
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.case import CaseView, NavigationCase
-from fluoronav.navigation.commands import check_correction, check_first_move, measure_command
+from fluoronav.navigation.commands import (
+    check_correction,
+    check_first_move,
+    check_joint_readings,
+    judge_kinematics,
+    measure_command,
+)
 from fluoronav.navigation.planning import Plan, planned_femur_from_cm
 from fluoronav.navigation.preflight import preflight, raise_for_input
 from fluoronav.navigation.result import (
@@ -69,7 +75,6 @@ from fluoronav.navigation.result import (
     StageRecord,
     ViewDetection,
 )
-from fluoronav.navigation.safety import SafetyConfig
 from fluoronav.navigation.targeting import (
     LeastMotionTarget,
     UnreachableTarget,
@@ -333,96 +338,6 @@ def _preflight(case: NavigationCase, config: NavigationConfig, stage: _Stages) -
         raise NavigationRefused("preflight", plan[0].check, plan[0].reason + more)
 
 
-def _check_joint_readings(
-    stage: _Stages, joints_deg: np.ndarray, commanded_deg: np.ndarray | None, safety: SafetyConfig
-) -> None:
-    """Stage ``verify_joints``: the joints read with the verification images against the first
-    move's command; refuses (check ``joint_readings``) where any differs by more than
-    ``safety.max_joint_reading_deg``."""
-    with stage("verify_joints") as rec:
-        if commanded_deg is None:
-            return
-        dq = joint_motion_deg(commanded_deg, joints_deg)
-        rec.diagnostics["reading_minus_command_deg"] = [float(x) for x in dq]
-        if float(np.max(dq)) > safety.max_joint_reading_deg:
-            j = int(np.argmax(dq))
-            raise NavigationRefused(
-                "verify_joints",
-                "joint_readings",
-                f"the joints read with the verification images differ from the commanded ones by "
-                f"{dq[j]:.2f}° (joint {j + 1}; at most {safety.max_joint_reading_deg:g}°, "
-                "max_joint_reading_deg): the robot did not reach its command or its joint readings are "
-                "wrong; check the joint readings",
-            )
-
-
-def _judge_kinematics(
-    result: NavigationResult, ver: ViewSetRegistration, safety: SafetyConfig, diag: dict[str, Any]
-) -> bool:
-    """The verification's CM against the robot's kinematics (:mod:`fluoronav.navigation.safety`).
-
-    Returns:
-        False where they agree (within ``max_motion_tip_mm``); True where they disagree and the
-        images are unambiguous enough to be trusted over the kinematics (a warning is added to
-        ``result``).
-
-    Raises:
-        NavigationRefused: (check ``kinematics_disagree``) they disagree and the images cannot
-            overrule the kinematics, or the disagreement is beyond a correction.
-    """
-    cm_diag = result.stages["verify_cm"].diagnostics
-    tip_mm = float(cm_diag["motion_tip_mm"])
-    diag["kinematics_disagreement_mm"] = tip_mm
-    if tip_mm <= safety.max_motion_tip_mm:
-        return False
-    said = (
-        f"the CM the verification images show is {tip_mm:.1f} mm from where the robot's kinematics put "
-        f"it (at most {safety.max_motion_tip_mm:g} mm): check the hand-eye matrix and the joint readings"
-    )
-    if tip_mm > safety.max_correction_mm:
-        raise NavigationRefused(
-            "correct",
-            "kinematics_disagree",
-            f"{said}, and that the images were taken after the move; more than a correction may "
-            f"move ({safety.max_correction_mm:g} mm, max_correction_mm)",
-        )
-    why_not = _ambiguity(ver, cm_diag, safety)
-    if why_not:
-        raise NavigationRefused(
-            "correct", "kinematics_disagree", f"{said}; the images cannot overrule them: {why_not}"
-        )
-    n = len(cm_diag["views_used"])
-    worst = max(float(v["landmark_residual_mm"] or 0.0) for v in cm_diag["views"].values())
-    result.warnings.append(
-        f"{said}. Corrected from the images: {n} views agree (landmarks within {worst:.2f} mm), and a "
-        "correction measured in the images does not depend on the hand-eye translation."
-    )
-    diag["images_overrule"] = True
-    return True
-
-
-def _ambiguity(ver: ViewSetRegistration, cm_diag: dict[str, Any], safety: SafetyConfig) -> str:
-    """Why the verification's images cannot overrule the kinematics ("" where they can)."""
-    if ver.left_out or cm_diag.get("left_out"):
-        return f"views left out ({', '.join({**ver.left_out, **cm_diag.get('left_out', {})})})"
-    if int(cm_diag.get("tries", 1)) > 1:
-        return "the images' own starts failed their checks"
-    n = len(cm_diag["views_used"])
-    if n < safety.overrule_min_views:
-        return f"{n} views passed, {safety.overrule_min_views} needed (overrule_min_views)"
-    res = [
-        float(v["landmark_residual_mm"])
-        for v in cm_diag["views"].values()
-        if v["landmark_residual_mm"] is not None
-    ]
-    if len(res) < n or max(res) > safety.overrule_max_landmark_residual_mm:
-        return (
-            f"a view's landmarks are {max(res, default=float('nan')):.2f} mm from the detected ones "
-            f"(at most {safety.overrule_max_landmark_residual_mm:g} mm, overrule_max_landmark_residual_mm)"
-        )
-    return ""
-
-
 def navigate(
     case: NavigationCase,
     config: NavigationConfig | None = None,
@@ -558,7 +473,11 @@ def verify(
     prior = ViewSetPrior(first.ct_from_femur, target, predicted, cfg.safety.max_motion_tip_mm)
     kin = CMKinematics(case.cm_config)
     try:
-        _check_joint_readings(stage, case.verification.joints_deg, result.joints_target_deg, cfg.safety)
+        with stage("verify_joints") as rec:
+            if result.joints_target_deg is not None:
+                dq = joint_motion_deg(result.joints_target_deg, case.verification.joints_deg)
+                rec.diagnostics["reading_minus_command_deg"] = [float(x) for x in dq]
+                check_joint_readings(dq, cfg.safety)
         views = _detect(stage, case.verification.views, cfg, prefix="verify_", need=1)
         with _refusals("verify_"):
             ver = register_view_set(
@@ -576,7 +495,12 @@ def verify(
         stage.emit("registration", prefix="verify_", registration=ver)
         result.verification = ver
         with stage("correct") as rec:
-            overrule = _judge_kinematics(result, ver, cfg.safety, rec.diagnostics)
+            cm_diag = result.stages["verify_cm"].diagnostics
+            rec.diagnostics["kinematics_disagreement_mm"] = float(cm_diag["motion_tip_mm"])
+            verdict = judge_kinematics(cm_diag, ver.left_out, cfg.safety)
+            if verdict.images_overrule:
+                result.warnings.append(verdict.warning)
+                rec.diagnostics["images_overrule"] = True
             tip_cm = _tip_cm(kin, ver.cm.control_points_deg)
             femur_from_cm_ver = femur_from_cm_registered(ver.ct_from_femur, ver.ct_from_cm)
             corr = tip_correction_target(femur_from_cm_ver, tip_cm, plan.tip_target_world_mm)
@@ -603,7 +527,7 @@ def verify(
                 cfg.safety,
                 plan_name=plan.target_name,
                 predicted_tip_error_mm=predicted_error,
-                images_overrule=overrule,
+                images_overrule=verdict.images_overrule,
             )
     except NavigationRefused as exc:
         log.warning("verification refused: %s", exc)
