@@ -4,7 +4,8 @@ every estimate against the truth. ``fluoronav demo`` and ``fluoronav study navig
 1. ``scene``: the seeded hip phantom, a UR-10 (with joint and calibration errors) holding the CM
    above the femoral head, pelvis and femur moved as the paper's protocol
    (:mod:`fluoronav.simulation.robot_scene`), three C-arm views centred between the femoral head
-   and the CM: AP and two orbits about the patient's long axis.
+   and the CM: AP and two orbits about the patient's long axis
+   (:mod:`fluoronav.navigation.simulated_scene`).
 2. ``simulate``: physics X-rays of the views (never the registration's renderer) → a
    :class:`~fluoronav.navigation.case.NavigationCase`: the CT, the plan (the CM tip on the femur's
    entry point, its axis along the neck towards the head), the FBG reading, the nominal robot with
@@ -40,12 +41,10 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import InputError
 from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.carm import centre_on, orbit_camera
-from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.manipulator.robot import UR10
 from fluoronav.navigation.case import (
     CaseView,
@@ -62,26 +61,16 @@ from fluoronav.navigation.faults import (
     view_without_cm,
 )
 from fluoronav.navigation.pipeline import EventCallback, NavigationConfig, NavigationResult, navigate, verify
-from fluoronav.navigation.planning import Plan, neck_entry_plan, planned_femur_from_cm
 from fluoronav.navigation.preflight import preflight
 from fluoronav.navigation.simulated_errors import (
     first_registration_errors,
     robot_only_error,
     verification_errors,
 )
-from fluoronav.navigation.targeting import UnreachableTarget, least_motion_target
+from fluoronav.navigation.simulated_scene import Scenario, SimulatedNavigationConfig, build_scenario
 from fluoronav.registration.metrics import axis_error_deg
-from fluoronav.simulation.articulated import ArticulatedSimulator
-from fluoronav.simulation.instrument import BuiltCM, build_instrument, built_tip_cm
-from fluoronav.simulation.robot_scene import (
-    HandEyeScenario,
-    perturb_transform,
-    sample_handeye_scenario,
-    verification_view_centre,
-    working_view_centre,
-)
-from fluoronav.simulation.world import IDEAL, World, case_camera, fbg_reading, flexed_camera, patient_motion
-from fluoronav.simulation.world_anatomy import world_anatomy
+from fluoronav.simulation.robot_scene import verification_view_centre
+from fluoronav.simulation.world import fbg_reading, patient_motion
 
 log = logging.getLogger(__name__)
 
@@ -94,54 +83,6 @@ __all__ = [
 
 #: the loop's own stages around the pipeline's (those are in ``NavigationResult.stages``)
 SIMULATION_STAGES = ("anatomy", "scene", "simulate", "move", "verify_simulate", "correct_move")
-
-
-@dataclass(frozen=True)
-class SimulatedNavigationConfig:
-    """Settings of a simulated navigation (recorded in ``results.json`` and study configs).
-
-    Attributes:
-        seed: everything random derives from it (scene, noise, optimisers).
-        phantom_seed: the hip phantom's seed (default: ``seed``).
-        image_size: simulated image rows = cols (the 1536² CIOS Fusion detector binned).
-        orbit_deg: C-arm orbit angles of the extra views about the patient's long axis.
-        handeye_error_deg, handeye_error_mm: the hand-eye matrix in the case is the truth moved by
-            exactly these (the measured accuracy of the image-based calibration).
-        aim_error_mm: the verification C-arm's centre misses its aim by U(−a, a) mm per axis.
-        verify: take verification images after the move and command one correction.
-        device: torch device of the detector, renderers and similarities.
-        oracle_landmarks: the case gives the true landmarks + U(−3, 3) full-detector px and the true
-            CM mask for every view instead of leaving them to the detector.
-        working_pose_max_joint_deg: the person who brings the robot to its working pose before
-            imaging points the CM roughly along the planned approach: a scene is redrawn (up to
-            ``max_scene_draws`` times) until the plan, reached from the true poses with the least
-            joint motion, turns no joint by more than this (degrees; a few below the command's
-            bound ``SafetyConfig.max_joint_motion_deg``, so the registrations' errors do not push
-            a gentle move over it). None: the first draw, however far from the plan.
-        max_scene_draws: how many scenes that search draws at most (the last is kept).
-        world: the simulated world's error sources (:mod:`fluoronav.simulation.world`): the CT
-            against the patient, the C-arm's calibration and flex, the FBG reading, patient motion.
-            The ideal world (default) renders the images from the case's CT with the case's cameras.
-        fault: an input fault of :data:`fluoronav.navigation.faults.FAULTS` injected into the case
-            (None: none). With a fault, an :class:`~fluoronav.errors.InputError` of the pipeline's
-            preflight is an outcome, not an error: ``artifacts["input_error"]`` holds its ``reason``
-            and ``check``, and the run stops there.
-    """
-
-    seed: int = 0
-    phantom_seed: int | None = None
-    image_size: int = 768
-    orbit_deg: tuple[float, ...] = (20.0, -15.0)
-    handeye_error_deg: float = 0.4
-    handeye_error_mm: float = 0.5
-    aim_error_mm: float = 5.0
-    verify: bool = True
-    device: str = "cpu"
-    oracle_landmarks: bool = False
-    working_pose_max_joint_deg: float | None = 25.0
-    max_scene_draws: int = 20
-    fault: str | None = None
-    world: World = IDEAL
 
 
 @dataclass
@@ -233,170 +174,8 @@ def _truth_poses(
     }
 
 
-@dataclass(frozen=True, eq=False)
-class _Scenario:
-    """The truth of a simulated navigation and what the case is made of (stages ``anatomy``, ``scene``)."""
-
-    config: SimulatedNavigationConfig
-    volume: Volume
-    simulator: ArticulatedSimulator
-    sc: HandEyeScenario
-    cp_true: np.ndarray
-    tip_cm: np.ndarray
-    q_regi: np.ndarray
-    W_regi: np.ndarray
-    cams: list[Camera]
-    names: list[str]
-    plan: Plan
-    ee_from_cm_used: np.ndarray
-    patient: Volume
-    world_rng: np.random.Generator
-    built: BuiltCM | None = None
-
-    def simulate(
-        self,
-        world_from_cm: np.ndarray,
-        cameras: list[Camera],
-        seed: int,
-        *,
-        moved_from_world: np.ndarray | None = None,
-    ) -> list[Any]:
-        """Physics images of the CM at ``world_from_cm`` (seeds ``seed + k``), each taken by its
-        nominal camera flexed as the world says, the anatomy moved by ``moved_from_world`` and, view
-        by view, by the world's motion within a set."""
-        tr, w = self.sc.trial, self.config.world
-        centre = se3.apply(tr.world_from_patient, tr.pelvis_center_ct)
-        out = []
-        for k, cam in enumerate(cameras):
-            wp, wf = tr.world_from_patient, tr.world_from_femur
-            M = patient_motion(
-                w.motion.within_set_mm, w.motion.within_set_deg, self.world_rng, center_world=centre
-            )
-            if moved_from_world is not None:
-                M = M @ moved_from_world
-            if w.motion.enabled:
-                wp, wf = M @ wp, M @ wf
-            out.append(
-                self.simulator.simulate(
-                    flexed_camera(cam, w.carm, self.world_rng),
-                    world_from_patient=wp,
-                    world_from_femur=wf,
-                    cm=(world_from_cm, self.cp_true),
-                    seed=seed + k,
-                    image_size=self.config.image_size,
-                    cm_config=self.sc.cm_config,
-                    built_cm=self.built,
-                )
-            )
-        return out
-
-    @property
-    def tip_cm_true(self) -> np.ndarray | None:
-        """(3,) the tip of the instrument as built (base frame), where it is not the model."""
-        return None if self.built is None else self.tip_cm
-
-    def case_cameras(self, cameras: list[Camera]) -> list[Camera] | None:
-        """The cameras the case records for images by the nominal ``cameras``, at the stored size:
-        with the world's calibration error (None where it has none: the images' own)."""
-        carm = self.config.world.carm
-        if carm.sdd_error_sd_frac <= 0 and carm.principal_point_error_sd_px <= 0:
-            return None
-        n = self.config.image_size
-        return [self.simulator.stored_camera(case_camera(c, carm, self.world_rng), n) for c in cameras]
-
-
-def _scenario(
-    cfg: SimulatedNavigationConfig,
-    ct: str,
-    T: _Timer,
-    rng: np.random.Generator,
-    scene_seed: int,
-    world_seed: int,
-) -> _Scenario:
-    """Stages ``anatomy`` and ``scene``: the patient and the case's CT, the robot holding the CM,
-    the C-arm views, the plan."""
-    world_rng = np.random.default_rng(world_seed)  # its own stream: the ideal world draws nothing
-    with T("anatomy"):
-        phantom_seed = cfg.seed if cfg.phantom_seed is None else cfg.phantom_seed
-        anatomy = world_anatomy(
-            ct, phantom_seed, cfg.world.ct, image_size=cfg.image_size, device=cfg.device, rng=world_rng
-        )
-    with T("scene"):
-        sc = _working_scene(anatomy.patient, cfg, np.random.default_rng(scene_seed))
-        tr = sc.trial
-        kin = CMKinematics(sc.cm_config)
-        cp_true = np.asarray(sc.control_points_deg, np.float64)
-        built = None
-        if cfg.world.instrument.enabled:  # the CM in the images is not the model the registration fits
-            built = build_instrument(cfg.world.instrument, sc.cm_config, world_rng)
-            tip_cm = built_tip_cm(built, cp_true).numpy()
-        else:
-            tip_cm = kin.tip_cm(torch.as_tensor(cp_true, dtype=torch.float64)).numpy()
-        q_regi = sc.q_work_deg
-        W_regi = sc.execute(q_regi, rng=rng)
-        iso = working_view_centre(tr)
-        ap = centre_on(sc.camera, iso)
-        cams = [ap] + [orbit_camera(ap, angle_deg=a, isocenter_world=iso) for a in cfg.orbit_deg]
-        names = ["AP"] + [f"orbit {a:+g}" for a in cfg.orbit_deg]
-        plan = neck_entry_plan(tr.entry_ct, tr.femoral_head_ct)
-        ee_from_cm_used = perturb_transform(sc.ee_from_cm, rng, cfg.handeye_error_deg, cfg.handeye_error_mm)
-    return _Scenario(
-        cfg,
-        anatomy.case_ct,
-        anatomy.simulator,
-        sc,
-        cp_true,
-        tip_cm,
-        q_regi,
-        W_regi,
-        cams,
-        names,
-        plan,
-        ee_from_cm_used,
-        anatomy.patient,
-        world_rng,
-        built,
-    )
-
-
-def _working_scene(
-    volume: Volume, cfg: SimulatedNavigationConfig, rng: np.random.Generator
-) -> HandEyeScenario:
-    """A scene whose working pose reaches the plan gently (``cfg.working_pose_max_joint_deg``)."""
-    for draw in range(max(1, cfg.max_scene_draws)):
-        sc = sample_handeye_scenario(volume, rng, n_poses=0)
-        if cfg.working_pose_max_joint_deg is None:
-            return sc
-        motion = _true_first_move_deg(sc)
-        if motion <= cfg.working_pose_max_joint_deg:
-            return sc
-        log.debug("scene draw %d: the plan needs a %.1f° joint turn; redrawn", draw, motion)
-    return sc
-
-
-def _true_first_move_deg(sc: HandEyeScenario) -> float:
-    """The largest joint turn of the least-motion move to the plan with true poses (inf: unreachable)."""
-    tr = sc.trial
-    kin = CMKinematics(sc.cm_config)
-    plan = dataclasses.replace(
-        neck_entry_plan(tr.entry_ct, tr.femoral_head_ct), control_points_deg=np.asarray(sc.control_points_deg)
-    )
-    try:
-        chosen = least_motion_target(
-            sc.nominal,
-            sc.q_work_deg,
-            lambda roll: planned_femur_from_cm(plan, kinematics=kin, roll_deg=roll),
-            ee_from_cm=sc.ee_from_cm,
-            carm_from_femur=tr.world_from_femur,
-            carm_from_cm=sc.true_world_from_cm(sc.q_work_deg),
-        )
-    except UnreachableTarget:
-        return float("inf")
-    return float(chosen.joint_motion_deg)
-
-
 def _first_case(
-    s: _Scenario, run: SimulatedNavigation, rng: np.random.Generator, seed: int, case_dir: Path | None
+    s: Scenario, run: SimulatedNavigation, rng: np.random.Generator, seed: int, case_dir: Path | None
 ) -> tuple[NavigationCase, list[Any]]:
     """Stage ``simulate``: the images with the robot at its working pose → (the case, the images);
     the truth into ``run.truth``."""
@@ -437,7 +216,7 @@ def _first_case(
 
 
 def _move(
-    s: _Scenario, run: SimulatedNavigation, res: NavigationResult, rng: np.random.Generator
+    s: Scenario, run: SimulatedNavigation, res: NavigationResult, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stage ``move``: the true robot to the commanded joints → (world_from_cm after the move, the
     planned tip in the world, the planned pose in the world)."""
@@ -456,7 +235,7 @@ def _move(
 
 
 def _verification_case(
-    s: _Scenario,
+    s: Scenario,
     run: SimulatedNavigation,
     case: NavigationCase,
     W_after: np.ndarray,
@@ -543,7 +322,7 @@ def run_simulated_navigation(
     rng = np.random.default_rng(rng_seed)
     seeds = rng.integers(2**31, size=8)
 
-    s = _scenario(cfg, ct, T, rng, int(seeds[0]), int(seeds[3]))
+    s = build_scenario(cfg, ct, T, rng, int(seeds[0]), int(seeds[3]))
     with T("simulate"):
         case, images = _first_case(s, run, rng, int(seeds[1]), case_dir)
     A.update(volume=s.volume, scene=s.sc, images=images, names=s.names, case=case)
@@ -611,7 +390,7 @@ def run_simulated_navigation(
     return run
 
 
-def _first_fault(s: _Scenario, case: NavigationCase, seed: int) -> NavigationCase:
+def _first_fault(s: Scenario, case: NavigationCase, seed: int) -> NavigationCase:
     """The case with the config's fault (:mod:`fluoronav.navigation.faults`) in its first views, CT
     labels or plan; a view without the CM is simulated anew (its seed as the first images')."""
     fault = get_fault(s.config.fault)
