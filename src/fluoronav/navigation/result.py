@@ -17,7 +17,7 @@ from fluoronav import __version__
 from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
 from fluoronav.navigation.planning import Plan
-from fluoronav.navigation.preflight import PreflightConfig
+from fluoronav.navigation.preflight_config import PreflightConfig
 from fluoronav.navigation.safety import SafetyConfig
 from fluoronav.registration.bone.presets import (
     PELVIS_LINEARIZED_PRESET,
