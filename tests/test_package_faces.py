@@ -28,6 +28,7 @@ FACES = (
     "fluoronav.simulation",
     "fluoronav.detection",
     "fluoronav.registration",
+    "fluoronav.registration.view_set",
     "fluoronav.navigation",
 )
 

@@ -18,7 +18,9 @@ import numpy as np
 import pytest
 
 import fluoronav.registration.bone.checks as bone_checks
-import fluoronav.registration.view_set as view_set
+import fluoronav.registration.view_set.bones as view_set_bones
+import fluoronav.registration.view_set.cm as view_set_cm
+import fluoronav.registration.view_set.views as view_set_views
 from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera, DetectorSpec
@@ -116,21 +118,21 @@ def calls(monkeypatch: pytest.MonkeyPatch) -> _Calls:
         c.unchecked.append({"starts": starts, **kw})
         return SimpleNamespace(cost=-1.0, converged=True, reason="converged")
 
-    monkeypatch.setattr(view_set, "instrument_masks", lambda masks, *a: [None] * len(masks))
-    monkeypatch.setattr(view_set, "register_pelvis_per_view", pelvis)
-    monkeypatch.setattr(view_set, "register_femur", femur)
-    monkeypatch.setattr(view_set, "bone_footprints", footprints)
-    monkeypatch.setattr(view_set, "centerline_initialize_multiview", init)
+    monkeypatch.setattr(view_set_views, "instrument_masks", lambda masks, *a: [None] * len(masks))
+    monkeypatch.setattr(view_set_bones, "register_pelvis_per_view", pelvis)
+    monkeypatch.setattr(view_set_bones, "register_femur", femur)
+    monkeypatch.setattr(view_set_bones, "bone_footprints", footprints)
+    monkeypatch.setattr(view_set_cm, "centerline_initialize_multiview", init)
     monkeypatch.setattr(
-        view_set, "multiview_start_poses", lambda init, max_starts: MULTIVIEW_STARTS[:max_starts]
+        view_set_cm, "multiview_start_poses", lambda init, max_starts: MULTIVIEW_STARTS[:max_starts]
     )
-    monkeypatch.setattr(view_set, "register_cm_checked", checked)
+    monkeypatch.setattr(view_set_cm, "register_cm_checked", checked)
 
     def agreement(predicted: Any, cm: Any, cm_config: Any) -> dict[str, float]:
         c.motion.append(predicted)
         return {"motion_tip_mm": 4.2, "motion_rotation_deg": 1.5}
 
-    monkeypatch.setattr(view_set, "motion_agreement", agreement)
+    monkeypatch.setattr(view_set_cm, "motion_agreement", agreement)
 
     def diagnostics(views: list[Any], volume: Any, label: str, *a: Any) -> list[BoneViewDiagnostics]:
         bad = BAD_PELVIS if label == "pelvis" else BAD_FEMUR
@@ -141,7 +143,7 @@ def calls(monkeypatch: pytest.MonkeyPatch) -> _Calls:
             for v in views
         ]
 
-    monkeypatch.setattr(view_set, "register_cm_multistart", unchecked)
+    monkeypatch.setattr(view_set_cm, "register_cm_multistart", unchecked)
     monkeypatch.setattr(bone_checks, "bone_view_diagnostics", diagnostics)
     monkeypatch.setattr(bone_checks, "register_pelvis_per_view", pelvis)
     return c
@@ -283,7 +285,7 @@ def test_a_refusal_of_the_cm_marks_its_stage(monkeypatch: pytest.MonkeyPatch, ca
     def refuse(*a: Any, **kw: Any) -> Any:
         raise RegistrationRefused("cm", "edge_ncc", "NCC 0.1", view="view1")
 
-    monkeypatch.setattr(view_set, "register_cm_checked", refuse)
+    monkeypatch.setattr(view_set_cm, "register_cm_checked", refuse)
     records: dict[str, StageRecord] = {}
     with pytest.raises(RegistrationRefused, match="stage cm, view view1, check edge_ncc"):
         _register(ViewSetSettings(), recorder=timed_stages(records))

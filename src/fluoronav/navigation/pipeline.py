@@ -85,13 +85,8 @@ from fluoronav.navigation.targeting import (
     robot_target,
     tip_correction_target,
 )
-from fluoronav.registration.view_set import (
-    FluoroView,
-    StageRecorder,
-    ViewSetPrior,
-    ViewSetRegistration,
-    register_view_set,
-)
+from fluoronav.registration.stages import StageRecorder
+from fluoronav.registration.view_set import FluoroView, ViewSetPrior, ViewSetRegistration, register_view_set
 
 log = logging.getLogger(__name__)
 

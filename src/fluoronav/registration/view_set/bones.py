@@ -1,0 +1,222 @@
+"""The bones of a view set: the pelvis per view, then the femur, each checked view by view (stages
+``pelvis`` and ``femur`` of :func:`~fluoronav.registration.view_set.register_view_set`).
+
+Each view's pelvis is registered alone (the CM and its shaft left out of the similarity), which
+places its camera in the CT frame; after a move, each view's pelvis again with the femur's footprint
+(the femur where the earlier registration put it) left out as well. A view whose pelvis fails its
+checks (:mod:`fluoronav.registration.bone.checks`: a mirrored image, a wrong camera) is left out of
+every later stage. The femur (rotation about its head) is then registered to the views in the CT
+frame → ``ct_from_femur``, checked view by view; a view that fails is left out and the femur
+registered again without it.
+
+Frames: ``ct`` (LPS, mm) is the world frame of the registered views; ``femur`` is the CT frame
+moved with the femur (``ct_from_femur``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from fluoronav.anatomy.volume import Volume
+from fluoronav.errors import RegistrationRefused
+from fluoronav.geometry.camera import Camera
+from fluoronav.registration.bone import (
+    BoneRegistrationResult,
+    BoneView,
+    bone_footprints,
+    femur_config,
+    register_femur,
+    register_pelvis_per_view,
+    views_in_ct_frame,
+)
+from fluoronav.registration.bone.checks import judge_pelvis_views, register_femur_checked
+from fluoronav.registration.stages import StageRecorder, unrecorded
+from fluoronav.registration.view_set.settings import ViewSetSeeds, ViewSetSettings
+
+__all__ = [
+    "ViewSetBones",
+    "register_view_set_bones",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class ViewSetBones:
+    """The bones registered in a view set.
+
+    Attributes:
+        pelvis: per-view pelvis registrations (the last of each view's) of the views that passed
+            their checks.
+        cameras: those views' cameras, placed by their pelvis registrations in the CT frame (or as
+            given, see :func:`register_view_set_bones`).
+        femur: the femur registration (``world_from_bone`` = ``ct_from_femur``).
+        kept: the indices (into the given views) of those views; None: every view.
+        left_out: the views left out by the checks, name → why (the pelvis's or the femur's).
+    """
+
+    pelvis: tuple[BoneRegistrationResult, ...]
+    cameras: tuple[Camera, ...]
+    femur: BoneRegistrationResult
+    kept: tuple[int, ...] | None = None
+    left_out: dict[str, str] = field(default_factory=dict)
+
+
+def register_view_set_bones(
+    views: Sequence[BoneView],
+    volume: Volume,
+    *,
+    side: str,
+    settings: ViewSetSettings,
+    seeds: ViewSetSeeds,
+    names: Sequence[str] | None = None,
+    prior_ct_from_femur: np.ndarray | None = None,
+    initial_world_from_pelvis: np.ndarray | None = None,
+    in_ct_frame: bool = True,
+    recorder: StageRecorder | None = None,
+) -> ViewSetBones:
+    """The pelvis per view, then the femur (stages "pelvis" and "femur" of :func:`register_view_set`).
+
+    Args:
+        views: the bone views (:func:`bone_views`).
+        volume, side: as :func:`register_view_set`.
+        settings, seeds: the settings (``pelvis``, ``femur``, ``pelvis_refine``,
+            ``femur_margin_mm``, ``device``) and the stages' seeds.
+        names: the views' names in the diagnostics (default ``view<k>``).
+        prior_ct_from_femur: (4, 4) an earlier femur: the femur starts there, and each view's pelvis
+            is registered again with that femur's footprint left out (``settings.pelvis_refine``).
+        initial_world_from_pelvis: (4, 4) the pelvis's start in every view (default identity).
+        in_ct_frame: True: each view's camera placed by its own pelvis registration and the femur
+            registered in the CT frame (the multi-view geometry, §II-C); False (one view whose
+            camera is known in the world frame): the femur registered in that frame, relative to the
+            registered pelvis, and the camera kept.
+        recorder: as :func:`register_view_set`.
+
+    Raises:
+        ValueError: ``in_ct_frame`` is False with more than one view.
+        RegistrationRefused: (stage "pelvis", "femur") too few views passed their checks
+            (``settings.bone_checks``).
+    """
+    if not in_ct_frame and len(views) != 1:
+        raise ValueError(f"the world frame of the cameras takes one view, got {len(views)}")
+    record = recorder or unrecorded
+    names = list(names) if names is not None else [f"view{k}" for k in range(len(views))]
+    W0 = np.eye(4) if initial_world_from_pelvis is None else initial_world_from_pelvis
+    with record("pelvis") as rec:
+        pelvis = register_pelvis_per_view(
+            views,
+            volume,
+            initial_world_from_patient=W0,
+            config=replace(settings.pelvis, device=settings.device),
+            seed=seeds.pelvis,
+        )
+        rec.diagnostics["views"] = {
+            n: {"cost": float(r.cost), "converged": bool(r.converged), "reason": r.reason}
+            for n, r in zip(names, pelvis, strict=True)
+        }
+        if prior_ct_from_femur is not None and settings.pelvis_refine is not None:
+            pelvis = _pelvis_without_femur(
+                views, volume, side, pelvis, prior_ct_from_femur, settings, seeds, rec.diagnostics["views"]
+            )
+        kept, left_out = list(range(len(views))), dict[str, str]()
+        if settings.bone_checks is not None:
+            try:
+                kept, left_out = judge_pelvis_views(
+                    views,
+                    volume,
+                    pelvis,
+                    names,
+                    settings.bone_checks,
+                    initial_world_from_patient=W0,
+                    pelvis_config=replace(settings.pelvis, device=settings.device),
+                    seed=seeds.pelvis,
+                    record=rec.diagnostics["views"],
+                )
+            except RegistrationRefused:
+                rec.passed = False
+                raise
+            if left_out:
+                rec.diagnostics["left_out"] = dict(left_out)
+    views, pelvis, names = [views[k] for k in kept], [pelvis[k] for k in kept], [names[k] for k in kept]
+    if in_ct_frame:
+        femur_views = views_in_ct_frame(views, pelvis)
+        world_from_pelvis = np.eye(4)
+    else:
+        femur_views, world_from_pelvis = list(views), pelvis[0].world_from_bone
+
+    def femur_of(fviews: Sequence[BoneView]) -> BoneRegistrationResult:
+        return register_femur(
+            fviews,
+            volume,
+            side=side,
+            world_from_patient=world_from_pelvis,
+            config=replace(settings.femur or femur_config(views=len(fviews)), device=settings.device),
+            seed=seeds.femur,
+            initial_world_from_femur=prior_ct_from_femur,
+        )
+
+    with record("femur") as rec:
+        femur_kept = list(range(len(femur_views)))
+        if settings.bone_checks is None:
+            femur = femur_of(femur_views)
+        else:
+            try:
+                femur, femur_kept = register_femur_checked(
+                    femur_views, names, femur_of, volume, side, settings.bone_checks, rec.diagnostics
+                )
+            except RegistrationRefused:
+                rec.passed = False
+                raise
+            left_out.update(rec.diagnostics.get("left_out", {}))
+        rec.diagnostics.update(cost=float(femur.cost), converged=bool(femur.converged), reason=femur.reason)
+    return ViewSetBones(
+        tuple(pelvis[k] for k in femur_kept),
+        tuple(femur_views[k].camera for k in femur_kept),
+        femur,
+        kept=None if not left_out else tuple(kept[k] for k in femur_kept),
+        left_out=left_out,
+    )
+
+
+def _pelvis_without_femur(
+    views: Sequence[BoneView],
+    volume: Volume,
+    side: str,
+    pelvis: Sequence[BoneRegistrationResult],
+    ct_from_femur: np.ndarray,
+    settings: ViewSetSettings,
+    seeds: ViewSetSeeds,
+    record: dict[str, Any],
+) -> list[BoneRegistrationResult]:
+    """Each view's pelvis again, from its first result, with the femur's footprint (the femur at
+    ``ct_from_femur``, seen through that result's camera) left out of the similarity; ``record``
+    (per view name) gets what was left out and the cost without it."""
+    assert settings.pelvis_refine is not None
+    cams = [r.camera_from_bone[0] for r in pelvis]
+    head = np.asarray(volume.landmarks_world[f"femoral_head_{side}"], np.float64)
+    femur = bone_footprints(
+        [v.camera for v in views],
+        volume,
+        f"femur_{side}",
+        np.stack([c @ ct_from_femur for c in cams]),
+        margin_mm=settings.femur_margin_mm,
+        center_bone_mm=head,
+    )
+    masked = [
+        BoneView(v.image, v.camera, ~f if v.mask is None else (np.asarray(v.mask, dtype=bool) & ~f))
+        for v, f in zip(views, femur, strict=True)
+    ]
+    again = register_pelvis_per_view(
+        masked,
+        volume,
+        initial_world_from_patient=np.stack([r.world_from_bone for r in pelvis]),
+        config=replace(settings.pelvis_refine, device=settings.device),
+        seed=seeds.pelvis_refine,
+    )
+    for name, f, r in zip(record, femur, again, strict=True):
+        record[name].update(
+            femur_left_out=float(f.mean()), cost_without_femur=float(r.cost), reason_without_femur=r.reason
+        )
+    return again
