@@ -67,6 +67,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dirs", nargs="+", type=Path, help="study directories (summary.json + trials.csv)")
     args = ap.parse_args(argv)
+    for d in args.dirs:
+        for name in ("summary.json", "trials.csv"):
+            if not (d / name).is_file():
+                raise SystemExit(f"error: {d}: no {name} (not a finished study directory)")
     print(fault_table(args.dirs))
 
 
