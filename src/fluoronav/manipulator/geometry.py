@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -129,18 +130,13 @@ def link_table(config: CMConfig, notches: NotchGeometry | None = None) -> LinkTa
         raise ValueError(f"notches must describe {config.n_notches} notches, got {len(notches.z_mm)}")
     centres = np.asarray(notches.z_mm, dtype=np.float64)
     zr = _z_ranges(config, centres)
-    L = zr.shape[0]
-    table = np.zeros((L, 2, 3))
-    cuts = np.zeros((L, 2))
-    count = np.zeros(L, dtype=int)
-    for j in range(config.n_notches):
-        zc, hw = centres[j], notches.width_mm[j] / 2.0
-        for k in range(L):
-            lo, hi = max(zc - hw, zr[k, 0]), min(zc + hw, zr[k, 1])
-            if hi > lo:
-                table[k, count[k]] = (lo, hi, float(config.notch_side(j)))
-                cuts[k, count[k]] = config.outer_radius_mm - notches.depth_mm[j]
-                count[k] += 1
+    table, cuts = _split_notches(
+        config,
+        zr,
+        centres,
+        [w / 2.0 for w in notches.width_mm],
+        [config.outer_radius_mm - d for d in notches.depth_mm],
+    )
     return LinkTable(
         z_range_mm=zr,
         notches=table,
@@ -157,20 +153,40 @@ def _z_ranges(config: CMConfig, centres: np.ndarray) -> np.ndarray:
     return np.stack([bounds[:-1], bounds[1:]], axis=1)
 
 
-def _nominal_link_table(config: CMConfig) -> LinkTable:
-    kin = CMKinematics(config)
-    zr = kin.link_z_ranges_mm()
+def _split_notches(
+    config: CMConfig,
+    zr: np.ndarray,
+    centres: Sequence[float] | np.ndarray,
+    half_widths_mm: Sequence[float],
+    cuts_mm: Sequence[float],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each notch's part within each link's axial extent ``zr`` (L, 2): ``(notches (L, 2, 3) of
+    (z_lo, z_hi, side), cut levels (L, 2))``."""
     L = zr.shape[0]
-    notches = np.zeros((L, 2, 3))
+    table = np.zeros((L, 2, 3))
+    cuts = np.zeros((L, 2))
     count = np.zeros(L, dtype=int)
-    hw = config.notch_width_mm / 2.0
     for j in range(config.n_notches):
-        zc = config.notch_z_mm(j)
+        zc, hw = centres[j], half_widths_mm[j]
         for k in range(L):
             lo, hi = max(zc - hw, zr[k, 0]), min(zc + hw, zr[k, 1])
             if hi > lo:
-                notches[k, count[k]] = (lo, hi, float(config.notch_side(j)))
+                table[k, count[k]] = (lo, hi, float(config.notch_side(j)))
+                cuts[k, count[k]] = cuts_mm[j]
                 count[k] += 1
+    return table, cuts
+
+
+def _nominal_link_table(config: CMConfig) -> LinkTable:
+    zr = CMKinematics(config).link_z_ranges_mm()
+    n = config.n_notches
+    notches, _ = _split_notches(
+        config,
+        zr,
+        [config.notch_z_mm(j) for j in range(n)],
+        [config.notch_width_mm / 2.0] * n,
+        [config.notch_cut_level_mm] * n,
+    )
     return LinkTable(
         z_range_mm=zr,
         notches=notches,
