@@ -70,7 +70,7 @@ from fluoronav.navigation.simulated_errors import (
 from fluoronav.navigation.simulated_scene import Scenario, SimulatedNavigationConfig, build_scenario
 from fluoronav.registration.metrics import axis_error_deg
 from fluoronav.simulation.robot_scene import verification_view_centre
-from fluoronav.simulation.world import fbg_reading, patient_motion
+from fluoronav.simulation.world import fbg_reading
 
 log = logging.getLogger(__name__)
 
@@ -359,10 +359,7 @@ def run_simulated_navigation(
     with T("verify_simulate"):
         # the patient between the two sets of images (the robot's base stays)
         motion = cfg.world.motion
-        centre = se3.apply(s.sc.trial.world_from_patient, s.sc.trial.pelvis_center_ct)
-        moved = patient_motion(
-            motion.between_sets_mm, motion.between_sets_deg, s.world_rng, center_world=centre
-        )
+        moved = s.patient_motion(motion.between_sets_mm, motion.between_sets_deg)
         case, images2 = _verification_case(s, run, case, W_after, rng, int(seeds[2]), case_dir, moved)
     A.update(images2=images2, case=case)
     verify(case, res, on_stage=on_stage, on_event=on_event)

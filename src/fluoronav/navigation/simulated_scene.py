@@ -155,13 +155,10 @@ class Scenario:
         nominal camera flexed as the world says, the anatomy moved by ``moved_from_world`` and, view
         by view, by the world's motion within a set."""
         tr, w = self.sc.trial, self.config.world
-        centre = se3.apply(tr.world_from_patient, tr.pelvis_center_ct)
         out = []
         for k, cam in enumerate(cameras):
             wp, wf = tr.world_from_patient, tr.world_from_femur
-            M = patient_motion(
-                w.motion.within_set_mm, w.motion.within_set_deg, self.world_rng, center_world=centre
-            )
+            M = self.patient_motion(w.motion.within_set_mm, w.motion.within_set_deg)
             if moved_from_world is not None:
                 M = M @ moved_from_world
             if w.motion.enabled:
@@ -179,6 +176,14 @@ class Scenario:
                 )
             )
         return out
+
+    def patient_motion(self, translation_mm: float, rotation_deg: float) -> np.ndarray:
+        """(4, 4) ``moved_from_world``: a rigid motion of the patient of exactly these sizes about
+        the pelvis centre, drawn from the world's generator (the identity, nothing drawn, where
+        both are 0)."""
+        tr = self.sc.trial
+        centre = se3.apply(tr.world_from_patient, tr.pelvis_center_ct)
+        return patient_motion(translation_mm, rotation_deg, self.world_rng, center_world=centre)
 
     @property
     def tip_cm_true(self) -> np.ndarray | None:
