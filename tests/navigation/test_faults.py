@@ -164,13 +164,13 @@ def test_outcomes_name_the_fault_or_not() -> None:
 
 
 def test_the_preflight_names_swapped_labels_and_a_plan_in_soft_tissue(case: NavigationCase) -> None:
-    from fluoronav.navigation.pipeline import NavigationConfig
-    from fluoronav.navigation.preflight import preflight
-    from fluoronav.navigation.simulated import _input_check
+    from fluoronav.navigation.preflight import PreflightInputError, preflight, raise_for_input
 
+    raise_for_input(preflight(case), "case.json")  # the case itself is good input
     swapped = apply_case_fault(case, FAULTS["labels_swapped"])
-    assert _input_check(case, NavigationConfig()) == ""
-    assert _input_check(swapped, NavigationConfig()) in FAULTS["labels_swapped"].handled_by
+    with pytest.raises(PreflightInputError) as exc:
+        raise_for_input(preflight(swapped), "case.json")
+    assert exc.value.check in FAULTS["labels_swapped"].handled_by
     deep = apply_case_fault(case, FAULTS["plan_inward_300"])
     plan_checks = {f.check for f in preflight(deep) if f.kind == "plan"}
     assert plan_checks and plan_checks <= set(FAULTS["plan_inward_300"].handled_by)

@@ -30,6 +30,7 @@ from fluoronav.navigation.preflight import (
     LabelDistance,
     PreflightConfig,
     PreflightFinding,
+    PreflightInputError,
     check_intensities,
     check_labels,
     check_plan,
@@ -297,8 +298,13 @@ def test_input_findings_raise_an_input_error_and_plan_findings_do_not() -> None:
         PreflightFinding("input", "view 'a'", "view 'a' looks inverted", "inverted_image"),
         PreflightFinding("input", "view 'b'", "view 'b' looks inverted", "inverted_image"),
     ]
-    with pytest.raises(InputError, match=r"^case\.json: view 'a' looks inverted \(and 1 more input problem"):
+    with pytest.raises(
+        InputError, match=r"^case\.json: view 'a' looks inverted \(and 1 more input problem"
+    ) as exc:
         raise_for_input([plan, *bad], "case.json")
+    assert (
+        isinstance(exc.value, PreflightInputError) and exc.value.check == "inverted_image"
+    )  # the first finding's check, for whoever counts them
 
 
 def test_a_plan_finding_comes_after_the_input_findings(case: NavigationCase) -> None:

@@ -36,6 +36,7 @@ __all__ = [
     "LabelDistance",
     "PreflightConfig",
     "PreflightFinding",
+    "PreflightInputError",
     "check_intensities",
     "check_labels",
     "check_plan",
@@ -329,11 +330,19 @@ def preflight(case: NavigationCase, config: PreflightConfig | None = None) -> li
     return findings
 
 
+class PreflightInputError(InputError):
+    """Bad input found by the preflight (exit status 2); ``check`` names its first finding's check."""
+
+    def __init__(self, source: str, problem: str, *, check: str) -> None:
+        super().__init__(source, problem)
+        self.check = check
+
+
 def raise_for_input(findings: Sequence[PreflightFinding], source: str) -> None:
-    """Raise the :class:`~fluoronav.errors.InputError` (exit status 2) of the first ``"input"``
+    """Raise the :class:`PreflightInputError` (an InputError: exit status 2) of the first ``"input"``
     finding, naming ``source`` (the case file) and how many more there are; nothing otherwise."""
     bad = [f for f in findings if f.kind == "input"]
     if not bad:
         return
     more = f" (and {len(bad) - 1} more input problem(s))" if len(bad) > 1 else ""
-    raise InputError(source, bad[0].reason + more)
+    raise PreflightInputError(source, bad[0].reason + more, check=bad[0].check)

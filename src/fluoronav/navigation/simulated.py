@@ -61,7 +61,6 @@ from fluoronav.navigation.faults import (
     view_without_cm,
 )
 from fluoronav.navigation.pipeline import EventCallback, NavigationConfig, NavigationResult, navigate, verify
-from fluoronav.navigation.preflight import preflight
 from fluoronav.navigation.simulated_errors import (
     first_registration_errors,
     robot_only_error,
@@ -334,7 +333,7 @@ def run_simulated_navigation(
     except InputError as exc:
         if cfg.fault is None:
             raise
-        A["input_error"] = {"reason": str(exc), "check": _input_check(case, nav_cfg)}
+        A["input_error"] = {"reason": str(exc), "check": getattr(exc, "check", "")}
         return run
     run.result = res
     first_registration_errors(
@@ -408,12 +407,6 @@ def _first_fault(s: Scenario, case: NavigationCase, seed: int) -> NavigationCase
         views[k] = view_without_cm(views[k], bare.image)
         case = dataclasses.replace(case, views=tuple(views))
     return apply_case_fault(apply_first_fault(case, fault), fault)
-
-
-def _input_check(case: NavigationCase, config: NavigationConfig) -> str:
-    """The check of the preflight's first input finding (what the InputError reports), or ""."""
-    found = [f for f in preflight(case, config.preflight) if f.kind == "input"]
-    return found[0].check if found else ""
 
 
 def _ct_path(case_dir: Path) -> str | None:
