@@ -105,9 +105,18 @@ def _case(*, robot: SerialRobot = UR10) -> NavigationCase:
         ee_from_cm=ee,
         views=(_view("ap", 0), _view("oblique", 1, with_mask=True), _view("lateral", 2, spacing=None)),
         verification=VerificationViews(
-            joints_deg=np.array([12.0, -78.0, 93.0, -101.0, -90.0, 6.0]), views=(_view("ap", 3),)
+            joints_deg=np.array([12.0, -78.0, 93.0, -101.0, -90.0, 6.0]),
+            views=(
+                replace(_view("ap after", 3), moved_from="ap", carm_motion=CARM_SLIDE),
+                replace(_view("oblique again", 4), moved_from="oblique", carm_motion=np.eye(4)),
+                _view("free", 5),
+            ),
         ),
     )
+
+
+#: the C-arm slid 40 mm along its x axis and 15 mm up between a first view and its verification view
+CARM_SLIDE = np.array([[1.0, 0.0, 0.0, -40.0], [0.0, 1.0, 0.0, 15.0], [0.0, 0.0, 1.0, 0.0], [0, 0, 0, 1.0]])
 
 
 def _assert_views_equal(a: tuple[CaseView, ...], b: tuple[CaseView, ...]) -> None:
@@ -119,7 +128,8 @@ def _assert_views_equal(a: tuple[CaseView, ...], b: tuple[CaseView, ...]) -> Non
         np.testing.assert_allclose(u.camera.K, v.camera.K, rtol=0, atol=1e-12)
         np.testing.assert_allclose(u.camera.camera_from_world, v.camera.camera_from_world, atol=1e-12)
         assert u.camera.pixel_spacing_mm == v.camera.pixel_spacing_mm
-        for x, y in ((u.landmarks_px, v.landmarks_px), (u.mask, v.mask)):
+        assert u.moved_from == v.moved_from
+        for x, y in ((u.landmarks_px, v.landmarks_px), (u.mask, v.mask), (u.carm_motion, v.carm_motion)):
             assert (x is None) == (y is None)
             if x is not None:
                 np.testing.assert_array_equal(x, y)
@@ -165,6 +175,9 @@ def test_written_case_loads_back_equal(tmp_path: Path, robot: SerialRobot) -> No
     assert back.verification is not None and case.verification is not None
     np.testing.assert_array_equal(back.verification.joints_deg, case.verification.joints_deg)
     _assert_views_equal(case.verification.views, back.verification.views)
+    entries = d["verification"]["views"]
+    assert entries[0]["moved_from"]["view"] == "ap" and entries[1]["same_camera_as"] == "oblique"
+    assert "moved_from" not in entries[2] and "same_camera_as" not in entries[2]
     assert back.source == path
 
 
@@ -332,6 +345,22 @@ MALFORMED: dict[str, tuple[Edit, str]] = {
         "views[1].mask is given without landmarks_px",
     ),
     "bad-robot-model": (_set("robot", "model", value="UR-10"), "robot.model 'UR-10' is neither"),
+    "moved-from-unknown-view": (
+        _set("verification", "views", 1, "same_camera_as", value="lateral view"),
+        "verification.views[1] names view 'lateral view', which is not among the views",
+    ),
+    "moved-from-and-same-camera": (
+        _set("verification", "views", 0, "same_camera_as", value="ap"),
+        "verification.views[0]: give same_camera_as or moved_from, not both",
+    ),
+    "carm-motion-not-rigid": (
+        _set("verification", "views", 0, "moved_from", "carm_after_from_carm_before", value=NOT_RIGID),
+        "verification.views[0].moved_from.carm_after_from_carm_before is not a rigid transform",
+    ),
+    "moved-from-malformed": (
+        _set("verification", "views", 0, "moved_from", value="ap"),
+        "verification.views[0].moved_from must be",
+    ),
 }
 
 

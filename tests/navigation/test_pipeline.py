@@ -21,7 +21,8 @@ import fluoronav.navigation.pipeline as pipeline
 from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
 from fluoronav.navigation.case import VerificationViews, write_navigation_case
-from fluoronav.navigation.pipeline import NavigationConfig, NavigationRefused, _band_mask, _refusals, navigate
+from fluoronav.navigation.detect import band_mask
+from fluoronav.navigation.pipeline import NavigationConfig, NavigationRefused, _refusals, navigate
 from fluoronav.navigation.planning import planned_femur_from_cm
 from fluoronav.navigation.result import navigation_cm_config
 from fluoronav.navigation.safety import SafetyConfig
@@ -41,7 +42,7 @@ def test_no_cm_in_the_views_refuses_at_detection_without_a_command(make_no_cm_ca
 
 
 def test_given_landmarks_skip_the_detector_and_make_a_band_mask() -> None:
-    mask = _band_mask((40, 60), np.array([[10.0, 20.0], [50.0, 20.0]]), 3.0)
+    mask = band_mask((40, 60), np.array([[10.0, 20.0], [50.0, 20.0]]), 3.0)
     assert mask[20, 10] and mask[20, 50] and mask[23, 30] and not mask[24, 30] and not mask[20, 54]
     assert mask.sum() == pytest.approx(41 * 7 + np.pi * 9, rel=0.1)
 
@@ -79,15 +80,13 @@ def test_navigate_command_bad_case_is_one_line_and_exit_2(tmp_path: Path, make_n
     assert not (tmp_path / "o" / "navigation.json").exists()
 
 
-def test_navigation_cm_settings_are_the_cmaes_levels() -> None:
-    """The navigation keeps CMA-ES at both CM levels, first registration and verification alike:
-    the verification's refusals rose with the faster multi-view settings (docstring)."""
-    from fluoronav.registration.cm.config import default_cm_levels
+def test_navigation_cm_settings_are_cmaes_then_linearised_and_the_reference_is_cmaes_twice() -> None:
+    """The first registration's CM: the coarse CMA-ES level, then the linearised 2× level; the
+    0.4.1 reference of the bench keeps CMA-ES at both."""
+    from fluoronav.navigation.result import reference_cm_config
 
-    cfg = navigation_cm_config()
-    assert cfg.levels == default_cm_levels()
-    for workflow in ("single-view", "multi-view"):
-        assert [lv.optimizer for lv in cfg.levels_for(workflow)] == ["cmaes", "cmaes"]
+    assert [lv.optimizer for lv in navigation_cm_config().levels_for("multi-view")] == ["cmaes", "linearized"]
+    assert [lv.optimizer for lv in reference_cm_config().levels_for("multi-view")] == ["cmaes", "cmaes"]
 
 
 def test_a_registration_refusal_is_the_navigations_its_stage_named_as_the_pipelines() -> None:
@@ -136,6 +135,7 @@ def test_navigate_registers_the_detected_views_as_one_set(
 def _fake_registration(ct_from_cm: np.ndarray) -> SimpleNamespace:
     """What the plan, robot and correct stages read of a registration (femur = CT, view 0 = CT)."""
     return SimpleNamespace(
+        views=(SimpleNamespace(name="view0"),),
         cameras_ct=(SimpleNamespace(camera_from_world=np.eye(4)),),
         ct_from_femur=np.eye(4),
         ct_from_cm=ct_from_cm,
@@ -323,3 +323,113 @@ def test_joint_readings_that_differ_from_the_command_are_refused_before_any_regi
     assert res.status == "refused" and res.verification is None
     assert "stage verify_joints, check joint_readings" in res.reason and "joint 2" in res.reason
     assert "3.00°" in res.reason and "verify_detect" not in res.stages
+
+
+def _local_config() -> NavigationConfig:
+    from fluoronav.navigation.result import VerificationConfig
+
+    return dataclasses.replace(_CFG, verification=VerificationConfig(local_bones=True))
+
+
+_LOCAL = _local_config()
+
+
+def test_by_default_the_verification_registers_every_bone_with_the_whole_ladders(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=1.0)
+    case = _with_relations(case, [("view0", np.eye(4)), ("view0", np.eye(4))])
+    seen = _spy_verification(monkeypatch)
+    navigate(case, _CFG)
+    assert seen["settings"].local is False and seen["known_bones"] is None
+    assert seen["prior"].prediction_sigma_mm > 0.5
+
+
+def _with_relations(case, relations):
+    """The case's verification views, each related to a first view by ``relations[k]`` (a
+    ``(name, carm_after_from_carm_before)`` pair, or None)."""
+    views = tuple(
+        v if r is None else dataclasses.replace(v, moved_from=r[0], carm_motion=r[1])
+        for v, r in zip(case.verification.views, relations, strict=True)
+    )
+    return dataclasses.replace(case, verification=VerificationViews(case.verification.joints_deg, views))
+
+
+def _spy_verification(monkeypatch: pytest.MonkeyPatch) -> dict:
+    """Wraps the stand-in registration: what the verification's ``register_view_set`` was given."""
+    seen: dict = {}
+    inner = pipeline.register_view_set
+
+    def register(views, volume, **kw):
+        if kw.get("prior") is not None:
+            seen.update(views=views, **kw)
+        return inner(views, volume, **kw)
+
+    monkeypatch.setattr(pipeline, "register_view_set", register)
+    return seen
+
+
+def test_views_moved_from_registered_ones_start_there_and_register_their_bones_locally(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=1.0)
+    slide = se3.make(np.eye(3), (-40.0, 15.0, 0.0))
+    case = _with_relations(case, [("view0", slide), ("view0", slide)])
+    seen = _spy_verification(monkeypatch)
+    res = navigate(case, _LOCAL)
+    assert res.status == "ok", res.reason
+    # the first registration put view0's camera at the identity: each starts at the slide
+    for v in seen["views"]:
+        np.testing.assert_array_equal(v.camera.camera_from_world, slide)
+    assert seen["settings"].local is True and seen["known_bones"] is None
+    assert res.stages["verify_detect"].diagnostics["cameras_from_carm_motion"] is True
+    # the kinematic prediction's stated σ goes with the prior (> the registration's 0.5 mm alone)
+    assert seen["prior"].prediction_sigma_mm > 0.5
+
+
+def test_one_view_without_a_relation_keeps_every_camera_and_the_whole_ladders(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=1.0)
+    given = [v.camera.camera_from_world for v in case.verification.views]
+    case = _with_relations(case, [("view0", se3.make(np.eye(3), (5.0, 0.0, 0.0))), None])
+    seen = _spy_verification(monkeypatch)
+    navigate(case, _LOCAL)
+    assert seen["settings"].local is False
+    np.testing.assert_array_equal(seen["views"][1].camera.camera_from_world, given[1])
+
+
+def test_the_reference_verification_uses_neither_the_carm_motion_nor_the_kinematics(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from fluoronav.navigation.result import VerificationConfig
+
+    case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=1.0)
+    case = _with_relations(case, [("view0", np.eye(4)), ("view0", np.eye(4))])
+    seen = _spy_verification(monkeypatch)
+    navigate(case, dataclasses.replace(_CFG, verification=VerificationConfig.reference()))
+    assert seen["settings"].local is False and seen["known_bones"] is None
+    assert seen["prior"].prediction_sigma_mm is None
+
+
+@pytest.mark.parametrize("unmoved", [True, False], ids=["anatomy-still", "anatomy-moved"])
+def test_unmoved_carm_positions_keep_the_first_bones_where_the_images_agree(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch, unmoved: bool
+) -> None:
+    case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=1.0)
+    case = _with_relations(case, [("view0", np.eye(4)), ("view0", np.eye(4))])
+    known = SimpleNamespace(name="the first bones")
+    asked: list = []
+
+    def unmoved_bones(views, first, same_as, *, min_ncc):
+        asked.append((same_as, min_ncc))
+        ncc = {v.name: 0.999 if unmoved else 0.95 for v in views}
+        return (known if unmoved else None), ncc
+
+    monkeypatch.setattr(pipeline, "unmoved_bones", unmoved_bones)
+    seen = _spy_verification(monkeypatch)
+    res = navigate(case, _LOCAL)
+    assert asked == [([0, 0], 0.995)]
+    assert seen["known_bones"] is (known if unmoved else None)
+    diag = res.stages["verify_detect"].diagnostics
+    assert diag["bones_from_first_registration"] is unmoved and set(diag["unmoved_ncc"]) == {"view0", "view1"}

@@ -133,6 +133,9 @@ def calls(monkeypatch: pytest.MonkeyPatch) -> _Calls:
         return {"motion_tip_mm": 4.2, "motion_rotation_deg": 1.5}
 
     monkeypatch.setattr(view_set_cm, "motion_agreement", agreement)
+    # the stand-in registrations carry no tip: a fusion (tested in test_view_set_fusion.py) finds
+    # them inconsistent unless a test says otherwise
+    monkeypatch.setattr(view_set_cm, "_fuse", lambda cm, *a: (cm, {"mahalanobis": 9.0}))
 
     def diagnostics(views: list[Any], volume: Any, label: str, *a: Any) -> list[BoneViewDiagnostics]:
         bad = BAD_PELVIS if label == "pelvis" else BAD_FEMUR
@@ -244,6 +247,124 @@ def test_a_prior_with_one_view_of_the_cm_starts_from_the_plan_then_the_predictio
     assert [len(t) for t in tries] == [1, 1] and not calls.init
     np.testing.assert_array_equal(tries[0][0], F @ PRIOR.femur_from_cm_start)
     np.testing.assert_array_equal(tries[1][0], F @ PRIOR.femur_from_cm_predicted)
+
+
+def test_local_bones_start_from_the_given_cameras_with_the_local_levels_only(calls: _Calls) -> None:
+    settings = ViewSetSettings(local=True)
+    views = _views()
+    records: dict[str, StageRecord] = {}
+    _register(settings, PRIOR, views=views, recorder=timed_stages(records))
+    assert all("cost" in v for v in records["pelvis"].diagnostics["views"].values())
+    # one pelvis registration per view (no ladder first), from the given cameras, femur left out
+    [pelvis] = calls.pelvis
+    assert pelvis["config"] == settings.pelvis_local
+    np.testing.assert_array_equal(pelvis["initial_world_from_patient"], np.broadcast_to(np.eye(4), (3, 4, 4)))
+    [femur] = calls.femur
+    assert femur["config"] == settings.femur_local
+    np.testing.assert_array_equal(femur["initial_world_from_femur"], PRIOR.ct_from_femur)
+
+
+def test_a_prediction_of_stated_uncertainty_that_the_images_agree_with_is_the_only_start(
+    calls: _Calls, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from fluoronav.registration.cm.config import local_cm_levels
+
+    monkeypatch.setattr(view_set_cm, "landmark_gap_mm", lambda *a: 1.0)
+    fused: list[float] = []
+
+    def fuse(cm: Any, views: Any, predicted: Any, sigma: float, *a: Any) -> tuple[Any, dict[str, float]]:
+        fused.append(sigma)
+        return cm, {"fusion_shift_mm": 0.1, "mahalanobis": 0.5}
+
+    monkeypatch.setattr(view_set_cm, "_fuse", fuse)
+    records: dict[str, StageRecord] = {}
+    reg = _register(
+        ViewSetSettings(), replace(PRIOR, prediction_sigma_mm=0.9), recorder=timed_stages(records)
+    )
+    [cm] = calls.cm  # no second registration: the one from the prediction passed
+    [[start]] = cm["tries"]
+    np.testing.assert_array_equal(start, reg.femur.world_from_bone @ PRIOR.femur_from_cm_predicted)
+    assert cm["config"].levels == local_cm_levels(3)
+    diag = records["cm"].diagnostics
+    assert diag["from_prediction"] is True and diag["prediction_gap_mm"] == 1.0
+    # consistent with the prediction (0.5 σ): the tip is fused with it, and the agreement measured
+    # again after the fusion (the images' own kept beside it)
+    assert fused == [0.9] and diag["fusion_shift_mm"] == 0.1 and diag["fusion_mahalanobis"] == 0.5
+    assert diag["image_motion_tip_mm"] == 4.2 and len(calls.motion) == 2
+
+
+def test_one_view_far_from_the_prediction_is_registered_from_its_own_starts(
+    calls: _Calls, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(view_set_cm, "landmark_gap_mm", lambda *a: 7.5)
+    records: dict[str, StageRecord] = {}
+    _register(
+        ViewSetSettings(),
+        replace(PRIOR, prediction_sigma_mm=0.9),
+        views=_views(detected=1),
+        recorder=timed_stages(records),
+    )
+    [cm] = calls.cm
+    assert [len(t) for t in cm["tries"]] == [1, 1]  # the plan's start, then the prediction
+    assert records["cm"].diagnostics["from_prediction"] is False
+
+
+def test_several_views_try_the_prediction_whatever_their_triangulation_says(
+    calls: _Calls, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One wrong detection can throw the triangulated landmarks far off while the kinematics are
+    right: with several views, the views' checks judge the registration from the prediction."""
+    monkeypatch.setattr(view_set_cm, "landmark_gap_mm", lambda *a: 43.0)
+    monkeypatch.setattr(
+        view_set_cm, "_fuse", lambda cm, *a: (cm, {"mahalanobis": 9.0, "fusion_shift_mm": 1.0})
+    )
+    records: dict[str, StageRecord] = {}
+    _register(ViewSetSettings(), replace(PRIOR, prediction_sigma_mm=0.9), recorder=timed_stages(records))
+    [cm] = calls.cm
+    assert len(cm["tries"]) == 1 and len(cm["tries"][0]) == 1
+    diag = records["cm"].diagnostics
+    assert diag["from_prediction"] is True and diag["prediction_gap_mm"] == 43.0
+    # inconsistent with the prediction (9 σ): not fused, for the caller to judge
+    assert (
+        diag["fusion_mahalanobis"] == 9.0 and "fusion_shift_mm" not in diag and diag["motion_tip_mm"] == 4.2
+    )
+
+
+def test_a_failed_registration_from_the_prediction_falls_back_to_the_images_starts(
+    calls: _Calls, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(view_set_cm, "landmark_gap_mm", lambda *a: 1.0)
+    original = view_set_cm.register_cm_checked
+
+    def failing_once(*a: Any, **kw: Any) -> Any:
+        if len(calls.cm) == 0:
+            calls.cm.append({"tries": a[2], **kw})
+            raise RegistrationRefused("cm", "edge_ncc", "NCC 0.50 (at least 0.7)", view="view0 (verify)")
+        return original(*a, **kw)
+
+    monkeypatch.setattr(view_set_cm, "register_cm_checked", failing_once)
+    records: dict[str, StageRecord] = {}
+    _register(ViewSetSettings(), replace(PRIOR, prediction_sigma_mm=0.9), recorder=timed_stages(records))
+    assert [len(c["tries"]) for c in calls.cm] == [1, 2]
+    diag = records["cm"].diagnostics
+    assert diag["from_prediction"] is False and "edge_ncc" in diag["from_prediction_refused"]
+
+
+def test_known_bones_register_no_bone(calls: _Calls) -> None:
+    views = _views()
+    femur = SimpleNamespace(world_from_bone=_rigid(4.0, (1.0, 0.0, 0.0)))
+    known = view_set_bones.ViewSetBones(
+        pelvis=tuple(SimpleNamespace() for _ in views),
+        cameras=tuple(v.camera for v in views),
+        femur=femur,  # type: ignore[arg-type]
+    )
+    records: dict[str, StageRecord] = {}
+    reg = _register(ViewSetSettings(), PRIOR, views=views, known_bones=known, recorder=timed_stages(records))
+    assert not calls.pelvis and not calls.femur and len(calls.cm) == 1
+    assert records["pelvis"].diagnostics == {"known": True} and records["femur"].diagnostics == {
+        "known": True
+    }
+    np.testing.assert_array_equal(reg.ct_from_femur, femur.world_from_bone)
 
 
 def test_a_prior_without_a_prediction_measures_no_agreement(calls: _Calls) -> None:

@@ -288,6 +288,7 @@ def test_navigation_rows_take_the_final_tip_and_the_checks() -> None:
         (["--handeye-error-mm", "2"], "options of study navigation"),
         (["--world", "realistic"], "--world: only study navigation takes a simulated world so far"),
         (["--fault", "none", "--world", "atlantis"], "atlantis: unknown world"),
+        (["--verify-views", "2"], "--verify-views: --verify-views is an option of study navigation"),
     ],
 )
 def test_study_fault_options_are_checked_before_anything_runs(
@@ -418,3 +419,30 @@ def test_the_world_of_a_navigation_study_reaches_its_trials_and_its_records(
     assert worlds == [REALISTIC, REALISTIC]
     for name in ("config.json", "summary.json"):
         assert json.loads((out / name).read_text())["world"] == REALISTIC.to_dict()
+
+
+def test_the_verification_views_of_a_navigation_study_reach_its_trials_and_its_summary(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import json
+
+    import fluoronav.studies.handeye_study as hs
+    import fluoronav.studies.handeye_trials as ht
+    from fluoronav.cli.main import main
+
+    seen = []
+
+    def trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, object]:
+        seen.append(cfg.verify_views)
+        row = ht.new_row(trial_id, seed, cfg.workflow)
+        row.update(status="refused", reason="stage robot, check reachable: x")
+        return ht.finish_row(row, 0.0)
+
+    monkeypatch.setattr(hs, "run_navigation_trial", trial)
+    monkeypatch.setattr(hs, "detector_or_none", lambda device: None)
+    out = tmp_path / "study"
+    args = ["study", "navigation", "--trials", "2", "--seed", "1", "--out", str(out), "--workers", "0"]
+    main([*args, "--verify-views", "1"])
+    assert seen == [1, 1]
+    for name in ("config.json", "summary.json"):
+        assert json.loads((out / name).read_text())["verify_views"] == 1

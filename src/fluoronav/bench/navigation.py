@@ -12,6 +12,13 @@ The problem is a simulated phantom case as ``fluoronav demo`` makes it (seed :da
   command on the three views with the default settings; ``_reference``: the pelvis, femur and CM of
   0.1.0 (CMA-ES ladders without skipping, the CM's CMA-ES levels
   (:data:`~fluoronav.bench.registration.REFERENCE_CONFIG`), the similarity's torch ops).
+- ``navigate_verify_s``: the same case with its three verification views (the simulated navigation
+  run to its end): the pipeline's stages of the first images and of the verification, summed
+  (the simulation's own stages are not counted); ``_reference``: with the settings of 0.4.1 (the
+  CM's CMA-ES levels, every verification view's bones registered with the whole ladders, the
+  verification's CM from the images alone: :meth:`VerificationConfig.reference`). Each run
+  simulates its own verification images where its own command took the robot, so both are
+  complete navigations; ``*_corrected_tip_mm`` is each one's true tip to plan after the correction.
 
 Each ``_speedup`` is the reference over the figure. The errors of every run against the
 simulation's truth are reported too (``*_pelvis_mm``: the pelvis centre in the camera frame;
@@ -29,7 +36,7 @@ import numpy as np
 from fluoronav.bench.registration import REFERENCE_CONFIG
 from fluoronav.geometry import se3
 from fluoronav.navigation.pipeline import navigate
-from fluoronav.navigation.result import NavigationConfig
+from fluoronav.navigation.result import NavigationConfig, VerificationConfig, reference_cm_config
 from fluoronav.navigation.simulated import SimulatedNavigationConfig, run_simulated_navigation
 from fluoronav.registration.bone import BoneView, register_pelvis
 from fluoronav.registration.bone.presets import PELVIS_CMAES_PRESET, BoneRegistrationConfig, femur_config
@@ -101,6 +108,34 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
                 np.linalg.norm(np.asarray(result.first.tip_ct_mm) - np.asarray(truth["tip_ct_mm"]))
             )
         log.info("%s: %.1f s (%s)", key, out[key], result.status)
-    for key in ("register_bone_view_s", "navigate_s"):
+    out.update(_navigate_verify(device))
+    for key in ("register_bone_view_s", "navigate_s", "navigate_verify_s"):
         out[f"{key}_speedup"] = out[f"{key}_reference"] / out[key]
+    return out
+
+
+def _navigate_verify(device: str) -> dict[str, float]:
+    """``navigate_verify_s`` and its reference (module docstring)."""
+    out: dict[str, float] = {}
+    reference = NavigationConfig(
+        device=device,
+        seed=BENCH_SEED,
+        cm=reference_cm_config(),
+        verify_cm=reference_cm_config(),
+        verification=VerificationConfig.reference(),
+    )
+    for key, nav in (
+        ("navigate_verify_s", NavigationConfig(device=device, seed=BENCH_SEED)),
+        ("navigate_verify_s_reference", reference),
+    ):
+        sim = run_simulated_navigation(
+            SimulatedNavigationConfig(seed=BENCH_SEED, device=device), navigation=nav
+        )
+        res = sim.result
+        assert res is not None
+        out[key] = float(sum(rec.seconds for rec in res.stages.values()))
+        out[key.replace("_s", "_corrected_tip_mm", 1)] = float(
+            sim.errors.get("corrected_tip_mm", float("nan"))
+        )
+        log.info("%s: %.1f s (%s)", key, out[key], res.status)
     return out

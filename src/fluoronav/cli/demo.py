@@ -27,6 +27,7 @@ def run(
     oracle_landmarks: bool,
     igtl: str | None = None,
     world: str = "ideal",
+    verify_views: int = 3,
 ) -> int:
     """Run the demo, print its table, write its files; returns the exit status (3: refused). With
     ``igtl`` (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer)."""
@@ -53,6 +54,7 @@ def run(
         device=str(resolve_device(device)),
         oracle_landmarks=oracle_landmarks,
         world=load_world(world),
+        verify_views=verify_views,
     )
     total = len(SIMULATION_STAGES) + len(STAGES) + len(VERIFY_STAGES)
     with stage_progress(total, "demo") as progress, link or nullcontext():
@@ -109,6 +111,13 @@ def register(app: typer.Typer) -> None:
             "--world",
             help="The simulated world's error sources: ideal, realistic, or a JSON file of magnitudes.",
         ),
+        verify_views: int = typer.Option(
+            3,
+            "--verify-views",
+            min=1,
+            max=3,
+            help="Verification images after the move (1, 2 or 3).",
+        ),
     ) -> None:
         """Simulated navigation on the built-in phantom: a simulated case written to files, then the
         navigate pipeline on them (detection → registration → robot command), the move, verification
@@ -122,5 +131,6 @@ def register(app: typer.Typer) -> None:
             oracle_landmarks=oracle_landmarks,
             igtl=igtl,
             world=world,
+            verify_views=verify_views,
         )
         raise typer.Exit(code)

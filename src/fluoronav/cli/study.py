@@ -39,12 +39,22 @@ _WORLD_OPTION = typer.Option(
 )
 
 
+_VERIFY_VIEWS_OPTION = typer.Option(
+    None,
+    "--verify-views",
+    min=1,
+    max=3,
+    help="navigation: verification images per case after the move (1, 2 or 3; default 3).",
+)
+
+
 def _navigation_options(
     workflow: str,
     fault: str | None,
     handeye_error_mm: float | None,
     handeye_error_deg: float | None,
     world: str,
+    verify_views: int | None = None,
 ) -> dict[str, Any]:
     """The navigation study's own options, checked (an unknown fault or world, or one given to
     another study, is an :class:`InputError`)."""
@@ -62,6 +72,10 @@ def _navigation_options(
         from fluoronav.simulation.world import load_world  # lazy: fast --help
 
         out["world"] = load_world(world)
+    if verify_views is not None:
+        if workflow != "navigation":
+            raise InputError("--verify-views", "--verify-views is an option of study navigation")
+        out["verify_views"] = verify_views
     return out
 
 
@@ -125,6 +139,7 @@ def register(app: typer.Typer) -> None:
         ),
         fault: str = _FAULT_OPTION,
         world: str = _WORLD_OPTION,
+        verify_views: int = _VERIFY_VIEWS_OPTION,
         handeye_error_mm: float = _HANDEYE_ERROR_MM_OPTION,
         handeye_error_deg: float = _HANDEYE_ERROR_DEG_OPTION,
         data: Path = typer.Option(None, "--data", help="deepfluoro: the DeepFluoro HDF5 file (yours)."),
@@ -139,7 +154,9 @@ def register(app: typer.Typer) -> None:
         """Run (or resume) a study; writes trials.csv, summary.json and figures/."""
         from fluoronav.device import resolve_device  # heavy: torch
 
-        navigation = _navigation_options(workflow, fault, handeye_error_mm, handeye_error_deg, world)
+        navigation = _navigation_options(
+            workflow, fault, handeye_error_mm, handeye_error_deg, world, verify_views
+        )
         if workflow == "deepfluoro":
             summary = _deepfluoro(
                 data, trials, seed, out, specimen, xreg_gt_correction, device, scheduler, workers

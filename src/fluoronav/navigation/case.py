@@ -263,6 +263,13 @@ def load_navigation_case(path: str | Path) -> NavigationCase:
                 default_prefix="verify",
             ),
         )
+    if verification is not None:
+        names = {v.name for v in views}
+        for k, v in enumerate(verification.views):
+            if v.moved_from is not None and v.moved_from not in names:
+                raise InputError(
+                    src, f"verification.views[{k}] names view {v.moved_from!r}, which is not among the views"
+                )
     n_verify = 0 if verification is None else len(verification.views)
     logger.info("%s: %s side, %d view(s), %d verification view(s)", src, side, len(views), n_verify)
     return NavigationCase(

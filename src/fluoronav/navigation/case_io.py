@@ -52,7 +52,16 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 #: Keys of one view entry.
-VIEW_KEYS = ("name", "image", "camera", "landmarks_px", "mask", "isocenter_ct_mm")
+VIEW_KEYS = (
+    "name",
+    "image",
+    "camera",
+    "landmarks_px",
+    "mask",
+    "isocenter_ct_mm",
+    "moved_from",
+    "same_camera_as",
+)
 #: Keys of the ``robot`` object.
 ROBOT_KEYS = ("model", "joints_deg", "ee_from_cm")
 
@@ -230,7 +239,39 @@ def _view(
                 src,
                 f"{vk}.mask is {mask.shape[0]}x{mask.shape[1]}, the image {image.shape[0]}x{image.shape[1]}",
             )
-    return CaseView(name=name, image=image, camera=camera, landmarks_px=landmarks, mask=mask)
+    moved_from, motion = _carm_relation(entry, vk, src)
+    return CaseView(
+        name=name,
+        image=image,
+        camera=camera,
+        landmarks_px=landmarks,
+        mask=mask,
+        moved_from=moved_from,
+        carm_motion=motion,
+    )
+
+
+def _carm_relation(entry: dict[str, Any], vk: str, src: str) -> tuple[str | None, np.ndarray | None]:
+    """A view's C-arm relation to a first view: ``same_camera_as`` (a view name: the C-arm did not
+    move) or ``moved_from`` ({``view``, ``carm_after_from_carm_before``: 4×4 mm})."""
+    same, moved = entry.get("same_camera_as"), entry.get("moved_from")
+    if same is not None and moved is not None:
+        raise InputError(src, f"{vk}: give same_camera_as or moved_from, not both")
+    if same is not None:
+        if not isinstance(same, str) or not same.strip():
+            raise InputError(src, f"{vk}.same_camera_as must be a view name, got {same!r}")
+        return same, np.eye(4)
+    if moved is None:
+        return None, None
+    if not isinstance(moved, dict) or set(moved) != {"view", "carm_after_from_carm_before"}:
+        raise InputError(src, f"{vk}.moved_from must be {{'view': NAME, 'carm_after_from_carm_before': 4x4}}")
+    view = moved["view"]
+    if not isinstance(view, str) or not view.strip():
+        raise InputError(src, f"{vk}.moved_from.view must be a view name, got {view!r}")
+    motion = rigid_matrix(
+        moved["carm_after_from_carm_before"], f"{vk}.moved_from.carm_after_from_carm_before", src
+    )
+    return view, motion
 
 
 def parse_views(
@@ -294,6 +335,14 @@ def write_views(views: Sequence[CaseView], directory: Path, *, prefix: str = "")
         entry: dict[str, Any] = {"name": v.name, "image": f"{stem}.npz", "camera": f"{stem}_camera.json"}
         if v.landmarks_px is not None:
             entry["landmarks_px"] = [[float(x) for x in row] for row in np.asarray(v.landmarks_px)]
+        if v.moved_from is not None and v.carm_motion is not None:
+            if np.array_equal(v.carm_motion, np.eye(4)):
+                entry["same_camera_as"] = v.moved_from
+            else:
+                entry["moved_from"] = {
+                    "view": v.moved_from,
+                    "carm_after_from_carm_before": np.asarray(v.carm_motion, np.float64).tolist(),
+                }
         if v.mask is not None:
             cv2.imwrite(
                 str(directory / f"{stem}_mask.png"), np.where(np.asarray(v.mask), 255, 0).astype(np.uint8)

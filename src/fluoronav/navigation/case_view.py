@@ -26,6 +26,12 @@ class CaseView:
             present the detector is not run on this view.
         mask: (rows, cols) bool CM mask given with the case (with ``landmarks_px``); when absent with
             given landmarks, the CM region is taken as a band about the segment A-B.
+        moved_from: a verification view only: the first view whose C-arm position this one was
+            taken from (the case file's ``moved_from.view``, or ``same_camera_as``), or None.
+        carm_motion: (4, 4) with ``moved_from``: the C-arm's nominal motion since that view,
+            ``carm_after_from_carm_before`` (mm; the identity where the C-arm did not move). The
+            verification then starts this view's camera from the first registration's camera of
+            that view moved by it, and registers its bones locally.
     """
 
     name: str
@@ -33,3 +39,5 @@ class CaseView:
     camera: Camera
     landmarks_px: np.ndarray | None = None
     mask: np.ndarray | None = None
+    moved_from: str | None = None
+    carm_motion: np.ndarray | None = None

@@ -19,15 +19,22 @@ Stages, each timed and recorded with its diagnostics (:class:`StageRecord`):
    ``rbase_from_ee_target``, ``joints_target_deg``; the command measured and bounded
    (:mod:`fluoronav.navigation.commands`).
 
-With verification views (the images after the move): ``verify_joints`` (the joints read with them
-against the command), ``verify_detect``, ``verify_pelvis``, ``verify_femur``, ``verify_cm`` (the CM
-found where the images show it: their own multi-view initialisation and the kinematic prediction
-as starts, the plan's pose as the fallback) and ``correct``: the registered CM compared with the
-robot's kinematics (a disagreement is refused or, where the images are unambiguous, overruled with
-a warning: :mod:`~fluoronav.navigation.safety`), then one corrective command from the verification
-joints that slides the registered CM so that its tip meets the plan
-(:func:`~fluoronav.navigation.targeting.tip_correction_target`), measured and bounded as the first
-move is.
+With verification views (the images after the move, one to three): ``verify_joints`` (the joints
+read with them against the command), ``verify_detect``, ``verify_pelvis``, ``verify_femur``,
+``verify_cm`` and ``correct``. Where the case says which first view's C-arm position each view was
+taken from and how the C-arm moved since (``CaseView.moved_from``), each camera starts from that
+view's registered camera moved by it and the bones need only their local levels; where no C-arm
+moved and the bones' images agree with the first ones, the first registration's bones are kept
+(:mod:`~fluoronav.registration.view_set.unmoved`). The CM is registered from the robot's kinematic
+prediction, the views' checks judging it (with one view only where its landmarks agree with the
+prediction), else from the images' own starts; its tip is then fused with the prediction, each
+weighted by its stated uncertainty (:mod:`~fluoronav.navigation.kinematic_prior`,
+:mod:`~fluoronav.registration.view_set.fusion`), where the two are consistent. ``correct``: the
+registered CM compared with the robot's kinematics (a disagreement is refused or, where the images
+are unambiguous, overruled with a warning: :mod:`~fluoronav.navigation.safety`), then one
+corrective command from the verification joints that slides the registered CM so that its tip
+meets the plan (:func:`~fluoronav.navigation.targeting.tip_correction_target`), measured and
+bounded as the first move is.
 
 Stages 2–4 are :func:`~fluoronav.registration.view_set.register_view_set`, for the verification
 with the first registration and the robot's kinematics as its prior
@@ -45,7 +52,6 @@ Frames: ``ct`` (LPS, mm) throughout; ``femur`` is the CT frame moved with the fe
 from __future__ import annotations
 
 import dataclasses
-import functools
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -55,7 +61,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from fluoronav.detection.centerline import extract_centerline
 from fluoronav.errors import RegistrationRefused
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.case import CaseView, NavigationCase
@@ -66,6 +71,8 @@ from fluoronav.navigation.commands import (
     judge_kinematics,
     measure_command,
 )
+from fluoronav.navigation.detect import detect_views
+from fluoronav.navigation.kinematic_prior import prediction_sigma_mm
 from fluoronav.navigation.planning import Plan, planned_femur_from_cm
 from fluoronav.navigation.preflight import preflight, raise_for_input
 from fluoronav.navigation.result import (
@@ -86,7 +93,14 @@ from fluoronav.navigation.targeting import (
     tip_correction_target,
 )
 from fluoronav.registration.stages import StageRecorder
-from fluoronav.registration.view_set import FluoroView, ViewSetPrior, ViewSetRegistration, register_view_set
+from fluoronav.registration.view_set import (
+    FluoroView,
+    ViewSetBones,
+    ViewSetPrior,
+    ViewSetRegistration,
+    register_view_set,
+)
+from fluoronav.registration.view_set.unmoved import unmoved_bones
 
 log = logging.getLogger(__name__)
 
@@ -154,72 +168,6 @@ class _Stages:
         return lambda name: self(prefix + name)
 
 
-@functools.lru_cache(maxsize=2)
-def shipped_detector(device: str) -> Any:
-    """The shipped CM detector on ``device`` (loaded once per process)."""
-    from fluoronav.detection.detector import Detector
-
-    return Detector.load(None, device=device)
-
-
-def _band_mask(shape: tuple[int, int], ab: np.ndarray, half_width_px: float) -> np.ndarray:
-    """(rows, cols) bool: pixels within ``half_width_px`` of the segment A–B."""
-    rows, cols = shape
-    v, u = np.mgrid[0:rows, 0:cols]
-    p = np.stack([u, v], axis=-1).astype(np.float64)
-    a, b = np.asarray(ab[0], np.float64), np.asarray(ab[1], np.float64)
-    d = b - a
-    t = np.clip(((p - a) @ d) / max(float(d @ d), 1e-12), 0.0, 1.0)
-    return np.asarray(np.linalg.norm(p - (a + t[..., None] * d), axis=-1) <= half_width_px)
-
-
-def _as_bool(x: np.ndarray) -> np.ndarray:
-    return np.asarray(x, dtype=bool)
-
-
-def detect_views(
-    views: Sequence[CaseView], *, config: NavigationConfig
-) -> tuple[list[ViewDetection | None], dict[str, Any]]:
-    """Per view: the CM found (detector, or the case's landmarks), None where none is usable; and the
-    per-view diagnostics (found, why not, confidence)."""
-    out: list[ViewDetection | None] = []
-    diag: dict[str, Any] = {}
-    for v in views:
-        if v.landmarks_px is not None:
-            lm = np.asarray(v.landmarks_px, np.float64)
-            if v.mask is not None:
-                mask = _as_bool(v.mask)
-            else:
-                ps = v.camera.pixel_spacing_mm or 0.194
-                mask = _band_mask(v.image.shape, lm, config.landmark_band_mm / ps)
-            out.append(ViewDetection(lm, extract_centerline(mask, lm[0], lm[1]), mask, np.ones(2), "case"))
-            diag[v.name] = {"found": True, "source": "case"}
-            continue
-        det = shipped_detector(config.device).detect(v.image, pixel_spacing_mm=v.camera.pixel_spacing_mm)
-        if not det.usable or det.centerline_px is None:
-            why = det.unusable_reason or "no centreline"
-            log.warning("detector: %s in view %s; not used", why, v.name)
-            out.append(None)
-            diag[v.name] = {"found": False, "why": why}
-            continue
-        out.append(
-            ViewDetection(
-                np.asarray(det.landmarks_px, np.float64),
-                np.asarray(det.centerline_px, np.float64),
-                _as_bool(det.mask),
-                np.asarray(det.landmark_confidence, np.float64),
-                "detector",
-            )
-        )
-        diag[v.name] = {
-            "found": True,
-            "source": "detector",
-            "landmarks_px": np.asarray(det.landmarks_px).tolist(),
-            "confidence": [float(c) for c in det.landmark_confidence],
-        }
-    return out, diag
-
-
 def _detect(
     stage: _Stages, views: Sequence[CaseView], config: NavigationConfig, *, prefix: str, need: int
 ) -> list[FluoroView]:
@@ -250,6 +198,53 @@ def _refusals(prefix: str) -> Iterator[None]:
         if isinstance(exc, NavigationRefused):
             raise
         raise NavigationRefused(f"{prefix}{exc.stage}", exc.check, exc.detail, view=exc.view) from exc
+
+
+def _moved_cameras(
+    views: list[FluoroView], case_views: Sequence[CaseView], first: ViewSetRegistration
+) -> tuple[list[FluoroView], bool]:
+    """The verification views with each camera that the case relates to a first view
+    (``CaseView.moved_from``) started from that view's registered camera moved by the C-arm's
+    nominal motion; and whether every view was (its bones can then be registered locally)."""
+    registered = {v.name: c for v, c in zip(first.views, first.cameras_ct, strict=True)}
+    out, every = [], True
+    for v, cv in zip(views, case_views, strict=True):
+        cam = registered.get(cv.moved_from or "")
+        if cam is None or cv.carm_motion is None:
+            every = False
+            out.append(v)
+            continue
+        pose = np.asarray(cv.carm_motion, np.float64) @ cam.camera_from_world
+        out.append(dataclasses.replace(v, camera=v.camera.with_pose(pose)))
+    return out, every
+
+
+def _unmoved(
+    views: list[FluoroView],
+    case_views: Sequence[CaseView],
+    first: ViewSetRegistration,
+    cfg: NavigationConfig,
+    result: NavigationResult,
+) -> ViewSetBones | None:
+    """The first registration's bones where every verification view was taken from a first view's
+    C-arm position (no motion) and its anatomy did not move
+    (:func:`~fluoronav.registration.view_set.unmoved.unmoved_bones`); None otherwise. The NCC of
+    each pair is recorded in the ``verify_detect`` stage."""
+    names = [v.name for v in first.views]
+    if not all(
+        cv.moved_from in names and cv.carm_motion is not None and np.array_equal(cv.carm_motion, np.eye(4))
+        for cv in case_views
+    ):
+        return None
+    same_as = [names.index(str(cv.moved_from)) for cv in case_views]
+    min_ncc = cfg.view_set_settings(verification=True).min_unmoved_ncc
+    bones, ncc = unmoved_bones(views, first, same_as, min_ncc=min_ncc)
+    diag = result.stages["verify_detect"].diagnostics
+    diag["unmoved_ncc"] = ncc
+    diag["bones_from_first_registration"] = bones is not None
+    if bones is None:
+        log.warning("the anatomy moved since the first images (NCC %s): the bones are registered again", ncc)
+    return bones
 
 
 def _stage_seed(seed: int, k: int) -> int:
@@ -465,7 +460,17 @@ def verify(
         ee_from_cm=case.ee_from_cm,
         femur_from_cm=femur_from_cm_registered(first.ct_from_femur, first.ct_from_cm),
     )
-    prior = ViewSetPrior(first.ct_from_femur, target, predicted, cfg.safety.max_motion_tip_mm)
+    vcfg = cfg.verification
+    sigma = None
+    if vcfg.fuse_kinematics:
+        sigma = prediction_sigma_mm(
+            case.robot,
+            case.joints_deg,
+            case.verification.joints_deg,
+            ee_from_cm=case.ee_from_cm,
+            uncertainty=vcfg.uncertainty,
+        )
+    prior = ViewSetPrior(first.ct_from_femur, target, predicted, cfg.safety.max_motion_tip_mm, sigma)
     kin = CMKinematics(case.cm_config)
     try:
         with stage("verify_joints") as rec:
@@ -474,6 +479,10 @@ def verify(
                 rec.diagnostics["reading_minus_command_deg"] = [float(x) for x in dq]
                 check_joint_readings(dq, cfg.safety)
         views = _detect(stage, case.verification.views, cfg, prefix="verify_", need=1)
+        views, local = _moved_cameras(views, case.verification.views, first)
+        local = local and vcfg.local_bones
+        known = _unmoved(views, case.verification.views, first, cfg, result) if local else None
+        result.stages["verify_detect"].diagnostics["cameras_from_carm_motion"] = local
         with _refusals("verify_"):
             ver = register_view_set(
                 views,
@@ -481,11 +490,12 @@ def verify(
                 side=case.side,
                 cm_config=case.cm_config,
                 initial_control_points_deg=np.asarray(first.cm.control_points_deg),
-                settings=cfg.view_set_settings(verification=True),
+                settings=cfg.view_set_settings(verification=True, local=local),
                 seed=_stage_seed(cfg.seed, 1),
                 prior=prior,
                 name="verify",
                 recorder=stage.within("verify_"),
+                known_bones=known,
             )
         stage.emit("registration", prefix="verify_", registration=ver)
         result.verification = ver

@@ -16,6 +16,7 @@ import numpy as np
 from fluoronav import __version__
 from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
+from fluoronav.navigation.kinematic_prior import KinematicUncertainty
 from fluoronav.navigation.planning import Plan
 from fluoronav.navigation.preflight_config import PreflightConfig
 from fluoronav.navigation.safety import SafetyConfig
@@ -33,9 +34,43 @@ __all__ = [
     "NavigationRefused",
     "NavigationResult",
     "StageRecord",
+    "VerificationConfig",
     "ViewDetection",
     "navigation_cm_config",
+    "reference_cm_config",
 ]
+
+
+@dataclass(frozen=True)
+class VerificationConfig:
+    """How the verification registers the images taken after the move.
+
+    Attributes:
+        fuse_kinematics: the CM is registered with the robot's kinematic prediction as a prior
+            weighted by its stated uncertainty (``uncertainty``,
+            :func:`~fluoronav.navigation.kinematic_prior.prediction_sigma_mm`) where the images'
+            own landmarks agree with it; False: from the images alone, the prediction one start
+            among theirs.
+        uncertainty: the stated uncertainties of the robot, the hand-eye matrix and the first
+            registration.
+        local_bones: where every verification view says which first view its C-arm moved from
+            and by how much (the C-arm's nominal motion), its camera starts there and the bones
+            are registered with their local levels only (and not at all where no C-arm and no
+            anatomy moved); False (the default): every view's bones from the case's camera
+            estimate with the whole ladders. Off by default: in the navigation study the local
+            levels left the verification's CM failing its checks in 3 of 20 trials where the
+            whole ladders passed 2 of them (docs/validation.md).
+    """
+
+    fuse_kinematics: bool = True
+    uncertainty: KinematicUncertainty = field(default_factory=KinematicUncertainty)
+    local_bones: bool = False
+
+    @classmethod
+    def reference(cls) -> VerificationConfig:
+        """The verification as fluoronav 0.4.1 ran it: every view's bones with the whole ladders,
+        the CM from the images alone (the bench's ``navigate_verify_s_reference``)."""
+        return cls(fuse_kinematics=False, local_bones=False)
 
 
 @dataclass(frozen=True)
@@ -68,6 +103,7 @@ class NavigationConfig:
             the pipeline's and the case's); None: :func:`navigation_cm_config`.
         verify_cm: the verification's CM registration's settings, likewise; None:
             :func:`navigation_cm_config`.
+        verification: how the verification uses the kinematics and the C-arm's motion.
     """
 
     device: str = "cpu"
@@ -85,11 +121,14 @@ class NavigationConfig:
     femur_margin_mm: float = 3.0
     cm: CMRegistrationConfig | None = None
     verify_cm: CMRegistrationConfig | None = None
+    verification: VerificationConfig = field(default_factory=VerificationConfig)
 
-    def view_set_settings(self, *, verification: bool) -> ViewSetSettings:
+    def view_set_settings(self, *, verification: bool, local: bool = False) -> ViewSetSettings:
         """The settings of the registration of one set of views: the first images, or (``verification``)
-        the images after the move."""
+        the images after the move; ``local``: their cameras start within a millimetre or so
+        (:attr:`ViewSetSettings.local`)."""
         return ViewSetSettings(
+            local=local,
             device=self.device,
             pelvis=self.pelvis,
             femur=self.femur,
@@ -102,13 +141,18 @@ class NavigationConfig:
 
 
 def navigation_cm_config() -> CMRegistrationConfig:
-    """The pipeline's CM registration settings: the CMA-ES levels (:func:`default_cm_levels`) for the
-    first registration and the verification, whatever the number of views.
+    """The pipeline's CM registration settings: the coarse CMA-ES level, then the linearised 2×
+    level (:func:`default_cm_levels` with ``linearized``), the multi-view workflow's default.
 
-    Not the multi-view workflow's linearised 2× level, nor a coarse population of 25: with them the
-    first registration's tip is as good but the verification refuses more often (docs/validation.md):
-    the verification leans on the first registration's whole pose (the kinematic prediction, its
-    landmark gate and second start), not only its tip."""
+    With the verification that starts from the kinematic prediction and fuses it with the images
+    (:class:`VerificationConfig`), the linearised level's first registration serves it as well as
+    the CMA-ES one did (docs/validation.md) in about half the CM stage's time. fluoronav ≤ 0.6 ran
+    both CMA-ES levels (:func:`reference_cm_config`)."""
+    return CMRegistrationConfig(levels=default_cm_levels(linearized=True))
+
+
+def reference_cm_config() -> CMRegistrationConfig:
+    """The CM registration settings of fluoronav 0.4.1–0.6: both levels CMA-ES."""
     return CMRegistrationConfig(levels=default_cm_levels())
 
 

@@ -66,7 +66,12 @@ from fluoronav.navigation.simulated_errors import (
     robot_only_error,
     verification_errors,
 )
-from fluoronav.navigation.simulated_scene import Scenario, SimulatedNavigationConfig, build_scenario
+from fluoronav.navigation.simulated_scene import (
+    Scenario,
+    SimulatedNavigationConfig,
+    build_scenario,
+    verification_view_indices,
+)
 from fluoronav.registration.metrics import axis_error_deg
 from fluoronav.simulation.robot_scene import verification_view_centre
 from fluoronav.simulation.world import fbg_reading
@@ -268,6 +273,21 @@ def _verification_case(
     names2 = [f"{n} after the move" for n in s.names]
     W0 = tr.initial_world_from_patient
     views2 = _views(images2, names2, W0, oracle=cfg.oracle_landmarks, rng=rng, cameras=s.case_cameras(cams2))
+    # the C-arm's own account of where it went from each first position (its nominal motion)
+    views2 = tuple(
+        dataclasses.replace(
+            v2,
+            moved_from=v1.name,
+            carm_motion=v2.camera.camera_from_world @ se3.inv(v1.camera.camera_from_world),
+        )
+        for v1, v2 in zip(case.views, views2, strict=True)
+    )
+    keep = verification_view_indices(len(views2), cfg.verify_views)
+    images2, names2, views2 = (
+        [images2[k] for k in keep],
+        [names2[k] for k in keep],
+        tuple(views2[k] for k in keep),
+    )
     case = dataclasses.replace(
         case, verification=VerificationViews(np.asarray(res.joints_target_deg), views2)
     )

@@ -71,6 +71,9 @@ class SimulatedNavigationConfig:
             exactly these (the measured accuracy of the image-based calibration).
         aim_error_mm: the verification C-arm's centre misses its aim by U(−a, a) mm per axis.
         verify: take verification images after the move and command one correction.
+        verify_views: how many of the verification images the case gives (1, 2 or 3):
+            :func:`verification_view_indices`. Each says which first view's C-arm position it was
+            taken from and the C-arm's nominal motion since (``CaseView.moved_from``).
         device: torch device of the detector, renderers and similarities.
         oracle_landmarks: the case gives the true landmarks + U(−3, 3) full-detector px and the true
             CM mask for every view instead of leaving them to the detector.
@@ -98,6 +101,7 @@ class SimulatedNavigationConfig:
     handeye_error_mm: float = 0.5
     aim_error_mm: float = 5.0
     verify: bool = True
+    verify_views: int = 3
     device: str = "cpu"
     oracle_landmarks: bool = False
     working_pose_max_joint_deg: float | None = 25.0
@@ -198,6 +202,19 @@ class Scenario:
             return None
         n = self.config.image_size
         return [self.simulator.stored_camera(case_camera(c, carm, self.world_rng), n) for c in cameras]
+
+
+def verification_view_indices(n_views: int, k: int) -> list[int]:
+    """Which of the ``n_views`` verification images (AP, then the orbits) a case with ``k`` of them
+    gives: all for ``k ≥ n_views``; the AP for one (the CM seen broadside); the two orbits for two
+    (the widest angle between them, for the triangulation of A and B)."""
+    if k < 1:
+        raise ValueError(f"verify_views must be at least 1, got {k}")
+    if k >= n_views:
+        return list(range(n_views))
+    if k == 1:
+        return [0]
+    return list(range(n_views - k, n_views))
 
 
 def build_scenario(

@@ -273,6 +273,7 @@ def run_handeye_study(
             "seed": cfg.seed,
             "ct": cfg.ct,
             "world": cfg.world.to_dict(),
+            **({"verify_views": cfg.verify_views} if cfg.workflow == "navigation" else {}),
             "poses": list(cfg.poses),
             "landmarks": "oracle" if cfg.oracle_landmarks else "detector",
             **(_navigation_outcomes(rows) if cfg.workflow == "navigation" else {}),
@@ -304,10 +305,12 @@ def run_handeye_or_navigation_study(
     handeye_error_mm: float | None = None,
     handeye_error_deg: float | None = None,
     world: World = IDEAL,
+    verify_views: int = 3,
 ) -> dict[str, Any]:
     """Entry point of ``fluoronav study hand-eye|navigation`` → the summary dict.
 
-    ``world``: the navigation's simulated world (:mod:`fluoronav.simulation.world`).
+    ``world``: the navigation's simulated world (:mod:`fluoronav.simulation.world`);
+    ``verify_views``: the navigation's verification images per case (1, 2 or 3).
 
     ``fault``: an input fault (:data:`fluoronav.navigation.faults.FAULTS`) for navigation;
     ``handeye_error_mm`` / ``handeye_error_deg``: the navigation's hand-eye error (None: the fault's,
@@ -335,5 +338,6 @@ def run_handeye_or_navigation_study(
         if handeye_error_deg is None
         else handeye_error_deg,
         world=world,
+        verify_views=verify_views,
     )
     return run_handeye_study(cfg, Path(out), scheduler=scheduler, workers=workers)

@@ -154,6 +154,7 @@ class HandEyeStudyConfig:
             (each + U(−0.5, 0.5), one sign); None: the protocol's random working shape (U(−5, 5)°).
         oracle_landmarks: use truth + U(−3, 3) px (and the true CM mask) instead of the detector.
         world: navigation: the simulated world's error sources (:mod:`fluoronav.simulation.world`).
+        verify_views: navigation: how many verification images each case gives (1, 2 or 3).
         fault: navigation: an input fault of :data:`fluoronav.navigation.faults.FAULTS` injected
             into every trial's case (None: none); rows then carry ``fault``, ``fault_outcome`` and
             ``fault_handled``.
@@ -178,6 +179,7 @@ class HandEyeStudyConfig:
     oracle_landmarks: bool = True
     fault: str | None = None
     world: World = IDEAL
+    verify_views: int = 3
 
 
 # ----- per-process caches -------------------------------------------------------------------------
@@ -488,6 +490,7 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
             oracle_landmarks=cfg.oracle_landmarks,
             fault=cfg.fault,
             world=cfg.world,
+            verify_views=cfg.verify_views,
         )
         row["landmarks"] = "oracle" if cfg.oracle_landmarks else "detector"
         row.update(navigation_row(run_simulated_navigation(sim, ct=cfg.ct), cfg))

@@ -35,7 +35,6 @@ from fluoronav.registration.bone.levels import bone_excess_mu, box_downsample
 from fluoronav.registration.bone.presets import BoneRegistrationConfig
 from fluoronav.registration.bone.register import BoneRegistrationResult, register_pelvis_per_view
 from fluoronav.registration.bone.views import BoneView
-from fluoronav.registration.roi import area_downsample
 from fluoronav.registration.similarity import edge_ncc, grad_ncc
 from fluoronav.rendering.ct import CTRenderer
 
@@ -136,12 +135,9 @@ def bone_view_diagnostics(
     for v, pose in zip(views, T, strict=True):
         f = max(1, round(v.camera.cols / config.image_px))
         cam = v.camera.downsample(f)
-        image = area_downsample(torch.as_tensor(np.asarray(v.filled_image, np.float64))[None], f)[0]
-        use = (
-            None
-            if v.mask is None
-            else area_downsample(torch.as_tensor(np.asarray(v.mask, np.float64))[None], f)[0] >= 0.5
-        )
+        binned, used = v.binned(f)
+        image = torch.as_tensor(binned)
+        use = None if used is None else torch.as_tensor(used)
         drr = renderer.render_poses(cam.K, pose, cam.rows, cam.cols)[0].to(torch.float64).numpy()
         whole = float(grad_ncc(image, torch.as_tensor(drr)[None], mask=use)[0])
         out.append(

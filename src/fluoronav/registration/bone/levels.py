@@ -32,7 +32,6 @@ from fluoronav.registration.bone.presets import BoneLevel
 from fluoronav.registration.bone.views import BoneView
 from fluoronav.registration.engine import SimilarityFactory, default_similarity
 from fluoronav.registration.levels import LevelConfig, patch_radius_for
-from fluoronav.registration.roi import area_downsample
 from fluoronav.rendering.ct import CTRenderer
 
 __all__ = [
@@ -155,23 +154,6 @@ class BoneLevelData:
         shared: dict[Any, CTRenderer] = {} if renderers is None else renderers
         self.renderers: dict[str, CTRenderer] = {}
         self.masks: dict[str, torch.Tensor | None] = {}
-        masks = (
-            None
-            if all(v.mask is None for v in views)
-            else torch.stack(
-                [
-                    torch.as_tensor(
-                        np.ones(np.shape(v.image)) if v.mask is None else np.asarray(v.mask, dtype=np.float64)
-                    )
-                    for v in views
-                ]
-            ).to(device)
-        )
-        # masked pixels are filled from their surroundings first: the instrument's edge would
-        # otherwise reach the used pixels next to it through binning, smoothing and Sobel
-        images = torch.stack([torch.as_tensor(np.asarray(v.filled_image, np.float32)) for v in views]).to(
-            device
-        )
         for i, lv in enumerate(levels):
             cols = views[0].camera.cols
             f = max(1, round(cols / lv.image_px))
@@ -187,8 +169,18 @@ class BoneLevelData:
             opt = lv.optimizer.with_(patch_radius=radius, name=name)
             self.levels.append(opt)
             self.cams[name] = cams
-            self.fixed[name] = area_downsample(images, f)
-            self.masks[name] = None if masks is None else area_downsample(masks, f) >= 0.5
+            # each view binned and its unused pixels filled at this level's resolution
+            binned = [v.binned(f) for v in views]
+            self.fixed[name] = torch.stack([torch.as_tensor(b[0], dtype=torch.float32) for b in binned]).to(
+                device
+            )
+            self.masks[name] = (
+                None
+                if all(b[1] is None for b in binned)
+                else torch.stack(
+                    [torch.as_tensor(np.ones(b[0].shape, bool) if b[1] is None else b[1]) for b in binned]
+                ).to(device)
+            )
             vf = max(1, math.floor(lv.voxel_mm / spacing + 1e-6))
             if (vf, skip_empty) not in shared:
                 small, w_small = box_downsample(mu, world_from_index, vf)

@@ -17,6 +17,7 @@ from fluoronav.registration.levels import FEMUR_SIGMA, PELVIS_SIGMA, LevelConfig
 
 __all__ = [
     "FEMUR_AUTHORS_PRESET",
+    "FEMUR_LOCAL_PRESET",
     "FEMUR_MULTI_VIEW_PRESET",
     "FEMUR_ONE_VIEW_PRESET",
     "FEMUR_TILT_STARTS",
@@ -151,7 +152,10 @@ PELVIS_LINEARIZED_PRESET = BoneRegistrationConfig(
 )
 
 #: The linearised levels of :data:`PELVIS_LINEARIZED_PRESET` alone: a refinement from a pose already
-#: within ~1 mm / 1° (the navigation's verification views, registered again with the femur left out).
+#: within ~1 mm / 1° (the navigation's verification views, registered again with the femur left out,
+#: or started from a registered view moved by the C-arm's known motion). The ~256 px level matters
+#: there: with the ~128 px level alone, cameras from the C-arm's motion were left a few tenths of a
+#: millimetre off, and the verification's CM failed its checks in 2 more of 20 trials (docs/validation.md).
 PELVIS_REFINE_PRESET = BoneRegistrationConfig(levels=PELVIS_LINEARIZED_PRESET.levels[1:])
 
 #: The authors' coarse σ (30° ×3, 50/50/100 mm) and population 50 at ~96 px, then σ / 10 at ~128 px;
@@ -226,6 +230,21 @@ FEMUR_ONE_VIEW_PRESET = BoneRegistrationConfig(
     ),
     starts=FEMUR_TILT_STARTS,
     keep=3,
+)
+
+#: A femur already within a degree or so (the navigation's verification, from the first
+#: registration's femur): the linearised refinement (≤ 8 steps of 4 renders) at ~256 px / 1 mm,
+#: where the out-of-plane rotation shows, instead of two CMA-ES levels.
+FEMUR_LOCAL_PRESET = BoneRegistrationConfig(
+    levels=(
+        BoneLevel(
+            LevelConfig(
+                sigma=(1.0, 1.0, 1.0), optimizer="linearized", max_iters=8, tolfun=1e-5, name="femur-local"
+            ),
+            image_px=256,
+            voxel_mm=1.0,
+        ),
+    )
 )
 
 #: The authors' σ = 10° and population 50 at ~96 px / 2 mm voxels, then σ = 2° at ~128 px / 1 mm, no

@@ -240,8 +240,7 @@ def views_in_ct_frame(
     the CT frame becomes the world frame of all views (``world_from_patient`` = identity), the view
     geometry of the multi-view workflows (§II-C)."""
     return [
-        BoneView(v.image, v.camera.with_pose(r.camera_from_bone[0]), v.mask)
-        for v, r in zip(views, per_view, strict=True)
+        v.with_camera(v.camera.with_pose(r.camera_from_bone[0])) for v, r in zip(views, per_view, strict=True)
     ]
 
 

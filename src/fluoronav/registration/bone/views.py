@@ -25,10 +25,10 @@ class BoneView:
     """One X-ray: image (H, W) float (−ln(I/I0) or any monotone intensity) and its camera.
 
     ``mask``: optional (H, W) bool, True on the pixels the similarity may use (e.g. False on a
-    metal instrument the bone DRR does not contain). The masked pixels are filled from the others
-    (:func:`~fluoronav.registration.bone.fill.harmonic_fill`) before binning, so the instrument's edge
-    does not reach the used pixels through the filters; a working pixel is used when at least half
-    of it is.
+    metal instrument the bone DRR does not contain). A working (binned) pixel is used when at least
+    half of it is, and is the mean of its used pixels; the others are filled from the used ones
+    (:func:`~fluoronav.registration.bone.fill.harmonic_fill`) at the working resolution
+    (:meth:`binned`), so the instrument's edge does not reach the used pixels through the filters.
     """
 
     image: np.ndarray
@@ -51,6 +51,48 @@ class BoneView:
         if self.mask is None:
             return np.asarray(self.image)
         return harmonic_fill(self.image, ~np.asarray(self.mask, dtype=bool))
+
+    def binned(self, factor: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """The working image binned by ``factor`` (float64, (H // factor, W // factor)) and which of
+        its pixels the similarity uses (None without a mask); computed once per factor.
+
+        Notes:
+            Binning first and filling at the working resolution gives the used pixels the mean of
+            their used pixels only (no filled value is mixed into them), and the harmonic fill a
+            system ``factor²`` times smaller than at the detector's resolution.
+        """
+        cache: dict[int, tuple[np.ndarray, np.ndarray | None]] = self.__dict__.setdefault("_binned", {})
+        if factor not in cache:
+            cache[factor] = _bin_and_fill(np.asarray(self.image, np.float64), self.mask, factor)
+        return cache[factor]
+
+    def with_camera(self, camera: Camera) -> BoneView:
+        """The same image and mask seen through ``camera`` (another pose), sharing the binned and
+        filled images computed so far (they depend on the image and the mask only)."""
+        out = BoneView(self.image, camera, self.mask)
+        for key in ("filled_image", "_binned"):
+            if key in self.__dict__:
+                out.__dict__[key] = self.__dict__[key]
+        return out
+
+
+def _bin_and_fill(
+    image: np.ndarray, mask: np.ndarray | None, factor: int
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """:meth:`BoneView.binned`."""
+    f = int(factor)
+    H, W = (image.shape[0] // f) * f, (image.shape[1] // f) * f
+
+    def bin_(x: np.ndarray) -> np.ndarray:
+        return x[:H, :W].reshape(H // f, f, W // f, f).mean(axis=(1, 3))
+
+    if mask is None:
+        return bin_(image), None
+    valid = np.asarray(mask, dtype=np.float64)
+    frac = bin_(valid)
+    mean = np.divide(bin_(image * valid), frac, out=np.zeros_like(frac), where=frac > 0)
+    use = frac >= 0.5
+    return harmonic_fill(mean, ~use), use
 
 
 def views_from_images(

@@ -13,9 +13,11 @@ __all__ = [
     "CM_COARSE_LEVEL",
     "CM_FINE_LEVEL",
     "CM_FINE_LINEARIZED_LEVEL",
+    "CM_LOCAL_LEVEL",
     "DEFAULT_CM_MU_PER_MM",
     "CMRegistrationConfig",
     "default_cm_levels",
+    "local_cm_levels",
 ]
 
 #: μ of the CM material for the analytic DRR, 1/mm: nitinol is 0.76/mm at 60 keV and 0.52/mm at
@@ -44,6 +46,19 @@ CM_FINE_LEVEL = LevelConfig(
 #: the time. Not for one view (nor multiple-CM, one camera): there the depth changes the cost too
 #: little for its stopping rule (docs/validation.md).
 CM_FINE_LINEARIZED_LEVEL = CM_FINE_LEVEL.with_(optimizer="linearized", max_iters=8, tolfun=1e-5)
+
+
+#: a local CMA-ES level at 4× from a start within a few mm (the robot's kinematics after a move):
+#: σ a quarter of :data:`CM_COARSE_LEVEL`'s, population 20, ≤ 30 generations
+CM_LOCAL_LEVEL = CM_COARSE_LEVEL.with_(
+    sigma=tuple(s / 4.0 for s in CM_SIGMA), popsize=20, max_iters=30, name="cm-4x-local"
+)
+
+
+def local_cm_levels(n_views: int) -> tuple[LevelConfig, ...]:
+    """CM levels from a start within a few mm and degrees: :data:`CM_LOCAL_LEVEL`, then the 2×
+    level (linearised with several views, CMA-ES with one: :data:`CM_FINE_LINEARIZED_LEVEL`)."""
+    return (CM_LOCAL_LEVEL, CM_FINE_LINEARIZED_LEVEL if n_views > 1 else CM_FINE_LEVEL)
 
 
 def default_cm_levels(

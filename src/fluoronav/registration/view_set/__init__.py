@@ -15,9 +15,16 @@ multi-view study share, :func:`register_view_set`, in three stages:
 3. ``cm``: the CM's landmarks triangulated over the views and its roll scanned against the
    centrelines (:func:`~fluoronav.registration.centerline.centerline_initialize_multiview`), then
    the CM registered (pose and shape) from the best roll minima and checked view by view
-   (:mod:`fluoronav.registration.cm.checks`). After a move the images' own starts are screened
-   together with the kinematic prediction, the plan's pose is the fallback, and the result is
-   compared with the prediction (reported, not judged).
+   (:mod:`fluoronav.registration.cm.checks`). After a move the CM is registered from the robot's
+   kinematic prediction where the views' checks pass it, else from the images' own starts screened
+   together with the prediction (the plan's pose the fallback); the result is compared with the
+   prediction (reported, not judged) and, where consistent, its tip fused with the predicted one,
+   each weighted by its uncertainty (``fusion``).
+
+Where the views' cameras are already close (taken from registered views' C-arm positions moved by
+the C-arm's known motion: :attr:`ViewSetSettings.local`) the bones need only their local levels;
+where the C-arm did not move and the anatomy did not either (``unmoved``), the earlier bones are
+kept (``known_bones``).
 
 :func:`register_view_set_bones` and :func:`register_view_set_cm` are the two halves, for workflows
 that keep their own CM registration or know their cameras. What differs in a later registration of
@@ -26,7 +33,8 @@ recorded through a :data:`~fluoronav.registration.stages.StageRecorder`.
 
 Modules: ``views`` (:class:`FluoroView`, :class:`ViewDetection`, :func:`bone_views`), ``settings``
 (:class:`ViewSetSettings`, :class:`ViewSetSeeds`, :class:`ViewSetPrior`), ``bones`` (stages 1–2),
-``cm`` (stage 3), ``register`` (the chain, :class:`ViewSetRegistration`).
+``cm`` (stage 3), ``fusion`` (the tip from the images and the kinematics), ``unmoved`` (views of
+unmoved C-arm positions), ``register`` (the chain, :class:`ViewSetRegistration`).
 
 Frames: ``ct`` (LPS, mm) is the world frame of the registered views; ``femur`` is the CT frame
 moved with the femur (``ct_from_femur``).

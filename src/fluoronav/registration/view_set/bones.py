@@ -105,21 +105,10 @@ def register_view_set_bones(
     names = list(names) if names is not None else [f"view{k}" for k in range(len(views))]
     W0 = np.eye(4) if initial_world_from_pelvis is None else initial_world_from_pelvis
     with record("pelvis") as rec:
-        pelvis = register_pelvis_per_view(
-            views,
-            volume,
-            initial_world_from_patient=W0,
-            config=replace(settings.pelvis, device=settings.device),
-            seed=seeds.pelvis,
+        rec.diagnostics["views"] = {n: {} for n in names}
+        pelvis = _pelvis(
+            views, volume, side, names, W0, prior_ct_from_femur, settings, seeds, rec.diagnostics
         )
-        rec.diagnostics["views"] = {
-            n: {"cost": float(r.cost), "converged": bool(r.converged), "reason": r.reason}
-            for n, r in zip(names, pelvis, strict=True)
-        }
-        if prior_ct_from_femur is not None and settings.pelvis_refine is not None:
-            pelvis = _pelvis_without_femur(
-                views, volume, side, pelvis, prior_ct_from_femur, settings, seeds, rec.diagnostics["views"]
-            )
         kept, left_out = list(range(len(views))), dict[str, str]()
         if settings.bone_checks is not None:
             try:
@@ -147,12 +136,15 @@ def register_view_set_bones(
         femur_views, world_from_pelvis = list(views), pelvis[0].world_from_bone
 
     def femur_of(fviews: Sequence[BoneView]) -> BoneRegistrationResult:
+        config = settings.femur or femur_config(views=len(fviews))
+        if settings.local and prior_ct_from_femur is not None:
+            config = settings.femur_local  # from the earlier femur
         return register_femur(
             fviews,
             volume,
             side=side,
             world_from_patient=world_from_pelvis,
-            config=replace(settings.femur or femur_config(views=len(fviews)), device=settings.device),
+            config=replace(config, device=settings.device),
             seed=seeds.femur,
             initial_world_from_femur=prior_ct_from_femur,
         )
@@ -180,21 +172,66 @@ def register_view_set_bones(
     )
 
 
+def _pelvis(
+    views: Sequence[BoneView],
+    volume: Volume,
+    side: str,
+    names: Sequence[str],
+    W0: np.ndarray,
+    prior_ct_from_femur: np.ndarray | None,
+    settings: ViewSetSettings,
+    seeds: ViewSetSeeds,
+    record: dict[str, Any],
+) -> list[BoneRegistrationResult]:
+    """Each view's pelvis: the ladder (``settings.pelvis``) from ``W0``, or with ``settings.local``
+    nothing yet; then, after a move, the local levels (``pelvis_refine``, or ``pelvis_local``
+    with ``settings.local``) with the earlier femur's footprint left out. ``record["views"]`` (per
+    view name) gets each registration's cost, convergence and reason."""
+    views_record = record["views"]
+    starts = np.array(np.broadcast_to(np.asarray(W0, np.float64), (len(views), 4, 4)))
+    if settings.local:  # the cameras are already close: the local levels alone, from them
+        settings = replace(settings, pelvis_refine=settings.pelvis_local)
+    if not (settings.local and prior_ct_from_femur is not None):
+        pelvis = register_pelvis_per_view(
+            views,
+            volume,
+            initial_world_from_patient=starts if settings.local else W0,
+            config=replace(
+                settings.pelvis_local if settings.local else settings.pelvis, device=settings.device
+            ),
+            seed=seeds.pelvis_refine if settings.local else seeds.pelvis,
+        )
+        for n, r in zip(names, pelvis, strict=True):
+            views_record[n] = {"cost": float(r.cost), "converged": bool(r.converged), "reason": r.reason}
+        if settings.local or prior_ct_from_femur is None or settings.pelvis_refine is None:
+            return pelvis
+        starts = np.stack([r.world_from_bone for r in pelvis])
+    assert prior_ct_from_femur is not None
+    pelvis = _pelvis_without_femur(
+        views, volume, side, starts, prior_ct_from_femur, settings, seeds, views_record
+    )
+    if settings.local:
+        for n, r in zip(names, pelvis, strict=True):
+            views_record[n].update(cost=float(r.cost), converged=bool(r.converged), reason=r.reason)
+    return pelvis
+
+
 def _pelvis_without_femur(
     views: Sequence[BoneView],
     volume: Volume,
     side: str,
-    pelvis: Sequence[BoneRegistrationResult],
+    starts: np.ndarray,
     ct_from_femur: np.ndarray,
     settings: ViewSetSettings,
     seeds: ViewSetSeeds,
     record: dict[str, Any],
 ) -> list[BoneRegistrationResult]:
-    """Each view's pelvis again, from its first result, with the femur's footprint (the femur at
-    ``ct_from_femur``, seen through that result's camera) left out of the similarity; ``record``
-    (per view name) gets what was left out and the cost without it."""
+    """Each view's pelvis from ``starts`` ((V, 4, 4) ``world_from_pelvis``: a first result, or the
+    given camera) with the femur's footprint (the femur at ``ct_from_femur``, seen through that
+    start's camera) left out of the similarity; ``record`` (per view name) gets what was left out
+    and the cost without it."""
     assert settings.pelvis_refine is not None
-    cams = [r.camera_from_bone[0] for r in pelvis]
+    cams = [v.camera.camera_from_world @ W for v, W in zip(views, starts, strict=True)]
     head = np.asarray(volume.landmarks_world[f"femoral_head_{side}"], np.float64)
     femur = bone_footprints(
         [v.camera for v in views],
@@ -211,7 +248,7 @@ def _pelvis_without_femur(
     again = register_pelvis_per_view(
         masked,
         volume,
-        initial_world_from_patient=np.stack([r.world_from_bone for r in pelvis]),
+        initial_world_from_patient=np.array(starts),
         config=replace(settings.pelvis_refine, device=settings.device),
         seed=seeds.pelvis_refine,
     )

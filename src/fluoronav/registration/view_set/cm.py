@@ -4,9 +4,13 @@
 The CM's landmarks are triangulated over the views and its roll scanned against the centrelines
 (:func:`~fluoronav.registration.centerline.centerline_initialize_multiview`); the CM is then
 registered (pose and shape) from the best roll minima and checked view by view
-(:mod:`fluoronav.registration.cm.checks`). After a move (:class:`ViewSetPrior`) the images' own
-starts are screened together with the kinematic prediction, the plan's pose is the fallback, and
-the result is compared with the prediction (reported, not judged).
+(:mod:`fluoronav.registration.cm.checks`). After a move (:class:`ViewSetPrior`) with a prediction
+of stated uncertainty, the CM is first registered from the prediction with the local levels, the
+views' checks judging it (one view, whose checks cannot see depth, only where its landmarks agree
+with the prediction); otherwise, and where that fails, the images' own starts are screened
+together with the prediction and the plan's pose is the fallback. The result is compared with the
+prediction (reported, not judged) and, where the two are consistent, its tip fused with the
+predicted one (:func:`~fluoronav.registration.view_set.fusion.fuse_tip`).
 
 Frames: the world frame of the given cameras (the CT frame, LPS, mm); the prior's poses are
 relative to the femur (``femur_from_cm``), placed through the registered ``ct_from_femur``.
@@ -14,14 +18,18 @@ relative to the femur (``femur_from_cm``), placed through the registered ``ct_fr
 
 from __future__ import annotations
 
+import logging
+import math
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import torch
 
 from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.centerline import (
     MultiViewInitResult,
     centerline_initialize_multiview,
@@ -29,13 +37,18 @@ from fluoronav.registration.centerline import (
 )
 from fluoronav.registration.cm import CMRegistrationResult, CMView
 from fluoronav.registration.cm.checks import PredictedCMPose, motion_agreement, register_cm_checked
+from fluoronav.registration.cm.config import CMRegistrationConfig, local_cm_levels
 from fluoronav.registration.cm.multistart import register_cm_multistart
+from fluoronav.registration.view_set.fusion import fuse_tip
 from fluoronav.registration.view_set.settings import ViewSetPrior, ViewSetSettings
 from fluoronav.registration.view_set.views import FluoroView
 
 __all__ = [
+    "landmark_gap_mm",
     "register_view_set_cm",
 ]
+
+log = logging.getLogger(__name__)
 
 
 def register_view_set_cm(
@@ -77,18 +90,7 @@ def register_view_set_cm(
     diag = diagnostics if diagnostics is not None else {}
     init, lm_views = _initialize(views, cameras, cm_config, initial_control_points_deg, diag)
     image_starts = [] if init is None else multiview_start_poses(init, max_starts=settings.max_cm_starts)
-    predicted: PredictedCMPose | None = None
-    if prior is None:
-        if not image_starts:
-            seen = sum(v.detection is not None for v in views)
-            raise RegistrationRefused(
-                "cm", "views_with_cm", f"the CM was found in {seen} of {len(views)} views, 2 needed"
-            )
-        tries = [image_starts]
-    else:
-        if ct_from_femur is None:
-            raise ValueError("a prior's poses need the registered ct_from_femur")
-        tries, predicted = _prior_tries(prior, ct_from_femur, image_starts)
+    tries, predicted = _tries(views, prior, ct_from_femur, image_starts)
     tag = f" ({name})" if name else ""
     cm_views = [
         CMView(np.asarray(v.image, np.float32), c, landmarks_px=lm, name=f"{v.name}{tag}")
@@ -105,19 +107,168 @@ def register_view_set_cm(
         )
         diag.update(cost=float(cm.cost), converged=bool(cm.converged), reason=cm.reason)
         return cm, init
-    cm = register_cm_checked(
-        cm_views,
-        lm_views,
-        tries,
-        diag,
-        initial_control_points_deg=initial_control_points_deg,
-        config=cm_settings,
-        checks=settings.cm_checks,
-        seed=seed,
+    fast: CMRegistrationResult | None = None
+    if predicted is not None and prior is not None and prior.prediction_sigma_mm is not None:
+        fast = _register_from_prediction(
+            cm_views, lm_views, init, predicted, cm_settings, settings, initial_control_points_deg, seed, diag
+        )
+    cm = (
+        fast
+        if fast is not None
+        else register_cm_checked(
+            cm_views,
+            lm_views,
+            tries,
+            diag,
+            initial_control_points_deg=initial_control_points_deg,
+            config=cm_settings,
+            checks=settings.cm_checks,
+            seed=seed,
+        )
     )
     if predicted is not None:  # reported, not judged here: the caller knows what a disagreement means
-        diag.update(motion_agreement(predicted, cm, cm_config))
+        sigma = None if prior is None else prior.prediction_sigma_mm
+        cm = _compare_and_fuse(cm, cm_views, predicted, sigma, settings, cm_config, diag)
     return cm, init
+
+
+def _tries(
+    views: Sequence[FluoroView],
+    prior: ViewSetPrior | None,
+    ct_from_femur: np.ndarray | None,
+    image_starts: list[np.ndarray],
+) -> tuple[list[list[np.ndarray]], PredictedCMPose | None]:
+    """The starts of the registration, in the order they are tried, and the prediction (after a
+    move); without a prior the images' own, which need two views with a CM."""
+    if prior is not None:
+        if ct_from_femur is None:
+            raise ValueError("a prior's poses need the registered ct_from_femur")
+        return _prior_tries(prior, ct_from_femur, image_starts)
+    if not image_starts:
+        seen = sum(v.detection is not None for v in views)
+        raise RegistrationRefused(
+            "cm", "views_with_cm", f"the CM was found in {seen} of {len(views)} views, 2 needed"
+        )
+    return [image_starts], None
+
+
+def _compare_and_fuse(
+    cm: CMRegistrationResult,
+    cm_views: Sequence[CMView],
+    predicted: PredictedCMPose,
+    sigma_mm: float | None,
+    settings: ViewSetSettings,
+    cm_config: CMConfig,
+    diag: dict[str, Any],
+) -> CMRegistrationResult:
+    """The registration compared with the prediction (``motion_tip_mm``, ``motion_rotation_deg``)
+    and, with a σ, its tip fused with the predicted one where the two are consistent: their
+    difference within ``settings.fusion_max_mahalanobis`` of their combined uncertainty
+    (``fusion_mahalanobis``; a depth one view cannot see counts little). After a fusion the
+    comparison is of the fused CM (the images' own in ``image_motion_tip_mm``)."""
+    agreement = motion_agreement(predicted, cm, cm_config)
+    diag.update(agreement)
+    if sigma_mm is None:
+        return cm
+    fused, fusion = _fuse(cm, cm_views, predicted, sigma_mm, settings, cm_config)
+    diag["fusion_mahalanobis"] = fusion["mahalanobis"]
+    if not fusion["mahalanobis"] <= settings.fusion_max_mahalanobis:
+        log.info("the images and the kinematics differ by %.1f σ: not fused", fusion["mahalanobis"])
+        return cm
+    diag.update(fusion, image_motion_tip_mm=agreement["motion_tip_mm"])
+    diag.update(motion_agreement(predicted, fused, cm_config))
+    return fused
+
+
+def _register_from_prediction(
+    cm_views: Sequence[CMView],
+    lm_views: Sequence[np.ndarray | None],
+    init: MultiViewInitResult | None,
+    predicted: PredictedCMPose,
+    cm_settings: CMRegistrationConfig,
+    settings: ViewSetSettings,
+    initial_control_points_deg: np.ndarray,
+    seed: int,
+    diag: dict[str, Any],
+) -> CMRegistrationResult | None:
+    """The CM registered with the local levels from the kinematic prediction, where the images'
+    own landmarks agree with it; None where they do not, or where that registration failed its
+    checks (the caller registers from the images' own starts)."""
+    assert settings.cm_checks is not None
+    W = predicted.world_from_cm
+    gap = landmark_gap_mm(cm_views, lm_views, init, W, cm_settings.cm_config, initial_control_points_deg)
+    diag["prediction_gap_mm"] = gap
+    # one view's checks cannot see depth: there the prediction is used only where the landmarks
+    # agree with it; with two or more the checks of each view judge the registration from it
+    if init is None and not gap <= settings.fusion_max_gap_mm:
+        diag["from_prediction"] = False
+        log.info("the landmarks are %.1f mm from the prediction: the image's own starts", gap)
+        return None
+    levels = settings.fusion_cm_levels or local_cm_levels(len(cm_views))
+    try:
+        cm = register_cm_checked(
+            cm_views,
+            lm_views,
+            [[W]],
+            diag,
+            initial_control_points_deg=initial_control_points_deg,
+            config=cm_settings.with_(levels=levels),
+            checks=settings.cm_checks,
+            seed=seed,
+        )
+    except RegistrationRefused as exc:
+        diag["from_prediction"] = False
+        diag["from_prediction_refused"] = str(exc)
+        log.info("the registration from the prediction failed its checks (%s)", exc)
+        return None
+    diag["from_prediction"] = True
+    return cm
+
+
+def _fuse(
+    cm: CMRegistrationResult,
+    cm_views: Sequence[CMView],
+    predicted: PredictedCMPose,
+    sigma_mm: float,
+    settings: ViewSetSettings,
+    cm_config: CMConfig,
+) -> tuple[CMRegistrationResult, dict[str, Any]]:
+    """The registered tip and the predicted one fused (:func:`fuse_tip`) over the views the
+    registration used."""
+    cameras = {v.name: v.camera for v in cm_views}
+    used = [cameras[n] for n in cm.view_names]
+    cp = torch.as_tensor(np.asarray(cm.control_points_deg, np.float64))
+    tip_cm = CMKinematics(cm_config).tip_cm(cp).numpy()
+    W = predicted.world_from_cm
+    fused, diag = fuse_tip(cm, used, W[:3, :3] @ tip_cm + W[:3, 3], sigma_mm, settings.tip_fusion)
+    diag["prediction_sigma_mm"] = float(sigma_mm)
+    return fused, diag
+
+
+def landmark_gap_mm(
+    views: Sequence[CMView],
+    landmarks_px: Sequence[np.ndarray | None],
+    init: MultiViewInitResult | None,
+    world_from_cm: np.ndarray,
+    cm_config: CMConfig,
+    control_points_deg: np.ndarray,
+) -> float:
+    """How far the images' own landmarks A, B lie from those of the pose ``world_from_cm``, mm (the
+    larger of the two): triangulated where two views have a CM; with one, the reprojection
+    distance in that view scaled to the CM's depth (what one view can tell); inf without any."""
+    kin = CMKinematics(cm_config)
+    ab_cm = kin.landmarks_cm(torch.as_tensor(np.asarray(control_points_deg, np.float64))).numpy()
+    ab = ab_cm @ world_from_cm[:3, :3].T + world_from_cm[:3, 3]
+    if init is not None:
+        return float(np.linalg.norm(np.asarray(init.landmarks_world) - ab, axis=1).max())
+    gaps = []
+    for v, lm in zip(views, landmarks_px, strict=True):
+        if lm is None:
+            continue
+        depth = v.camera.to_camera(ab)[:, 2]
+        px = np.linalg.norm(v.camera.project(ab) - np.asarray(lm, np.float64), axis=1)
+        gaps.append(float((px * depth / v.camera.K[0, 0]).max()))
+    return max(gaps) if gaps else math.inf
 
 
 def _prior_tries(

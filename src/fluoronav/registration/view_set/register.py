@@ -21,7 +21,7 @@ from fluoronav.registration.bone import BoneRegistrationResult
 from fluoronav.registration.centerline import MultiViewInitResult
 from fluoronav.registration.cm import CMRegistrationResult
 from fluoronav.registration.stages import StageRecorder, unrecorded
-from fluoronav.registration.view_set.bones import register_view_set_bones
+from fluoronav.registration.view_set.bones import ViewSetBones, register_view_set_bones
 from fluoronav.registration.view_set.cm import register_view_set_cm
 from fluoronav.registration.view_set.settings import ViewSetPrior, ViewSetSeeds, ViewSetSettings
 from fluoronav.registration.view_set.views import FluoroView, ViewDetection, bone_views
@@ -96,6 +96,7 @@ def register_view_set(
     initial_world_from_pelvis: np.ndarray | None = None,
     name: str = "",
     recorder: StageRecorder | None = None,
+    known_bones: ViewSetBones | None = None,
 ) -> ViewSetRegistration:
     """Register the bones, then the CM, in one set of views (module docstring).
 
@@ -115,6 +116,10 @@ def register_view_set(
         name: the set's name, appended to its views' names in the CM registration's (e.g.
             "verify": view "AP" is "AP (verify)" there).
         recorder: times the stages "pelvis", "femur", "cm" and keeps their diagnostics.
+        known_bones: the bones already known in these views (taken from the C-arm positions of an
+            earlier registration whose anatomy did not move:
+            :func:`~fluoronav.registration.view_set.unmoved.unmoved_bones`): no bone is registered
+            (the stages "pelvis" and "femur" record ``known``).
 
     Returns:
         :class:`ViewSetRegistration`.
@@ -128,17 +133,23 @@ def register_view_set(
     settings = settings or ViewSetSettings()
     seeds = seed if isinstance(seed, ViewSetSeeds) else ViewSetSeeds.from_seed(seed)
     record = recorder or unrecorded
-    bones = register_view_set_bones(
-        bone_views(views),
-        volume,
-        side=side,
-        names=[v.name for v in views],
-        settings=settings,
-        seeds=seeds,
-        prior_ct_from_femur=None if prior is None else prior.ct_from_femur,
-        initial_world_from_pelvis=initial_world_from_pelvis,
-        recorder=record,
-    )
+    if known_bones is not None:
+        for stage in ("pelvis", "femur"):
+            with record(stage) as rec:
+                rec.diagnostics["known"] = True
+        bones = known_bones
+    else:
+        bones = register_view_set_bones(
+            bone_views(views),
+            volume,
+            side=side,
+            names=[v.name for v in views],
+            settings=settings,
+            seeds=seeds,
+            prior_ct_from_femur=None if prior is None else prior.ct_from_femur,
+            initial_world_from_pelvis=initial_world_from_pelvis,
+            recorder=record,
+        )
     if bones.kept is not None:
         views = [views[k] for k in bones.kept]
     with record("cm") as rec:

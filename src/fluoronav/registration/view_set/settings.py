@@ -12,8 +12,11 @@ import numpy as np
 
 from fluoronav.registration.bone import PELVIS_PRESET, PELVIS_REFINE_PRESET, BoneRegistrationConfig
 from fluoronav.registration.bone.checks import BoneCheckConfig
+from fluoronav.registration.bone.presets import FEMUR_LOCAL_PRESET
 from fluoronav.registration.cm import CMRegistrationConfig
 from fluoronav.registration.cm.checks import MAX_MOTION_TIP_MM, CMCheckConfig
+from fluoronav.registration.levels import LevelConfig
+from fluoronav.registration.view_set.fusion import TipFusionConfig
 
 __all__ = [
     "ViewSetPrior",
@@ -44,6 +47,30 @@ class ViewSetSettings:
             the first starts only.
         bone_checks: thresholds of the pelvis's and the femur's per-view checks
             (:mod:`~fluoronav.registration.bone.checks`); None: the bones are not checked.
+        local: the views' cameras (``camera_from_ct``) are already within about a millimetre and
+            a degree (views of a C-arm moved by a known motion from registered views): each view's
+            pelvis is registered with ``pelvis_local`` alone (the earlier femur's footprint left
+            out), and after a move the femur with ``femur_local`` from the earlier femur.
+        pelvis_local, femur_local: the bones' levels in that case.
+        fusion_max_gap_mm: after a move with a prediction of stated uncertainty
+            (:attr:`ViewSetPrior.prediction_sigma_mm`) the CM is first registered from the
+            prediction with the local levels (``fusion_cm_levels``), the views' checks judging it,
+            and from the images' own starts where it fails them. With a single view, whose checks
+            cannot see depth, only where its landmarks lie within this of the predicted ones
+            (mm at the CM).
+        fusion_max_mahalanobis: the registered tip and the predicted one are then fused
+            (:func:`~fluoronav.registration.view_set.fusion.fuse_tip`) where their difference is
+            within this many σ of their combined uncertainty; otherwise the images and the
+            kinematics disagree, and what that means is the caller's to judge (the CM stage's
+            ``motion_tip_mm``, of the fused CM where fused; the images' own in
+            ``image_motion_tip_mm``).
+        fusion_cm_levels: the levels of the registration from the prediction; None:
+            :func:`~fluoronav.registration.cm.config.local_cm_levels` for the number of views.
+        tip_fusion: how well one view registers the tip, across and along its ray.
+        min_unmoved_ncc: views taken from an earlier registration's C-arm positions keep its
+            bones only where each image agrees with the earlier one this well
+            (:func:`~fluoronav.registration.view_set.unmoved.unmoved_ncc`; the same scene gave
+            ≥ 0.9988, the patient moved 0.5 mm or 0.5° ≤ 0.990, docs/validation.md).
     """
 
     device: str = "cpu"
@@ -55,6 +82,14 @@ class ViewSetSettings:
     max_cm_starts: int = 2
     cm_checks: CMCheckConfig | None = field(default_factory=CMCheckConfig)
     bone_checks: BoneCheckConfig | None = field(default_factory=BoneCheckConfig)
+    local: bool = False
+    pelvis_local: BoneRegistrationConfig = PELVIS_REFINE_PRESET
+    femur_local: BoneRegistrationConfig = FEMUR_LOCAL_PRESET
+    fusion_max_gap_mm: float = 3.0
+    fusion_max_mahalanobis: float = 3.0
+    fusion_cm_levels: tuple[LevelConfig, ...] | None = None
+    tip_fusion: TipFusionConfig = field(default_factory=TipFusionConfig)
+    min_unmoved_ncc: float = 0.995
 
 
 @dataclass(frozen=True)
@@ -89,9 +124,17 @@ class ViewSetPrior:
             ``motion_rotation_deg``). It is not a gate: the CM is found where the images show it,
             and what a disagreement means is for the caller to judge.
         max_motion_tip_mm: the tolerance of that comparison the caller applies.
+        prediction_sigma_mm: the prediction's stated uncertainty at the CM (mm per axis, per
+            point: the robot's, the hand-eye matrix's and the earlier registration's errors), or
+            None. With it, where the images agree with the prediction
+            (:attr:`ViewSetSettings.fusion_max_gap_mm`), the CM is registered from the
+            prediction with the local levels, and its tip fused with the predicted one, each
+            weighted by its uncertainty (:func:`~fluoronav.registration.view_set.fusion.fuse_tip`):
+            the depth one view cannot see comes from the kinematics, the images correct the rest.
     """
 
     ct_from_femur: np.ndarray
     femur_from_cm_start: np.ndarray
     femur_from_cm_predicted: np.ndarray | None = None
     max_motion_tip_mm: float = MAX_MOTION_TIP_MM
+    prediction_sigma_mm: float | None = None
