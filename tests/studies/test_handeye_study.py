@@ -377,22 +377,19 @@ def test_summary_flags_first_moves_from_registrations_off_the_truth() -> None:
     assert out["unflagged_first_move_failures"] == 2 and out["unflagged_first_move_failure_trials"] == [1, 2]
 
 
-def test_the_world_of_a_navigation_study_reaches_its_trials_and_its_records(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
-) -> None:
-    """``--world realistic``: the trials' simulations get the world, config.json and summary.json
-    record it (name and every magnitude)."""
-    import json
-
+def _navigation_study_configs(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, field: str, options: list[str]
+) -> tuple[list[object], Path]:
+    """``study navigation`` (2 trials, in this process) with ``options``, its trials stand-ins that
+    record their config's ``field`` → (the recorded values, the study's directory)."""
     import fluoronav.studies.handeye_study as hs
     import fluoronav.studies.handeye_trials as ht
     from fluoronav.cli.main import main
-    from fluoronav.simulation.world import REALISTIC
 
-    worlds = []
+    seen: list[object] = []
 
     def trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, object]:
-        worlds.append(cfg.world)
+        seen.append(getattr(cfg, field))
         row = ht.new_row(trial_id, seed, cfg.workflow)
         row.update(status="refused", reason="stage robot, check reachable: x")
         return ht.finish_row(row, 0.0)
@@ -400,22 +397,21 @@ def test_the_world_of_a_navigation_study_reaches_its_trials_and_its_records(
     monkeypatch.setattr(hs, "run_navigation_trial", trial)
     monkeypatch.setattr(hs, "detector_or_none", lambda device: None)
     out = tmp_path / "study"
-    main(
-        [
-            "study",
-            "navigation",
-            "--trials",
-            "2",
-            "--seed",
-            "1",
-            "--out",
-            str(out),
-            "--world",
-            "realistic",
-            "--workers",
-            "0",
-        ]
-    )
+    args = ["study", "navigation", "--trials", "2", "--seed", "1", "--out", str(out), "--workers", "0"]
+    main([*args, *options])
+    return seen, out
+
+
+def test_the_world_of_a_navigation_study_reaches_its_trials_and_its_records(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """``--world realistic``: the trials' simulations get the world, config.json and summary.json
+    record it (name and every magnitude)."""
+    import json
+
+    from fluoronav.simulation.world import REALISTIC
+
+    worlds, out = _navigation_study_configs(monkeypatch, tmp_path, "world", ["--world", "realistic"])
     assert worlds == [REALISTIC, REALISTIC]
     for name in ("config.json", "summary.json"):
         assert json.loads((out / name).read_text())["world"] == REALISTIC.to_dict()
@@ -426,23 +422,7 @@ def test_the_verification_views_of_a_navigation_study_reach_its_trials_and_its_s
 ) -> None:
     import json
 
-    import fluoronav.studies.handeye_study as hs
-    import fluoronav.studies.handeye_trials as ht
-    from fluoronav.cli.main import main
-
-    seen = []
-
-    def trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, object]:
-        seen.append(cfg.verify_views)
-        row = ht.new_row(trial_id, seed, cfg.workflow)
-        row.update(status="refused", reason="stage robot, check reachable: x")
-        return ht.finish_row(row, 0.0)
-
-    monkeypatch.setattr(hs, "run_navigation_trial", trial)
-    monkeypatch.setattr(hs, "detector_or_none", lambda device: None)
-    out = tmp_path / "study"
-    args = ["study", "navigation", "--trials", "2", "--seed", "1", "--out", str(out), "--workers", "0"]
-    main([*args, "--verify-views", "1"])
+    seen, out = _navigation_study_configs(monkeypatch, tmp_path, "verify_views", ["--verify-views", "1"])
     assert seen == [1, 1]
     for name in ("config.json", "summary.json"):
         assert json.loads((out / name).read_text())["verify_views"] == 1

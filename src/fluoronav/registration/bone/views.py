@@ -8,7 +8,6 @@ Several images of one static view (the multiple-CM workflow) become one
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -44,14 +43,6 @@ class BoneView:
         if self.mask is not None and np.shape(self.mask) != img.shape:
             raise ValueError(f"mask shape {np.shape(self.mask)} does not match image {img.shape}")
 
-    @functools.cached_property
-    def filled_image(self) -> np.ndarray:
-        """The image with its masked pixels filled (:func:`harmonic_fill`); computed once per view,
-        shared by the pelvis and femur registrations of the view."""
-        if self.mask is None:
-            return np.asarray(self.image)
-        return harmonic_fill(self.image, ~np.asarray(self.mask, dtype=bool))
-
     def binned(self, factor: int) -> tuple[np.ndarray, np.ndarray | None]:
         """The working image binned by ``factor`` (float64, (H // factor, W // factor)) and which of
         its pixels the similarity uses (None without a mask); computed once per factor.
@@ -70,9 +61,8 @@ class BoneView:
         """The same image and mask seen through ``camera`` (another pose), sharing the binned and
         filled images computed so far (they depend on the image and the mask only)."""
         out = BoneView(self.image, camera, self.mask)
-        for key in ("filled_image", "_binned"):
-            if key in self.__dict__:
-                out.__dict__[key] = self.__dict__[key]
+        if "_binned" in self.__dict__:
+            out.__dict__["_binned"] = self.__dict__["_binned"]
         return out
 
 
