@@ -18,6 +18,7 @@ from fluoronav.navigation.commands import (
     correction_allowed_mm,
     judge_kinematics,
     measure_command,
+    name_kinematics_disagreement,
 )
 from fluoronav.navigation.result import NavigationRefused
 from fluoronav.navigation.safety import SafetyConfig
@@ -191,3 +192,29 @@ def test_ambiguous_images_cannot_overrule_the_kinematics(
     assert info.value.stage == "correct" and info.value.check == "kinematics_disagree"
     assert f"{tip_mm:.1f} mm from where the robot's kinematics put it" in info.value.detail
     assert words in info.value.detail
+
+
+@pytest.mark.parametrize(
+    ("gap_mm", "cost_px", "named"),
+    [(10.2, 0.9, True), (2.5, 0.9, False), (10.2, 7.0, False), (float("nan"), 0.9, False)],
+)
+def test_a_failed_verification_cm_far_from_the_kinematics_names_them(
+    gap_mm: float, cost_px: float, named: bool
+) -> None:
+    """The views agree on a CM 10.2 mm from the prediction and its registration failed: the reason
+    names the hand-eye matrix and the joint readings, and keeps the registration's failure. Within
+    ``max_motion_tip_mm`` (2.5 mm), with views that disagree (7 px) or without a gap: unchanged."""
+    exc = NavigationRefused(
+        "verify_cm", "landmark_residual", "registered landmarks 11.86 mm from the detected ones", view="AP"
+    )
+    diag = {"prediction_gap_mm": gap_mm, "init_cost_px": cost_px}
+    out = name_kinematics_disagreement(exc, diag, SAFETY)
+    if not named:
+        assert out is exc
+        return
+    assert (out.stage, out.check, out.view) == ("verify_cm", "kinematics_disagree", "AP")
+    assert out.detail.startswith(
+        "the CM's landmarks in the verification images are 10.2 mm from where the robot's kinematics"
+    )
+    assert "check the hand-eye matrix and the joint readings" in out.detail
+    assert out.detail.endswith("(landmark_residual: registered landmarks 11.86 mm from the detected ones)")

@@ -18,13 +18,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import fluoronav.navigation.pipeline as pipeline
+import fluoronav.navigation.verification as verification
 from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
 from fluoronav.navigation.case import VerificationViews, write_navigation_case
 from fluoronav.navigation.detect import band_mask
-from fluoronav.navigation.pipeline import NavigationConfig, NavigationRefused, _refusals, navigate
+from fluoronav.navigation.pipeline import NavigationConfig, NavigationRefused, navigate
 from fluoronav.navigation.planning import planned_femur_from_cm
-from fluoronav.navigation.result import navigation_cm_config
+from fluoronav.navigation.result import navigation_cm_config, navigation_refusals
 from fluoronav.navigation.safety import SafetyConfig
 
 
@@ -80,17 +81,20 @@ def test_navigate_command_bad_case_is_one_line_and_exit_2(tmp_path: Path, make_n
     assert not (tmp_path / "o" / "navigation.json").exists()
 
 
-def test_navigation_cm_settings_are_cmaes_then_linearised_and_the_reference_is_cmaes_twice() -> None:
-    """The first registration's CM: the coarse CMA-ES level, then the linearised 2× level; the
-    0.4.1 reference of the bench keeps CMA-ES at both."""
-    from fluoronav.navigation.result import reference_cm_config
+def test_navigation_cm_settings_are_cmaes_twice_and_the_verifications_local_levels_linearised() -> None:
+    """The CM from the images' own starts: CMA-ES at 4× and at 2× (the linearised 2× finish left the
+    base's direction ~3× worse); from the kinematic prediction: the local CMA-ES level, then the
+    linearised 2× level with several views and CMA-ES with one."""
+    from fluoronav.registration.cm.config import local_cm_levels
 
-    assert [lv.optimizer for lv in navigation_cm_config().levels_for("multi-view")] == ["cmaes", "linearized"]
-    assert [lv.optimizer for lv in reference_cm_config().levels_for("multi-view")] == ["cmaes", "cmaes"]
+    assert [lv.optimizer for lv in navigation_cm_config().levels_for("multi-view")] == ["cmaes", "cmaes"]
+    assert [lv.name for lv in navigation_cm_config().levels_for("multi-view")] == ["cm-4x", "cm-2x"]
+    assert [lv.optimizer for lv in local_cm_levels(3)] == ["cmaes", "linearized"]
+    assert [lv.optimizer for lv in local_cm_levels(1)] == ["cmaes", "cmaes"]
 
 
 def test_a_registration_refusal_is_the_navigations_its_stage_named_as_the_pipelines() -> None:
-    with pytest.raises(NavigationRefused) as err, _refusals("verify_"):
+    with pytest.raises(NavigationRefused) as err, navigation_refusals("verify_"):
         raise RegistrationRefused("cm", "edge_ncc", "NCC 0.10 (at least 0.7)", view="AP (verify)")
     assert (
         err.value.stage == "verify_cm" and err.value.check == "edge_ncc" and err.value.view == "AP (verify)"
@@ -114,6 +118,8 @@ def test_navigate_registers_the_detected_views_as_one_set(
             raise RegistrationRefused("cm", "edge_ncc", "NCC 0.10", view="view1")
 
     monkeypatch.setattr(pipeline, "register_view_set", register)
+
+    monkeypatch.setattr(verification, "register_view_set", register)
     events: list[tuple[str, str]] = []
     res = navigate(case, NavigationConfig(device="cpu", seed=3), on_stage=lambda n, e: events.append((n, e)))
     assert [v.name for v in seen["views"]] == ["view0", "view1"]
@@ -170,6 +176,7 @@ def _robot_case(
     held = held @ se3.make(Rotation.from_rotvec([np.radians(tilt_deg), 0.0, 0.0]).as_matrix(), np.zeros(3))
     first = _fake_registration(held)
     monkeypatch.setattr(pipeline, "register_view_set", lambda views, volume, **kw: first)
+    monkeypatch.setattr(verification, "register_view_set", lambda views, volume, **kw: first)
     if verify_offset_mm is None:
         return case
     q_after = navigate(case, _CFG).joints_target_deg
@@ -194,6 +201,8 @@ def _robot_case(
         return ver
 
     monkeypatch.setattr(pipeline, "register_view_set", register)
+
+    monkeypatch.setattr(verification, "register_view_set", register)
     return dataclasses.replace(case, verification=VerificationViews(q_after, views))
 
 
@@ -334,14 +343,22 @@ def _local_config() -> NavigationConfig:
 _LOCAL = _local_config()
 
 
-def test_by_default_the_verification_registers_every_bone_with_the_whole_ladders(
-    make_no_cm_case, monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize("local_bones", [True, False])
+def test_the_verification_registers_the_bones_locally_by_default_or_with_the_whole_ladders(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch, local_bones: bool
 ) -> None:
+    from fluoronav.navigation.result import VerificationConfig
+
     case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=1.0)
-    case = _with_relations(case, [("view0", np.eye(4)), ("view0", np.eye(4))])
+    slide = se3.make(np.eye(3), (-40.0, 15.0, 0.0))
+    case = _with_relations(case, [("view0", slide), ("view0", slide)])
     seen = _spy_verification(monkeypatch)
-    navigate(case, _CFG)
-    assert seen["settings"].local is False and seen["known_bones"] is None
+    cfg = (
+        _CFG if local_bones else dataclasses.replace(_CFG, verification=VerificationConfig(local_bones=False))
+    )
+    assert VerificationConfig().local_bones is True
+    navigate(case, cfg)
+    assert seen["settings"].local is local_bones and seen["known_bones"] is None
     assert seen["prior"].prediction_sigma_mm > 0.5
 
 
@@ -366,6 +383,7 @@ def _spy_verification(monkeypatch: pytest.MonkeyPatch) -> dict:
         return inner(views, volume, **kw)
 
     monkeypatch.setattr(pipeline, "register_view_set", register)
+    monkeypatch.setattr(verification, "register_view_set", register)
     return seen
 
 
@@ -426,10 +444,50 @@ def test_unmoved_carm_positions_keep_the_first_bones_where_the_images_agree(
         ncc = {v.name: 0.999 if unmoved else 0.95 for v in views}
         return (known if unmoved else None), ncc
 
-    monkeypatch.setattr(pipeline, "unmoved_bones", unmoved_bones)
+    monkeypatch.setattr(verification, "unmoved_bones", unmoved_bones)
     seen = _spy_verification(monkeypatch)
     res = navigate(case, _LOCAL)
     assert asked == [([0, 0], 0.995)]
     assert seen["known_bones"] is (known if unmoved else None)
     diag = res.stages["verify_detect"].diagnostics
     assert diag["bones_from_first_registration"] is unmoved and set(diag["unmoved_ncc"]) == {"view0", "view1"}
+
+
+@pytest.mark.parametrize(
+    ("check", "retried"), [("edge_ncc", True), ("kinematics_disagree", False)], ids=["cm-check", "kinematics"]
+)
+def test_a_verification_with_local_bones_that_refuses_is_registered_again_with_the_whole_ladders(
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch, check: str, retried: bool
+) -> None:
+    """The local levels' CM failing its checks: once more with the whole ladders (the first attempt
+    kept as ``verify_local_*``); a refusal that names the kinematics is final."""
+    from fluoronav.errors import RegistrationRefused
+
+    case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=1.0)
+    slide = se3.make(np.eye(3), (-40.0, 15.0, 0.0))
+    case = _with_relations(case, [("view0", slide), ("view0", slide)])
+    inner = verification.register_view_set
+    local_calls: list[bool] = []
+
+    def register(views, volume, **kw):
+        local_calls.append(kw["settings"].local)
+        if kw["settings"].local:
+            with kw["recorder"]("cm") as rec:
+                rec.diagnostics["tries"] = 2
+                rec.passed = False
+            raise RegistrationRefused("cm", check, "NCC 0.60 (at least 0.70)", view="view0")
+        return inner(views, volume, **kw)
+
+    monkeypatch.setattr(verification, "register_view_set", register)
+    res = navigate(case, _LOCAL)
+    diag = res.stages["verify_detect"].diagnostics
+    if not retried:
+        assert local_calls == [True] and res.status == "refused" and "kinematics_disagree" in res.reason
+        assert "local_bones_refused" not in diag
+        return
+    assert local_calls == [True, False]
+    assert res.status == "ok", res.reason
+    assert (
+        diag["local_bones_refused"] == "stage verify_cm, view view0, check edge_ncc: NCC 0.60 (at least 0.70)"
+    )
+    assert res.stages["verify_local_cm"].passed is False and res.stages["verify_cm"].passed is True

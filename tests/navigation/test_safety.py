@@ -16,6 +16,7 @@ def test_safety_config_keeps_its_fields_and_defaults() -> None:
         "min_edge_ncc": 0.7,
         "max_motion_tip_mm": 3.0,
         "min_views": 2,
+        "verify_min_views": 1,
         "max_joint_motion_deg": 30.0,
         "max_move_mm": 200.0,
         "max_move_deg": 90.0,
@@ -24,6 +25,7 @@ def test_safety_config_keeps_its_fields_and_defaults() -> None:
         "max_joint_reading_deg": 0.5,
         "overrule_min_views": 3,
         "overrule_max_landmark_residual_mm": 1.0,
+        "consistent_views_max_cost_px": 3.0,
     }
 
 
@@ -31,6 +33,19 @@ def test_safety_config_sets_the_cm_checks() -> None:
     s = SafetyConfig(max_landmark_residual_mm=1.5, min_edge_ncc=0.6, max_motion_tip_mm=4.0, min_views=3)
     assert s.cm_checks() == CMCheckConfig(max_landmark_residual_mm=1.5, min_edge_ncc=0.6, min_views=3)
     assert NavigationConfig(safety=s).view_set_settings(verification=False).cm_checks == s.cm_checks()
+
+
+def test_the_verification_fused_with_the_kinematics_may_keep_one_view() -> None:
+    """Fused with the kinematics the verification's CM stands on one view (as a one-image
+    verification does); from the images alone it needs ``min_views``, as the first registration."""
+    from fluoronav.navigation.result import VerificationConfig
+
+    s = SafetyConfig(min_views=2, verify_min_views=1)
+    fused = NavigationConfig(safety=s).view_set_settings(verification=True).cm_checks
+    alone = NavigationConfig(safety=s, verification=VerificationConfig.reference())
+    assert fused is not None and fused.min_views == 1
+    assert alone.view_set_settings(verification=True).cm_checks == s.cm_checks()
+    assert s.cm_checks().min_views == 2
 
 
 def test_navigation_config_gives_each_registration_its_settings_and_one_device() -> None:

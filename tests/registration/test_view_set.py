@@ -107,7 +107,12 @@ def calls(monkeypatch: pytest.MonkeyPatch) -> _Calls:
     def init(cameras: list[Camera], landmarks_px: np.ndarray, *a: Any, **kw: Any) -> SimpleNamespace:
         c.init.append(kw)
         n = len(cameras)
-        return SimpleNamespace(landmarks_px=landmarks_px, cost_px=0.5, landmark_inliers=np.ones((n, 2), bool))
+        return SimpleNamespace(
+            landmarks_px=landmarks_px,
+            landmarks_world=np.zeros((2, 3)),
+            cost_px=0.5,
+            landmark_inliers=np.ones((n, 2), bool),
+        )
 
     def checked(views: list[Any], lms: list[Any], tries: list[Any], diag: dict[str, Any], **kw: Any) -> Any:
         c.cm.append({"tries": tries, "views": views, **kw})

@@ -37,6 +37,7 @@ __all__ = [
     "correction_allowed_mm",
     "judge_kinematics",
     "measure_command",
+    "name_kinematics_disagreement",
 ]
 
 
@@ -288,6 +289,42 @@ def judge_kinematics(
         images_overrule=True,
         warning=f"{said}. Corrected from the images: {n} views agree (landmarks within {worst:.2f} mm), "
         "and a correction measured in the images does not depend on the hand-eye translation.",
+    )
+
+
+def name_kinematics_disagreement(
+    exc: NavigationRefused, cm_diagnostics: Mapping[str, Any], safety: SafetyConfig
+) -> NavigationRefused:
+    """A refusal of the verification's CM registration, named for its cause where that is the
+    kinematics: the CM's landmarks triangulated from the verification images lie more than
+    ``max_motion_tip_mm`` from where the robot's kinematics put them, and the views agree on them
+    (their centreline fit within ``consistent_views_max_cost_px``).
+
+    Notes:
+        A CM that is far from the kinematic prediction is often hard to register (the search
+        starts at the prediction among the images' own starts, and the ROI and landmark prior sit
+        where the kinematics say), so the registration's own check, not the kinematics, refuses
+        first: "registered landmarks 11.9 mm from the detected ones" with a hand-eye matrix 10 mm
+        off. What a user must check then is the hand-eye matrix and the joint readings; the
+        registration's failure stays in the reason. Views that disagree among themselves (a wrong
+        detection) say nothing about the kinematics, and the refusal is left as it was.
+
+    Returns:
+        ``exc`` itself, or a refusal with check ``kinematics_disagree`` (same stage and view).
+    """
+    gap = float(cm_diagnostics.get("prediction_gap_mm", float("nan")))
+    cost = float(cm_diagnostics.get("init_cost_px", float("nan")))
+    if exc.check == "kinematics_disagree" or not (
+        gap > safety.max_motion_tip_mm and cost <= safety.consistent_views_max_cost_px
+    ):
+        return exc
+    return NavigationRefused(
+        exc.stage,
+        "kinematics_disagree",
+        f"the CM's landmarks in the verification images are {gap:.1f} mm from where the robot's "
+        f"kinematics put them (at most {safety.max_motion_tip_mm:g} mm): check the hand-eye matrix "
+        f"and the joint readings; the CM could not be registered there ({exc.check}: {exc.detail})",
+        view=exc.view,
     )
 
 

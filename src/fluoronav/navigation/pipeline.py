@@ -61,7 +61,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from fluoronav.errors import RegistrationRefused
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.case import CaseView, NavigationCase
 from fluoronav.navigation.commands import (
@@ -81,6 +80,7 @@ from fluoronav.navigation.result import (
     NavigationResult,
     StageRecord,
     ViewDetection,
+    navigation_refusals,
 )
 from fluoronav.navigation.targeting import (
     LeastMotionTarget,
@@ -92,15 +92,14 @@ from fluoronav.navigation.targeting import (
     robot_target,
     tip_correction_target,
 )
+from fluoronav.navigation.verification import moved_cameras, register_verification
 from fluoronav.registration.stages import StageRecorder
 from fluoronav.registration.view_set import (
     FluoroView,
-    ViewSetBones,
     ViewSetPrior,
     ViewSetRegistration,
     register_view_set,
 )
-from fluoronav.registration.view_set.unmoved import unmoved_bones
 
 log = logging.getLogger(__name__)
 
@@ -187,64 +186,6 @@ def _detect(
                 view=missing,
             )
     return [FluoroView(v.name, v.image, v.camera, d) for v, d in zip(views, detections, strict=True)]
-
-
-@contextmanager
-def _refusals(prefix: str) -> Iterator[None]:
-    """A registration's refusal as the navigation's, its stage named as the pipeline's."""
-    try:
-        yield
-    except RegistrationRefused as exc:
-        if isinstance(exc, NavigationRefused):
-            raise
-        raise NavigationRefused(f"{prefix}{exc.stage}", exc.check, exc.detail, view=exc.view) from exc
-
-
-def _moved_cameras(
-    views: list[FluoroView], case_views: Sequence[CaseView], first: ViewSetRegistration
-) -> tuple[list[FluoroView], bool]:
-    """The verification views with each camera that the case relates to a first view
-    (``CaseView.moved_from``) started from that view's registered camera moved by the C-arm's
-    nominal motion; and whether every view was (its bones can then be registered locally)."""
-    registered = {v.name: c for v, c in zip(first.views, first.cameras_ct, strict=True)}
-    out, every = [], True
-    for v, cv in zip(views, case_views, strict=True):
-        cam = registered.get(cv.moved_from or "")
-        if cam is None or cv.carm_motion is None:
-            every = False
-            out.append(v)
-            continue
-        pose = np.asarray(cv.carm_motion, np.float64) @ cam.camera_from_world
-        out.append(dataclasses.replace(v, camera=v.camera.with_pose(pose)))
-    return out, every
-
-
-def _unmoved(
-    views: list[FluoroView],
-    case_views: Sequence[CaseView],
-    first: ViewSetRegistration,
-    cfg: NavigationConfig,
-    result: NavigationResult,
-) -> ViewSetBones | None:
-    """The first registration's bones where every verification view was taken from a first view's
-    C-arm position (no motion) and its anatomy did not move
-    (:func:`~fluoronav.registration.view_set.unmoved.unmoved_bones`); None otherwise. The NCC of
-    each pair is recorded in the ``verify_detect`` stage."""
-    names = [v.name for v in first.views]
-    if not all(
-        cv.moved_from in names and cv.carm_motion is not None and np.array_equal(cv.carm_motion, np.eye(4))
-        for cv in case_views
-    ):
-        return None
-    same_as = [names.index(str(cv.moved_from)) for cv in case_views]
-    min_ncc = cfg.view_set_settings(verification=True).min_unmoved_ncc
-    bones, ncc = unmoved_bones(views, first, same_as, min_ncc=min_ncc)
-    diag = result.stages["verify_detect"].diagnostics
-    diag["unmoved_ncc"] = ncc
-    diag["bones_from_first_registration"] = bones is not None
-    if bones is None:
-        log.warning("the anatomy moved since the first images (NCC %s): the bones are registered again", ncc)
-    return bones
 
 
 def _stage_seed(seed: int, k: int) -> int:
@@ -366,7 +307,7 @@ def navigate(
     )
     try:
         views = _detect(stage, case.views, cfg, prefix="", need=cfg.min_views)
-        with _refusals(""):
+        with navigation_refusals(""):
             first = register_view_set(
                 views,
                 case.volume,
@@ -479,24 +420,16 @@ def verify(
                 rec.diagnostics["reading_minus_command_deg"] = [float(x) for x in dq]
                 check_joint_readings(dq, cfg.safety)
         views = _detect(stage, case.verification.views, cfg, prefix="verify_", need=1)
-        views, local = _moved_cameras(views, case.verification.views, first)
-        local = local and vcfg.local_bones
-        known = _unmoved(views, case.verification.views, first, cfg, result) if local else None
-        result.stages["verify_detect"].diagnostics["cameras_from_carm_motion"] = local
-        with _refusals("verify_"):
-            ver = register_view_set(
-                views,
-                case.volume,
-                side=case.side,
-                cm_config=case.cm_config,
-                initial_control_points_deg=np.asarray(first.cm.control_points_deg),
-                settings=cfg.view_set_settings(verification=True, local=local),
-                seed=_stage_seed(cfg.seed, 1),
-                prior=prior,
-                name="verify",
-                recorder=stage.within("verify_"),
-                known_bones=known,
-            )
+        views, local = moved_cameras(views, case.verification.views, first)
+        ver = register_verification(
+            views,
+            case,
+            result,
+            prior,
+            local=local and vcfg.local_bones,
+            seed=_stage_seed(cfg.seed, 1),
+            recorder=stage.within("verify_"),
+        )
         stage.emit("registration", prefix="verify_", registration=ver)
         result.verification = ver
         with stage("correct") as rec:

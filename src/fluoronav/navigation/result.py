@@ -8,6 +8,8 @@ command only when the status is "ok".
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -37,6 +39,7 @@ __all__ = [
     "VerificationConfig",
     "ViewDetection",
     "navigation_cm_config",
+    "navigation_refusals",
     "reference_cm_config",
 ]
 
@@ -56,15 +59,14 @@ class VerificationConfig:
         local_bones: where every verification view says which first view its C-arm moved from
             and by how much (the C-arm's nominal motion), its camera starts there and the bones
             are registered with their local levels only (and not at all where no C-arm and no
-            anatomy moved); False (the default): every view's bones from the case's camera
-            estimate with the whole ladders. Off by default: in the navigation study the local
-            levels left the verification's CM failing its checks in 3 of 20 trials where the
-            whole ladders passed 2 of them (docs/validation.md).
+            anatomy moved); where that verification refuses, it is registered again with the
+            whole ladders (:func:`~fluoronav.navigation.verification.register_verification`).
+            False: every view's bones with the whole ladders from the case's camera estimates.
     """
 
     fuse_kinematics: bool = True
     uncertainty: KinematicUncertainty = field(default_factory=KinematicUncertainty)
-    local_bones: bool = False
+    local_bones: bool = True
 
     @classmethod
     def reference(cls) -> VerificationConfig:
@@ -136,23 +138,25 @@ class NavigationConfig:
             femur_margin_mm=self.femur_margin_mm,
             cm=(self.verify_cm if verification else self.cm) or navigation_cm_config(),
             max_cm_starts=self.max_cm_starts,
-            cm_checks=self.safety.cm_checks(),
+            cm_checks=self.safety.cm_checks(fused=verification and self.verification.fuse_kinematics),
         )
 
 
 def navigation_cm_config() -> CMRegistrationConfig:
-    """The pipeline's CM registration settings: the coarse CMA-ES level, then the linearised 2×
-    level (:func:`default_cm_levels` with ``linearized``), the multi-view workflow's default.
+    """The pipeline's CM registration settings from the images' own starts: both levels CMA-ES
+    (:func:`default_cm_levels`).
 
-    With the verification that starts from the kinematic prediction and fuses it with the images
-    (:class:`VerificationConfig`), the linearised level's first registration serves it as well as
-    the CMA-ES one did (docs/validation.md) in about half the CM stage's time. fluoronav ≤ 0.6 ran
-    both CMA-ES levels (:func:`reference_cm_config`)."""
-    return CMRegistrationConfig(levels=default_cm_levels(linearized=True))
+    Why not the multi-view workflow's linearised 2× level: it finds the tip as well, but not the
+    base's direction. In the navigation study (seed 9127, 19 trials) the first registration's base
+    rotation was 0.66° off on average with it against 0.23° with CMA-ES, and the first move landed
+    0.91 mm from the plan against 0.55 mm (docs/validation.md). The verification's registration
+    from the kinematic prediction has its own local levels
+    (:func:`~fluoronav.registration.cm.config.local_cm_levels`)."""
+    return CMRegistrationConfig(levels=default_cm_levels())
 
 
 def reference_cm_config() -> CMRegistrationConfig:
-    """The CM registration settings of fluoronav 0.4.1–0.6: both levels CMA-ES."""
+    """The CM registration settings of fluoronav 0.4.1 (the bench's reference): both levels CMA-ES."""
     return CMRegistrationConfig(levels=default_cm_levels())
 
 
@@ -162,6 +166,17 @@ class NavigationRefused(RegistrationRefused):
     Args:
         stage: the stage that refused; check: the check that failed; view: the view concerned or "".
     """
+
+
+@contextmanager
+def navigation_refusals(prefix: str) -> Iterator[None]:
+    """A registration's refusal as the navigation's, its stage named as the pipeline's."""
+    try:
+        yield
+    except RegistrationRefused as exc:
+        if isinstance(exc, NavigationRefused):
+            raise
+        raise NavigationRefused(f"{prefix}{exc.stage}", exc.check, exc.detail, view=exc.view) from exc
 
 
 @dataclass

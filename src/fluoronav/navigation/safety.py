@@ -49,7 +49,12 @@ class SafetyConfig:
         min_edge_ncc: a view's gradient NCC on the registered CM's outline must reach this.
         max_motion_tip_mm: the verification's CM tip (femur frame) may differ at most this much from
             the kinematic prediction (the robot's and the first registration's errors together).
-        min_views: views that must pass for a CM registration to stand.
+        min_views: views that must pass for a CM registration to stand (a view that fails is left
+            out only while this many remain).
+        verify_min_views: the same for the verification's CM where it is fused with the robot's
+            kinematics (``VerificationConfig.fuse_kinematics``). One view with the kinematics'
+            depth is what a one-image verification is: a view whose detection is wrong may be
+            left out of two down to one, rather than refuse where one image alone would pass.
         max_joint_motion_deg: no joint of a command (first move or correction) may turn by more
             than this (degrees, wrapped). Near a patient, with the CM at the bone, a large joint
             turn is a hazard in itself: the arm's links sweep far even when the tip travels little.
@@ -75,12 +80,17 @@ class SafetyConfig:
         overrule_max_landmark_residual_mm: ... and every view's registered landmarks lie within
             this of the detected ones (mm at the detector). Otherwise the navigation refuses,
             naming the hand-eye matrix and the joint readings.
+        consistent_views_max_cost_px: where the verification's CM fails its checks, the refusal
+            names the kinematics when the views agree on a CM (their multi-view centreline fit's
+            mean cost within this, pixels at the detection's resolution) that lies more than
+            ``max_motion_tip_mm`` from the prediction.
     """
 
     max_landmark_residual_mm: float = CMCheckConfig.max_landmark_residual_mm
     min_edge_ncc: float = CMCheckConfig.min_edge_ncc
     max_motion_tip_mm: float = MAX_MOTION_TIP_MM
     min_views: int = CMCheckConfig.min_views
+    verify_min_views: int = 1
     max_joint_motion_deg: float = 30.0
     max_move_mm: float = 200.0
     max_move_deg: float = 90.0
@@ -89,11 +99,13 @@ class SafetyConfig:
     max_joint_reading_deg: float = 0.5
     overrule_min_views: int = 3
     overrule_max_landmark_residual_mm: float = 1.0
+    consistent_views_max_cost_px: float = 3.0
 
-    def cm_checks(self) -> CMCheckConfig:
-        """The per-view thresholds of a CM registration."""
+    def cm_checks(self, *, fused: bool = False) -> CMCheckConfig:
+        """The per-view thresholds of a CM registration (``fused``: the verification's, fused with
+        the robot's kinematics)."""
         return CMCheckConfig(
             max_landmark_residual_mm=self.max_landmark_residual_mm,
             min_edge_ncc=self.min_edge_ncc,
-            min_views=self.min_views,
+            min_views=self.verify_min_views if fused else self.min_views,
         )

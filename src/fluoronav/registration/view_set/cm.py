@@ -77,7 +77,8 @@ def register_view_set_cm(
             to the femur).
         diagnostics: filled in place (JSON-ready): ``init_cost_px``, ``landmarks_replaced``, the
             registration's (:func:`~fluoronav.registration.cm.checks.register_cm_checked`) and, with
-            a prediction, its agreement with it
+            a prediction, how far the images' own landmarks lie from it (``prediction_gap_mm``,
+            :func:`landmark_gap_mm`) and the registration's agreement with it
             (:func:`~fluoronav.registration.cm.checks.motion_agreement`).
 
     Returns:
@@ -108,9 +109,24 @@ def register_view_set_cm(
         diag.update(cost=float(cm.cost), converged=bool(cm.converged), reason=cm.reason)
         return cm, init
     fast: CMRegistrationResult | None = None
+    gap = math.inf
+    if predicted is not None:  # the images' own landmarks against the prediction, before any registration
+        gap = landmark_gap_mm(
+            cm_views, lm_views, init, predicted.world_from_cm, cm_config, initial_control_points_deg
+        )
+        diag["prediction_gap_mm"] = gap
     if predicted is not None and prior is not None and prior.prediction_sigma_mm is not None:
         fast = _register_from_prediction(
-            cm_views, lm_views, init, predicted, cm_settings, settings, initial_control_points_deg, seed, diag
+            cm_views,
+            lm_views,
+            init,
+            gap,
+            predicted,
+            cm_settings,
+            settings,
+            initial_control_points_deg,
+            seed,
+            diag,
         )
     cm = (
         fast
@@ -184,6 +200,7 @@ def _register_from_prediction(
     cm_views: Sequence[CMView],
     lm_views: Sequence[np.ndarray | None],
     init: MultiViewInitResult | None,
+    gap: float,
     predicted: PredictedCMPose,
     cm_settings: CMRegistrationConfig,
     settings: ViewSetSettings,
@@ -192,12 +209,10 @@ def _register_from_prediction(
     diag: dict[str, Any],
 ) -> CMRegistrationResult | None:
     """The CM registered with the local levels from the kinematic prediction, where the images'
-    own landmarks agree with it; None where they do not, or where that registration failed its
-    checks (the caller registers from the images' own starts)."""
+    own landmarks agree with it (``gap``: :func:`landmark_gap_mm`); None where they do not, or where
+    that registration failed its checks (the caller registers from the images' own starts)."""
     assert settings.cm_checks is not None
     W = predicted.world_from_cm
-    gap = landmark_gap_mm(cm_views, lm_views, init, W, cm_settings.cm_config, initial_control_points_deg)
-    diag["prediction_gap_mm"] = gap
     # one view's checks cannot see depth: there the prediction is used only where the landmarks
     # agree with it; with two or more the checks of each view judge the registration from it
     if init is None and not gap <= settings.fusion_max_gap_mm:
