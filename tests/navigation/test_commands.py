@@ -218,3 +218,12 @@ def test_a_failed_verification_cm_far_from_the_kinematics_names_them(
     )
     assert "check the hand-eye matrix and the joint readings" in out.detail
     assert out.detail.endswith("(landmark_residual: registered landmarks 11.86 mm from the detected ones)")
+
+
+def test_one_view_that_disagrees_with_the_kinematics_says_it_may_be_the_wrong_one() -> None:
+    with pytest.raises(NavigationRefused, match="kinematics_disagree") as err:
+        judge_kinematics(_cm_diag(5.0, [0.3]), {}, SAFETY)
+    assert "one image cannot tell whether it or the kinematics is wrong" in str(err.value)
+    with pytest.raises(NavigationRefused) as err:
+        judge_kinematics(_cm_diag(5.0, [0.3, 0.4]), {}, SAFETY)
+    assert "one image cannot tell" not in str(err.value)

@@ -262,8 +262,14 @@ def test_navigation_rows_take_the_final_tip_and_the_checks() -> None:
     )
     res.stages["verify_cm"] = StageRecord(
         seconds=2.0,
-        diagnostics={"views": {"AP": {"landmark_residual_mm": None, "edge_ncc": 0.8}}, "motion_tip_mm": 1.2},
+        diagnostics={
+            "views": {"AP": {"landmark_residual_mm": None, "edge_ncc": 0.8}},
+            "views_used": ["AP"],
+            "motion_tip_mm": 1.2,
+            "from_prediction": True,
+        },
     )
+    res.stages["verify_detect"] = StageRecord(diagnostics={"local_bones_refused": "stage verify_cm, …"})
     res.stages["pelvis"] = StageRecord(
         seconds=5.0, diagnostics={"views": {"AP": {"cost": 0.5}, "B": {"cost": 0.6}}}
     )
@@ -275,6 +281,9 @@ def test_navigation_rows_take_the_final_tip_and_the_checks() -> None:
     assert row["verify_cm_edge_ncc"] == 0.8 and row["verify_motion_tip_mm"] == 1.2
     assert "verify_cm_landmark_residual_mm" not in row and row["pelvis_cost"] == 0.6
     assert row["seconds_registration"] == 3.0 and row["seconds_verification"] == 2.0
+    # how the verification went: one view, from the prediction, not fused, after the whole ladders
+    assert (row["verify_views_used"], row["verify_from_prediction"], row["verify_fused"]) == (1.0, 1.0, 0.0)
+    assert row["verify_whole_ladders_retry"] == 1.0
     open_loop = navigation_row(
         run, HandEyeStudyConfig(workflow="navigation", trials=1, seed=0, corrections=0)
     )

@@ -27,7 +27,7 @@ def run(
     oracle_landmarks: bool,
     igtl: str | None = None,
     world: str = "ideal",
-    verify_views: int = 3,
+    verify_views: int = 2,
 ) -> int:
     """Run the demo, print its table, write its files; returns the exit status (3: refused). With
     ``igtl`` (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer)."""
@@ -112,11 +112,11 @@ def register(app: typer.Typer) -> None:
             help="The simulated world's error sources: ideal, realistic, or a JSON file of magnitudes.",
         ),
         verify_views: int = typer.Option(
-            3,
+            2,
             "--verify-views",
             min=1,
             max=3,
-            help="Verification images after the move (1, 2 or 3).",
+            help="Verification images after the move (1, 2 or 3): by default the two orbits.",
         ),
     ) -> None:
         """Simulated navigation on the built-in phantom: a simulated case written to files, then the

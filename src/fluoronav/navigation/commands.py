@@ -271,6 +271,8 @@ def judge_kinematics(
         f"the CM the verification images show is {tip_mm:.1f} mm from where the robot's kinematics put "
         f"it (at most {safety.max_motion_tip_mm:g} mm): check the hand-eye matrix and the joint readings"
     )
+    if len(cm_diagnostics["views_used"]) == 1:  # one view's CM may be the one that is wrong
+        said += " (one image cannot tell whether it or the kinematics is wrong: a second view can)"
     if tip_mm > safety.max_correction_mm:
         raise NavigationRefused(
             stage,

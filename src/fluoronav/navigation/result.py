@@ -234,7 +234,22 @@ class NavigationResult:
                 )
             if f"{prefix}femur" in st and "cost" in st[f"{prefix}femur"].diagnostics:
                 out[f"{prefix}femur_cost"] = float(st[f"{prefix}femur"].diagnostics["cost"])
-        return out
+        return {**out, **self._verification_route()}
+
+    def _verification_route(self) -> dict[str, float]:
+        """How the verification went: views its CM used, from the kinematic prediction (1/0), fused
+        with it (1/0), registered again with the whole ladders after the local bones refused (1/0)."""
+        st = self.stages
+        if "verify_cm" not in st:
+            return {}
+        cm = st["verify_cm"].diagnostics
+        detect = st["verify_detect"].diagnostics if "verify_detect" in st else {}
+        return {
+            "verify_views_used": float(len(cm.get("views_used", ()))),
+            "verify_from_prediction": float(bool(cm.get("from_prediction", False))),
+            "verify_fused": float("fusion_shift_mm" in cm),
+            "verify_whole_ladders_retry": float("local_bones_refused" in detect),
+        }
 
     @property
     def verified(self) -> bool:

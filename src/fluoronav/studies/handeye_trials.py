@@ -129,6 +129,10 @@ NAVIGATION_CHECKS = (
     "verify_motion_rotation_deg",
     "verify_pelvis_cost",
     "verify_femur_cost",
+    "verify_views_used",
+    "verify_from_prediction",
+    "verify_fused",
+    "verify_whole_ladders_retry",
 )
 
 
