@@ -35,17 +35,20 @@ def test_safety_config_sets_the_cm_checks() -> None:
     assert NavigationConfig(safety=s).view_set_settings(verification=False).cm_checks == s.cm_checks()
 
 
-def test_the_verification_fused_with_the_kinematics_may_keep_one_view() -> None:
-    """Fused with the kinematics the verification's CM stands on one view (as a one-image
-    verification does); from the images alone it needs ``min_views``, as the first registration."""
+def test_a_two_view_verification_fused_with_the_kinematics_may_keep_one_view() -> None:
+    """Fused with the kinematics a two-view verification's CM stands on one view (as a one-image
+    verification does); with three views, or from the images alone, it needs ``min_views``."""
     from fluoronav.navigation.result import VerificationConfig
 
     s = SafetyConfig(min_views=2, verify_min_views=1)
-    fused = NavigationConfig(safety=s).view_set_settings(verification=True).cm_checks
+    nav = NavigationConfig(safety=s)
+    two = nav.view_set_settings(verification=True, n_views=2).cm_checks
+    three = nav.view_set_settings(verification=True, n_views=3).cm_checks
+    first = nav.view_set_settings(verification=False, n_views=2).cm_checks
     alone = NavigationConfig(safety=s, verification=VerificationConfig.reference())
-    assert fused is not None and fused.min_views == 1
-    assert alone.view_set_settings(verification=True).cm_checks == s.cm_checks()
-    assert s.cm_checks().min_views == 2
+    assert two is not None and two.min_views == 1
+    assert three == first == s.cm_checks() and s.cm_checks().min_views == 2
+    assert alone.view_set_settings(verification=True, n_views=2).cm_checks == s.cm_checks()
 
 
 def test_navigation_config_gives_each_registration_its_settings_and_one_device() -> None:

@@ -125,10 +125,14 @@ class NavigationConfig:
     verify_cm: CMRegistrationConfig | None = None
     verification: VerificationConfig = field(default_factory=VerificationConfig)
 
-    def view_set_settings(self, *, verification: bool, local: bool = False) -> ViewSetSettings:
+    def view_set_settings(
+        self, *, verification: bool, local: bool = False, n_views: int | None = None
+    ) -> ViewSetSettings:
         """The settings of the registration of one set of views: the first images, or (``verification``)
         the images after the move; ``local``: their cameras start within a millimetre or so
-        (:attr:`ViewSetSettings.local`)."""
+        (:attr:`ViewSetSettings.local`); ``n_views``: how many views the set has (with two, a
+        verification fused with the kinematics may stand on one: :attr:`SafetyConfig.verify_min_views`)."""
+        fused = verification and self.verification.fuse_kinematics and n_views is not None and n_views <= 2
         return ViewSetSettings(
             local=local,
             device=self.device,
@@ -138,7 +142,7 @@ class NavigationConfig:
             femur_margin_mm=self.femur_margin_mm,
             cm=(self.verify_cm if verification else self.cm) or navigation_cm_config(),
             max_cm_starts=self.max_cm_starts,
-            cm_checks=self.safety.cm_checks(fused=verification and self.verification.fuse_kinematics),
+            cm_checks=self.safety.cm_checks(fused=fused),
         )
 
 

@@ -51,10 +51,13 @@ class SafetyConfig:
             the kinematic prediction (the robot's and the first registration's errors together).
         min_views: views that must pass for a CM registration to stand (a view that fails is left
             out only while this many remain).
-        verify_min_views: the same for the verification's CM where it is fused with the robot's
-            kinematics (``VerificationConfig.fuse_kinematics``). One view with the kinematics'
-            depth is what a one-image verification is: a view whose detection is wrong may be
-            left out of two down to one, rather than refuse where one image alone would pass.
+        verify_min_views: the same for a verification of two views whose CM is fused with the
+            robot's kinematics (``VerificationConfig.fuse_kinematics``). One view with the
+            kinematics' depth is what a one-image verification is: a view whose detection is wrong
+            may be left out of two down to one, rather than refuse where one image alone would
+            pass. Three views keep ``min_views``: left out down to one they could no longer
+            overrule kinematics that are wrong (a hand-eye matrix 10 mm off), which two views
+            from the images' own starts can correct.
         max_joint_motion_deg: no joint of a command (first move or correction) may turn by more
             than this (degrees, wrapped). Near a patient, with the CM at the bone, a large joint
             turn is a hazard in itself: the arm's links sweep far even when the tip travels little.

@@ -80,7 +80,7 @@ def register_verification(
                 side=case.side,
                 cm_config=case.cm_config,
                 initial_control_points_deg=np.asarray(first.cm.control_points_deg),
-                settings=cfg.view_set_settings(verification=True, local=local_now),
+                settings=cfg.view_set_settings(verification=True, local=local_now, n_views=len(views)),
                 seed=seed,
                 prior=prior,
                 name="verify",
