@@ -306,9 +306,9 @@ def name_kinematics_disagreement(
         A CM that is far from the kinematic prediction is often hard to register (the search
         starts at the prediction among the images' own starts, and the ROI and landmark prior sit
         where the kinematics say), so the registration's own check, not the kinematics, refuses
-        first: "registered landmarks 11.9 mm from the detected ones" with a hand-eye matrix 10 mm
-        off. What a user must check then is the hand-eye matrix and the joint readings; the
-        registration's failure stays in the reason. Views that disagree among themselves (a wrong
+        first (a landmark residual, with a hand-eye matrix that is off by a centimetre). What a
+        user must check then is the hand-eye matrix and the joint readings; the registration's
+        failure stays in the reason. Views that disagree among themselves (a wrong
         detection) say nothing about the kinematics, and the refusal is left as it was.
 
     Returns:

@@ -33,8 +33,8 @@ class KinematicUncertainty:
     """Stated uncertainties (1 σ, per axis) of what the kinematic prediction is made of.
 
     Attributes:
-        registration_mm: the first registration's CM relative to the femur (docs/validation.md:
-            the navigation study's ``cm_relative_mm``, 0.2–0.6 mm mean in the ideal world).
+        registration_mm: the first registration's CM relative to the femur (the navigation
+            study's ``cm_relative_mm``, docs/validation.md).
         robot_mm: the robot's positioning error over a move of ~100 mm (a UR10's repeatability is
             ±0.1 mm; its nominal kinematic model errs by a few tenths of a millimetre over such a
             move).

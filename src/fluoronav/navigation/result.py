@@ -132,7 +132,7 @@ class NavigationConfig:
         the images after the move; ``local``: their cameras start within a millimetre or so
         (:attr:`ViewSetSettings.local`); ``n_views``: how many views the set has (with two, a
         verification fused with the kinematics may stand on one: :attr:`SafetyConfig.verify_min_views`)."""
-        fused = verification and self.verification.fuse_kinematics and n_views is not None and n_views <= 2
+        fused_views = n_views if verification and self.verification.fuse_kinematics else None
         return ViewSetSettings(
             local=local,
             device=self.device,
@@ -142,7 +142,7 @@ class NavigationConfig:
             femur_margin_mm=self.femur_margin_mm,
             cm=(self.verify_cm if verification else self.cm) or navigation_cm_config(),
             max_cm_starts=self.max_cm_starts,
-            cm_checks=self.safety.cm_checks(fused=fused),
+            cm_checks=self.safety.cm_checks(fused_views=fused_views),
         )
 
 
@@ -150,12 +150,10 @@ def navigation_cm_config() -> CMRegistrationConfig:
     """The pipeline's CM registration settings from the images' own starts: both levels CMA-ES
     (:func:`default_cm_levels`).
 
-    Why not the multi-view workflow's linearised 2× level: it finds the tip as well, but not the
-    base's direction. In the navigation study (seed 9127, 19 trials) the first registration's base
-    rotation was 0.66° off on average with it against 0.23° with CMA-ES, and the first move landed
-    0.91 mm from the plan against 0.55 mm (docs/validation.md). The verification's registration
-    from the kinematic prediction has its own local levels
-    (:func:`~fluoronav.registration.cm.config.local_cm_levels`)."""
+    Why not the multi-view workflow's linearised 2× level: it finds the tip as well but not the
+    base's direction, and the first move carries that over its length (docs/validation.md, "CM
+    levels and priors"). The verification's registration from the kinematic prediction has its own
+    local levels (:func:`~fluoronav.registration.cm.config.local_cm_levels`)."""
     return CMRegistrationConfig(levels=default_cm_levels())
 
 

@@ -104,11 +104,13 @@ class SafetyConfig:
     overrule_max_landmark_residual_mm: float = 1.0
     consistent_views_max_cost_px: float = 3.0
 
-    def cm_checks(self, *, fused: bool = False) -> CMCheckConfig:
-        """The per-view thresholds of a CM registration (``fused``: the verification's, fused with
-        the robot's kinematics)."""
+    def cm_checks(self, *, fused_views: int | None = None) -> CMCheckConfig:
+        """The per-view thresholds of a CM registration; ``fused_views``: the number of views of a
+        verification whose CM is fused with the robot's kinematics (two or fewer may stand on
+        ``verify_min_views``), None for any other registration."""
+        two_fused = fused_views is not None and fused_views <= 2
         return CMCheckConfig(
             max_landmark_residual_mm=self.max_landmark_residual_mm,
             min_edge_ncc=self.min_edge_ncc,
-            min_views=self.verify_min_views if fused else self.min_views,
+            min_views=self.verify_min_views if two_fused else self.min_views,
         )

@@ -31,8 +31,8 @@ class TipFusionConfig:
     """How well one view registers the CM's tip (1 σ, mm, at the CM).
 
     Attributes:
-        inplane_sigma_mm: across the view's ray (the multi-view CM registration's tip error is
-            0.2–0.6 mm mean, docs/validation.md; one view is no worse across its ray).
+        inplane_sigma_mm: across the view's ray (the multi-view CM registration's tip error,
+            docs/validation.md; one view is no worse across its ray).
         depth_sigma_mm: along the ray (the single-view registration's tip error, mostly depth, is
             a few millimetres, docs/validation.md).
     """

@@ -69,8 +69,8 @@ class ViewSetSettings:
         tip_fusion: how well one view registers the tip, across and along its ray.
         min_unmoved_ncc: views taken from an earlier registration's C-arm positions keep its
             bones only where each image agrees with the earlier one this well
-            (:func:`~fluoronav.registration.view_set.unmoved.unmoved_ncc`; the same scene gave
-            ≥ 0.9988, the patient moved 0.5 mm or 0.5° ≤ 0.990, docs/validation.md).
+            (:func:`~fluoronav.registration.view_set.unmoved.unmoved_ncc`; between the same scene
+            and a patient moved by half a millimetre: docs/validation.md, "Unmoved C-arm positions").
     """
 
     device: str = "cpu"
