@@ -23,7 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fluoronav.geometry import se3
 from fluoronav.manipulator.robot import SerialRobot
+from fluoronav.navigation.targeting import predicted_femur_from_cm
 
 __all__ = ["KinematicUncertainty", "prediction_sigma_mm"]
 
@@ -58,12 +60,16 @@ def prediction_sigma_mm(
 ) -> float:
     """σ (mm, per axis) of the CM's predicted position after the robot moved from ``joints_deg`` to
     ``joints_after_deg`` (module docstring): the root sum of squares of the four terms."""
-    ee1 = robot.rbase_from_ee(np.asarray(joints_deg, np.float64))
-    ee2 = robot.rbase_from_ee(np.asarray(joints_after_deg, np.float64))
-    cm1_from_cm2 = np.linalg.inv(ee_from_cm) @ np.linalg.inv(ee1) @ ee2 @ ee_from_cm
+    # the CM's own motion: the prediction of a CM registered at the identity
+    cm1_from_cm2 = predicted_femur_from_cm(
+        robot,
+        np.asarray(joints_deg, np.float64),
+        joints_after_deg,
+        ee_from_cm=ee_from_cm,
+        femur_from_cm=np.eye(4),
+    )
     t = float(np.linalg.norm(cm1_from_cm2[:3, 3]))
-    cos = (np.trace(cm1_from_cm2[:3, :3]) - 1.0) / 2.0
-    theta = math.acos(float(np.clip(cos, -1.0, 1.0)))
+    theta = math.radians(float(se3.rotation_angle_deg(cm1_from_cm2[:3, :3])))
     u = uncertainty
     terms = (
         u.registration_mm,
