@@ -100,6 +100,7 @@ def _case(*, robot: SerialRobot = UR10) -> NavigationCase:
         side="left",
         cm_config=CMConfig(notch_width_mm=0.6),
         fbg_control_points_deg=np.array([0.5, 1.0, -1.5, 2.0, 0.25]),
+        fbg_sigma_deg=0.1,
         robot=robot,
         joints_deg=np.array([10.0, -80.0, 95.0, -100.0, -90.0, 5.0]),
         ee_from_cm=ee,
@@ -168,6 +169,7 @@ def test_written_case_loads_back_equal(tmp_path: Path, robot: SerialRobot) -> No
     assert back.cm_config == case.cm_config
     assert back.fbg_control_points_deg is not None and case.fbg_control_points_deg is not None
     np.testing.assert_array_equal(back.fbg_control_points_deg, case.fbg_control_points_deg)
+    assert back.fbg_sigma_deg == 0.1
     assert back.robot == robot
     np.testing.assert_array_equal(back.joints_deg, case.joints_deg)
     np.testing.assert_array_equal(back.ee_from_cm, case.ee_from_cm)
@@ -335,6 +337,12 @@ MALFORMED: dict[str, tuple[Edit, str]] = {
     "unknown-key": (_set("veiws", value=[]), "unknown key(s) ['veiws']; allowed:"),
     "no-femoral-head": (_no_head, "landmark 'femoral_head_left'"),
     "fbg-length": (_set("fbg_control_points_deg", value=[0.0] * 4), "fbg_control_points_deg has 4 values"),
+    "fbg-sigma-zero": (
+        _set("fbg_sigma_deg", value=0),
+        "'fbg_sigma_deg' must be a positive number of degrees",
+    ),
+    "fbg-sigma-text": (_set("fbg_sigma_deg", value="0.1"), "'fbg_sigma_deg' must be a positive number"),
+    "fbg-sigma-alone": (_delete("fbg_control_points_deg"), "'fbg_sigma_deg' is given without"),
     "verification-joints": (
         _set("verification", "joints_deg", value=[0.0] * 7),
         "verification.joints_deg has 7 values, the UR10 has 6 joints",

@@ -55,6 +55,36 @@ def test_the_fbg_source_reads_the_true_shape_with_its_noise(ideal) -> None:  # t
     reading = run.artifacts["case"].fbg_control_points_deg
     np.testing.assert_allclose(np.abs(reading - truth), 0.3, atol=1e-12)  # the bias alone
     assert not np.allclose(ideal.artifacts["case"].fbg_control_points_deg, reading)
+    # the case states the reading's accuracy: honest by default, or what the world says it claims
+    assert run.artifacts["case"].fbg_sigma_deg == pytest.approx(0.3)
+    assert ideal.artifacts["case"].fbg_sigma_deg is None
+    liar = _case(World(name="liar", fbg=FBGWorld(noise_sd_deg=1.5, stated_sigma_deg=0.085)))
+    assert liar.artifacts["case"].fbg_sigma_deg == 0.085
+
+
+def test_the_fbg_reads_the_instrument_as_built(ideal) -> None:  # type: ignore[no-untyped-def]
+    """An FBG senses the strain of the instrument it is in: with the instrument as built its reading
+    is of that shape (the model's nearest to it), not of the commanded control points; the ideal
+    reading's error is kept about it."""
+    instrument = dataclasses.replace(InstrumentWorld.realistic(), angle_scale_sd=0.3)
+    run = _case(World(name="instrument", instrument=instrument))
+    truth = np.asarray(run.truth["control_points_deg"])
+    reading = np.asarray(run.artifacts["case"].fbg_control_points_deg)
+    ideal_error = np.asarray(ideal.artifacts["case"].fbg_control_points_deg) - truth
+    built_offset = reading - truth - ideal_error
+    assert np.abs(built_offset).max() > 0.05  # the built shape is not the commanded one
+    # a notch-angle scale of 30 % moves a control point by about that fraction of its angle
+    assert np.abs(built_offset).max() < 0.3 * np.abs(truth).max() * 3 + 1.0
+
+
+def test_a_flexed_c_arm_gives_the_case_the_nominal_cameras(ideal) -> None:  # type: ignore[no-untyped-def]
+    """The flex moves the image; the case keeps the nominal (calibrated) geometry, not the image's."""
+    run = _case(World(name="flex", carm=CArmWorld(flex_detector_shift_mm=2.0)))
+    for view, im, ref in zip(
+        run.artifacts["case"].views, run.artifacts["images"], ideal.artifacts["images"], strict=True
+    ):
+        np.testing.assert_array_equal(view.camera.K, ref.camera.K)  # the nominal camera
+        assert not np.array_equal(view.camera.K, im.camera.K)  # not the flexed one
 
 
 def test_the_instrument_source_moves_the_true_tip_and_the_images(ideal) -> None:  # type: ignore[no-untyped-def]

@@ -145,7 +145,7 @@ def test_load_presets_and_round_trip(tmp_path: Path) -> None:
     assert load_world(str(p)) == REALISTIC
     d = REALISTIC.to_dict()
     assert d["name"] == "realistic" and d["ct"]["ct_spacing_mm"] == [0.8, 0.8, 1.5]
-    assert d["fbg"] == {"noise_sd_deg": 0.06, "bias_deg": 0.06}
+    assert d["fbg"] == {"noise_sd_deg": 0.06, "bias_deg": 0.06, "stated_sigma_deg": None}
     json.dumps(d)  # JSON-ready
 
 
@@ -186,3 +186,15 @@ def test_unknown_world_name_or_missing_file(tmp_path: Path) -> None:
         load_world("paradise")
     with pytest.raises(InputError, match="not found"):
         load_world(str(tmp_path / "missing.json"))
+
+
+def test_fbg_states_its_accuracy_honestly_unless_told_otherwise(tmp_path: Path) -> None:
+    """The case states the reading's RMS error (noise and bias) unless the world sets another σ; the
+    ideal world's case states none; a σ that is not positive is bad input naming the file."""
+    assert FBGWorld().stated_sigma() is None
+    assert FBGWorld(noise_sd_deg=0.06, bias_deg=0.06).stated_sigma() == pytest.approx(0.0848528, abs=1e-6)
+    assert FBGWorld(noise_sd_deg=1.5, stated_sigma_deg=0.085).stated_sigma() == 0.085
+    p = tmp_path / "liar.json"
+    p.write_text('{"fbg": {"noise_sd_deg": 1.5, "stated_sigma_deg": 0.0}}')
+    with pytest.raises(InputError, match=r"liar\.json.*stated_sigma_deg must be positive"):
+        load_world(str(p))

@@ -295,7 +295,7 @@ def test_navigation_rows_take_the_final_tip_and_the_checks() -> None:
     [
         (["--fault", "mirror_three"], "--fault: unknown fault 'mirror_three'; one of: none, mirror_one"),
         (["--handeye-error-mm", "2"], "options of study navigation"),
-        (["--world", "realistic"], "--world: only study navigation takes a simulated world so far"),
+        (["--world", "realistic"], "--world: study hand-eye takes no simulated world"),
         (["--fault", "none", "--world", "atlantis"], "atlantis: unknown world"),
         (["--verify-views", "2"], "--verify-views: --verify-views is an option of study navigation"),
     ],
@@ -305,7 +305,7 @@ def test_study_fault_options_are_checked_before_anything_runs(
 ) -> None:
     from fluoronav.cli.main import main
 
-    workflow = "navigation" if args[0] == "--fault" else "multi-view"
+    workflow = {"--fault": "navigation", "--world": "hand-eye"}.get(args[0], "multi-view")
     out = tmp_path / "study"
     with pytest.raises(SystemExit) as exc:
         main(["study", workflow, "--trials", "1", "--seed", "0", "--out", str(out), *args])
@@ -376,14 +376,49 @@ def test_fault_rows_record_the_check_and_the_outcome() -> None:
 def test_summary_flags_first_moves_from_registrations_off_the_truth() -> None:
     from fluoronav.studies.handeye_study import _navigation_outcomes
 
+    # femur frame: what the move acts on; C-arm frame: with what the bones and the CM share
     rows = [
-        {"trial": 0, "status": "ok", "reposition_open_loop_mm": 1.0, "tip_mm": 0.5, "cm_axis_deg": 1.0},
-        {"trial": 1, "status": "refused", "reposition_open_loop_mm": 4.0, "tip_mm": 2.5, "cm_axis_deg": 1.0},
-        {"trial": 2, "status": "ok", "reposition_open_loop_mm": 1.0, "tip_mm": 1.0, "cm_axis_deg": 6.0},
-        {"trial": 3, "status": "refused", "reposition_open_loop_mm": "", "tip_mm": 9.0, "cm_axis_deg": ""},
+        {
+            "trial": 0,
+            "status": "ok",
+            "reposition_open_loop_mm": 1.0,
+            "femur_tip_mm": 0.5,
+            "femur_axis_deg": 1.0,
+            "tip_mm": 2.5,
+            "cm_axis_deg": 1.0,
+        },
+        {
+            "trial": 1,
+            "status": "refused",
+            "reposition_open_loop_mm": 4.0,
+            "femur_tip_mm": 2.5,
+            "femur_axis_deg": 1.0,
+            "tip_mm": 2.5,
+            "cm_axis_deg": 1.0,
+        },
+        {
+            "trial": 2,
+            "status": "ok",
+            "reposition_open_loop_mm": 1.0,
+            "femur_tip_mm": 1.0,
+            "femur_axis_deg": 6.0,
+            "tip_mm": 1.0,
+            "cm_axis_deg": 6.0,
+        },
+        {
+            "trial": 3,
+            "status": "refused",
+            "reposition_open_loop_mm": "",
+            "femur_tip_mm": 9.0,
+            "femur_axis_deg": "",
+            "tip_mm": 9.0,
+            "cm_axis_deg": "",
+        },
     ]
     out = _navigation_outcomes(rows)
     assert out["unflagged_first_move_failures"] == 2 and out["unflagged_first_move_failure_trials"] == [1, 2]
+    assert out["unflagged_first_move_failures_carm_frame"] == 3
+    assert out["unflagged_first_move_failure_trials_carm_frame"] == [0, 1, 2]
 
 
 def _navigation_study_configs(

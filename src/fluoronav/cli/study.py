@@ -31,11 +31,14 @@ _HANDEYE_ERROR_DEG_OPTION = typer.Option(
 )
 
 
+#: the studies that simulate their trials in a world (hand-eye and deepfluoro do not)
+_WORLD_WORKFLOWS = ("navigation", "centerline", "single-view", "multi-view", "multi-cm")
+
 _WORLD_OPTION = typer.Option(
     "ideal",
     "--world",
-    help="navigation: the simulated world's error sources: ideal, realistic, or a JSON file of "
-    "magnitudes (docs/simulation.md).",
+    help="navigation, centerline, single-view, multi-view, multi-cm: the simulated world's error "
+    "sources: ideal, realistic, or a JSON file of magnitudes (docs/simulation.md).",
 )
 
 
@@ -56,8 +59,8 @@ def _navigation_options(
     world: str,
     verify_views: int | None = None,
 ) -> dict[str, Any]:
-    """The navigation study's own options, checked (an unknown fault or world, or one given to
-    another study, is an :class:`InputError`)."""
+    """The navigation study's own options and the world of the studies that take one, checked (an
+    unknown fault or world, or one given to another study, is an :class:`InputError`)."""
     out: dict[str, Any] = {}
     if fault is not None or handeye_error_mm is not None or handeye_error_deg is not None:
         if workflow != "navigation":
@@ -67,8 +70,10 @@ def _navigation_options(
         get_fault(fault)
         out.update(fault=fault, handeye_error_mm=handeye_error_mm, handeye_error_deg=handeye_error_deg)
     if world != "ideal":
-        if workflow != "navigation":
-            raise InputError("--world", "only study navigation takes a simulated world so far")
+        if workflow not in _WORLD_WORKFLOWS:
+            raise InputError(
+                "--world", f"study {workflow} takes no simulated world; {', '.join(_WORLD_WORKFLOWS)} do"
+            )
         from fluoronav.simulation.world import load_world  # lazy: fast --help
 
         out["world"] = load_world(world)
@@ -184,6 +189,7 @@ def register(app: typer.Typer) -> None:
                 **navigation,
             )
         else:
+            from fluoronav.simulation.world import IDEAL
             from fluoronav.studies.pipeline import (  # lazy: fast --help
                 STUDY_WORKFLOWS,
                 StudyConfig,
@@ -202,6 +208,7 @@ def register(app: typer.Typer) -> None:
                 device=str(resolve_device(device)),
                 n_phantoms=phantoms,
                 init=init,
+                world=navigation.get("world", IDEAL),  # the other options are refused above
             )
             summary = run_study(cfg, out, scheduler=scheduler, workers=workers)
         _echo_summary(workflow, summary)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,6 +67,7 @@ CASE_KEYS = (
     "side",
     "cm",
     "fbg_control_points_deg",
+    "fbg_sigma_deg",
     "robot",
     "isocenter_ct_mm",
     "views",
@@ -101,6 +103,10 @@ class NavigationCase:
         cm_config: the CM's geometry.
         fbg_control_points_deg: (n_control_points,) the CM shape from its FBG sensor, or None (then
             straight).
+        fbg_sigma_deg: the FBG reading's stated accuracy, one standard deviation per control point
+            (degrees): the CM registration holds its shape to the reading with a Gaussian prior of
+            this σ; None: the reading is taken as accurate to about ±0.5° (the paper's simulated
+            reading) and the shape is free within ±1° of it.
         robot: the kinematic model the robot controller uses.
         joints_deg: (n_joints,) joint readings while the views were taken.
         ee_from_cm: (4, 4) hand-eye matrix (mm).
@@ -120,6 +126,7 @@ class NavigationCase:
     views: tuple[CaseView, ...]
     verification: VerificationViews | None = None
     source: Path | None = None
+    fbg_sigma_deg: float | None = None
 
 
 # ----- reading ---------------------------------------------------------------------------------
@@ -233,6 +240,7 @@ def load_navigation_case(path: str | Path) -> NavigationCase:
         fbg = vector(
             d["fbg_control_points_deg"], "fbg_control_points_deg", src, n=n_cp, why=f"the CM has {n_cp}"
         )
+    fbg_sigma = _fbg_sigma(d, fbg, src)
     side = _side(d, volume, plan, src, ct)
     robot, joints, ee_from_cm = parse_robot(d, src, root)
 
@@ -284,7 +292,20 @@ def load_navigation_case(path: str | Path) -> NavigationCase:
         views=views,
         verification=verification,
         source=p,
+        fbg_sigma_deg=fbg_sigma,
     )
+
+
+def _fbg_sigma(d: dict[str, Any], fbg: np.ndarray | None, src: str) -> float | None:
+    """The case's ``fbg_sigma_deg``: a positive number, and only with a reading."""
+    v = d.get("fbg_sigma_deg")
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
+        raise InputError(src, f"'fbg_sigma_deg' must be a positive number of degrees, got {v!r}")
+    if fbg is None:
+        raise InputError(src, "'fbg_sigma_deg' is given without 'fbg_control_points_deg'")
+    return float(v)
 
 
 # ----- writing ---------------------------------------------------------------------------------
@@ -352,6 +373,8 @@ def write_navigation_case(
     d["cm"] = case.cm_config.model_dump(mode="json")
     if case.fbg_control_points_deg is not None:
         d["fbg_control_points_deg"] = [float(v) for v in case.fbg_control_points_deg]
+        if case.fbg_sigma_deg is not None:
+            d["fbg_sigma_deg"] = float(case.fbg_sigma_deg)
     if case.robot == UR10:
         model = "UR10"
     else:

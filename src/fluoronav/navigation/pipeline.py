@@ -314,7 +314,7 @@ def navigate(
                 side=case.side,
                 cm_config=case.cm_config,
                 initial_control_points_deg=cp0,
-                settings=cfg.view_set_settings(verification=False),
+                settings=cfg.view_set_settings(verification=False, fbg_sigma_deg=case.fbg_sigma_deg),
                 seed=_stage_seed(cfg.seed, 0),
                 recorder=stage.within(""),
             )

@@ -27,7 +27,7 @@ from fluoronav.registration.bone.presets import (
     PELVIS_REFINE_PRESET,
     BoneRegistrationConfig,
 )
-from fluoronav.registration.cm.config import CMRegistrationConfig, default_cm_levels
+from fluoronav.registration.cm.config import CMRegistrationConfig, default_cm_levels, fbg_shape_prior
 from fluoronav.registration.stages import StageRecord
 from fluoronav.registration.view_set import ViewDetection, ViewSetRegistration, ViewSetSettings
 
@@ -126,13 +126,23 @@ class NavigationConfig:
     verification: VerificationConfig = field(default_factory=VerificationConfig)
 
     def view_set_settings(
-        self, *, verification: bool, local: bool = False, n_views: int | None = None
+        self,
+        *,
+        verification: bool,
+        local: bool = False,
+        n_views: int | None = None,
+        fbg_sigma_deg: float | None = None,
     ) -> ViewSetSettings:
         """The settings of the registration of one set of views: the first images, or (``verification``)
         the images after the move; ``local``: their cameras start within a millimetre or so
         (:attr:`ViewSetSettings.local`); ``n_views``: how many views the set has (with two, a
-        verification fused with the kinematics may stand on one: :attr:`SafetyConfig.verify_min_views`)."""
+        verification fused with the kinematics may stand on one: :attr:`SafetyConfig.verify_min_views`);
+        ``fbg_sigma_deg``: the first images' FBG reading's stated accuracy (the case's), which
+        weights the prior of the CM's shape (:func:`fbg_shape_prior`)."""
         fused_views = n_views if verification and self.verification.fuse_kinematics else None
+        cm = (self.verify_cm if verification else self.cm) or navigation_cm_config()
+        if not verification:
+            cm = fbg_shape_prior(cm, fbg_sigma_deg)
         return ViewSetSettings(
             local=local,
             device=self.device,
@@ -140,9 +150,9 @@ class NavigationConfig:
             femur=self.femur,
             pelvis_refine=self.verify_pelvis_refine,
             femur_margin_mm=self.femur_margin_mm,
-            cm=(self.verify_cm if verification else self.cm) or navigation_cm_config(),
+            cm=cm,
             max_cm_starts=self.max_cm_starts,
-            cm_checks=self.safety.cm_checks(fused_views=fused_views),
+            cm_checks=self.safety.cm_checks(fused_views=fused_views, fbg=not verification),
         )
 
 
@@ -217,7 +227,8 @@ class NavigationResult:
     def flat_diagnostics(self) -> dict[str, float]:
         """The registrations' diagnostics in one flat dict (study rows): per set of views (prefix
         ``""`` or ``"verify_"``) the worst view's CM landmark residual and edge NCC, the pelvis's
-        worst view cost, the femur cost; the verification's kinematic motion agreement."""
+        worst view cost, the femur cost; the first CM's shape against the FBG reading (in the reading's
+        σ); the verification's kinematic motion agreement."""
         out: dict[str, float] = {}
         for prefix in ("", "verify_"):
             st = self.stages
@@ -230,6 +241,10 @@ class NavigationResult:
                 for key in ("motion_tip_mm", "motion_rotation_deg"):
                     if key in st[f"{prefix}cm"].diagnostics:
                         out[f"{prefix}{key}"] = float(st[f"{prefix}cm"].diagnostics[key])
+                if "fbg_departure_sigmas" in st[f"{prefix}cm"].diagnostics:
+                    out[f"{prefix}cm_fbg_departure_sigmas"] = float(
+                        st[f"{prefix}cm"].diagnostics["fbg_departure_sigmas"]
+                    )
             if f"{prefix}pelvis" in st and "views" in st[f"{prefix}pelvis"].diagnostics:
                 out[f"{prefix}pelvis_cost"] = float(
                     max(v["cost"] for v in st[f"{prefix}pelvis"].diagnostics["views"].values())

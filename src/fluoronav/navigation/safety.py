@@ -87,6 +87,11 @@ class SafetyConfig:
             names the kinematics when the views agree on a CM (their multi-view centreline fit's
             mean cost within this, pixels at the detection's resolution) that lies more than
             ``max_motion_tip_mm`` from the prediction.
+        max_fbg_departure_sigmas: the first registration's CM shape may depart from the FBG reading
+            by at most its prior's tolerance plus this many of its σ (the case's stated
+            ``fbg_sigma_deg``, or the flat-bottomed default's walls): a shape pulled further has
+            been bent to make up for a base that is off (check ``fbg_shape``,
+            :func:`~fluoronav.registration.cm.checks.judge_shape`). None: not checked.
     """
 
     max_landmark_residual_mm: float = CMCheckConfig.max_landmark_residual_mm
@@ -103,14 +108,17 @@ class SafetyConfig:
     overrule_min_views: int = 3
     overrule_max_landmark_residual_mm: float = 1.0
     consistent_views_max_cost_px: float = 3.0
+    max_fbg_departure_sigmas: float | None = 4.0
 
-    def cm_checks(self, *, fused_views: int | None = None) -> CMCheckConfig:
-        """The per-view thresholds of a CM registration; ``fused_views``: the number of views of a
+    def cm_checks(self, *, fused_views: int | None = None, fbg: bool = False) -> CMCheckConfig:
+        """The thresholds of a CM registration; ``fused_views``: the number of views of a
         verification whose CM is fused with the robot's kinematics (two or fewer may stand on
-        ``verify_min_views``), None for any other registration."""
+        ``verify_min_views``), None for any other registration; ``fbg``: its shape's prior is the
+        FBG reading (the first registration), checked by ``max_fbg_departure_sigmas``."""
         two_fused = fused_views is not None and fused_views <= 2
         return CMCheckConfig(
             max_landmark_residual_mm=self.max_landmark_residual_mm,
             min_edge_ncc=self.min_edge_ncc,
             min_views=self.verify_min_views if two_fused else self.min_views,
+            max_shape_departure_sigmas=self.max_fbg_departure_sigmas if fbg else None,
         )

@@ -73,6 +73,7 @@ from fluoronav.navigation.simulated_scene import (
     verification_view_indices,
 )
 from fluoronav.registration.metrics import axis_error_deg
+from fluoronav.simulation.instrument import spline_fit_control_points_deg
 from fluoronav.simulation.robot_scene import verification_view_centre
 from fluoronav.simulation.world import fbg_reading
 
@@ -186,8 +187,13 @@ def _first_case(
     cfg, tr = s.config, s.sc.trial
     images = s.simulate(s.W_regi, s.cams, seed)
     fbg = tr.initial_control_points_deg
+    # an FBG senses the strain of the fibre in the instrument as built: the reading is of its shape
+    # (the model's nearest to it), not of the commanded control points
+    sensed = s.cp_true if s.built is None else spline_fit_control_points_deg(s.built, s.cp_true).numpy()
     if cfg.world.fbg.enabled:  # the reading of the true shape, as the FBG literature measures it
-        fbg = fbg_reading(s.cp_true, cfg.world.fbg, s.world_rng)
+        fbg = fbg_reading(sensed, cfg.world.fbg, s.world_rng)
+    elif s.built is not None:  # the ideal reading's error about the shape as built
+        fbg = np.asarray(fbg, np.float64) + (sensed - s.cp_true)
     W0 = tr.initial_world_from_patient
     case = NavigationCase(
         volume=s.volume,
@@ -195,6 +201,7 @@ def _first_case(
         side=tr.side,
         cm_config=s.sc.cm_config,
         fbg_control_points_deg=np.asarray(fbg, np.float64),
+        fbg_sigma_deg=cfg.world.fbg.stated_sigma(),
         robot=UR10,
         joints_deg=np.asarray(s.q_regi, np.float64),
         ee_from_cm=s.ee_from_cm_used,

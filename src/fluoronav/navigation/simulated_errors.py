@@ -18,7 +18,7 @@ from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.planning import planned_femur_from_cm
 from fluoronav.navigation.result import NavigationResult
 from fluoronav.navigation.targeting import robot_target
-from fluoronav.registration.metrics import cm_errors
+from fluoronav.registration.metrics import axis_error_deg, cm_errors
 from fluoronav.simulation.robot_scene import HandEyeScenario
 
 __all__ = ["first_registration_errors", "robot_only_error", "verification_errors"]
@@ -86,6 +86,18 @@ def first_registration_errors(
         np.linalg.norm((se3.apply(carm_est, first.tip_ct_mm) - entry_est) - (tip_true_c - entry_true))
     )
     E["cm_tip_ct_mm"] = float(np.linalg.norm(first.tip_ct_mm - np.asarray(tip_ct_true_mm)))
+    # what the first move acts on: the CM in the femur's frame (the plan's), where an error the
+    # bones and the CM share (a camera's calibration) cancels
+    femur_from_cm_est = np.linalg.inv(first.ct_from_femur) @ first.ct_from_cm
+    femur_from_cm_true = np.linalg.inv(tr.world_from_femur) @ W_regi
+    tip_cm = _tip(sc, cp_true) if tip_cm_true is None else tip_cm_true
+    E["cm_femur_tip_mm"] = float(
+        np.linalg.norm(
+            se3.apply(np.linalg.inv(first.ct_from_femur), first.tip_ct_mm)
+            - se3.apply(femur_from_cm_true, tip_cm)
+        )
+    )
+    E["cm_femur_axis_deg"] = axis_error_deg(femur_from_cm_est[:3, 2], femur_from_cm_true[:3, 2])
     if first.cm_init is not None:
         E["cm_init_tip_mm"] = float(
             np.linalg.norm(se3.apply(carm_est @ first.cm_init.world_from_cm, _tip(sc, cp_true)) - tip_true_c)

@@ -196,9 +196,10 @@ class Scenario:
 
     def case_cameras(self, cameras: list[Camera]) -> list[Camera] | None:
         """The cameras the case records for images by the nominal ``cameras``, at the stored size:
-        with the world's calibration error (None where it has none: the images' own)."""
+        the nominal geometry with the world's calibration error (a flexed image's case does not know
+        its flex); None where the C-arm source is off (the images' own)."""
         carm = self.config.world.carm
-        if carm.sdd_error_sd_frac <= 0 and carm.principal_point_error_sd_px <= 0:
+        if not carm.enabled:
             return None
         n = self.config.image_size
         return [self.simulator.stored_camera(case_camera(c, carm, self.world_rng), n) for c in cameras]

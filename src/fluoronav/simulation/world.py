@@ -153,6 +153,10 @@ class FBGWorld:
         noise_sd_deg: SD of independent Gaussian noise on each of the control points, degrees.
         bias_deg: a bias of exactly this size, the same sign on every control point (a curvature
             calibration offset; the sign is drawn per reading), degrees.
+        stated_sigma_deg: the accuracy the case states for its reading (the case's
+            ``fbg_sigma_deg``), one standard deviation per control point, degrees; None: the
+            reading's true RMS error, ``hypot(noise_sd_deg, bias_deg)`` (an honest sensor). A value
+            below that makes a sensor that claims more than it delivers (a lost calibration).
 
     Notes:
         Realistic 0.06° noise and 0.06° bias: chosen so that the CM tip error they imply
@@ -167,11 +171,25 @@ class FBGWorld:
 
     noise_sd_deg: float = 0.0
     bias_deg: float = 0.0
+    stated_sigma_deg: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.stated_sigma_deg is not None and not self.stated_sigma_deg > 0:
+            raise ValueError(f"stated_sigma_deg must be positive, got {self.stated_sigma_deg}")
 
     @property
     def enabled(self) -> bool:
         """Whether the FBG reading has any error."""
         return bool(self.noise_sd_deg > 0 or self.bias_deg > 0)
+
+    def stated_sigma(self) -> float | None:
+        """The accuracy the case states (``stated_sigma_deg``, or the honest RMS error); None when
+        the source is off (the ideal world's case states none)."""
+        if not self.enabled:
+            return None
+        if self.stated_sigma_deg is not None:
+            return float(self.stated_sigma_deg)
+        return math.hypot(self.noise_sd_deg, self.bias_deg)
 
 
 @dataclass(frozen=True)
@@ -293,7 +311,7 @@ def _parse_section(cls: type, value: object, key: str, source: str) -> Any:
             kwargs[name] = float(v)
     try:
         return cls(**kwargs)
-    except (TypeError, ValueError) as exc:  # pragma: no cover - fields are checked above
+    except (TypeError, ValueError) as exc:  # a field's own constraint (FBGWorld.stated_sigma_deg)
         raise InputError(source, f"{key}: {exc}") from None
 
 

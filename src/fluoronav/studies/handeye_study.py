@@ -176,28 +176,39 @@ def _cell(r: dict[str, Any], key: str) -> float:
         return float("nan")
 
 
+def _first_move_failures(rows: list[dict[str, Any]], tip_key: str, axis_key: str) -> list[int]:
+    """Trials whose first command was carried out from a registration with its CM tip more than
+    :data:`FIRST_MOVE_TIP_MM` or its axis more than :data:`FIRST_MOVE_AXIS_DEG` from the truth."""
+    return [
+        int(r["trial"])
+        for r in rows
+        if math.isfinite(_cell(r, "reposition_open_loop_mm"))
+        and (_cell(r, tip_key) > FIRST_MOVE_TIP_MM or _cell(r, axis_key) > FIRST_MOVE_AXIS_DEG)
+    ]
+
+
 def _navigation_outcomes(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """``unflagged_gross_failures``: rows with status ok whose final true tip is more than
     :data:`GROSS_FAILURE_MM` from the plan; ``unflagged_first_move_failures``: rows whose first
-    command was carried out from a registration with its CM tip more than :data:`FIRST_MOVE_TIP_MM`
-    or its axis more than :data:`FIRST_MOVE_AXIS_DEG` from the truth (docs/data-formats.md, study
-    output); each with their trial numbers."""
+    command was carried out from a registration with its CM tip or axis too far from the truth in
+    the femur's frame, the frame of the plan and of the move (``femur_tip_mm``,
+    ``femur_axis_deg``); ``..._carm_frame``: the same in the AP view's C-arm frame (``tip_mm``,
+    ``cm_axis_deg``), where an error the bones and the CM share counts too (docs/data-formats.md,
+    study output); each with their trial numbers."""
     bad = [
         int(r["trial"])
         for r in rows
         if str(r.get("status")) == "ok" and _cell(r, "reposition_tip_mm") > GROSS_FAILURE_MM
     ]
-    first = [
-        int(r["trial"])
-        for r in rows
-        if math.isfinite(_cell(r, "reposition_open_loop_mm"))
-        and (_cell(r, "tip_mm") > FIRST_MOVE_TIP_MM or _cell(r, "cm_axis_deg") > FIRST_MOVE_AXIS_DEG)
-    ]
+    first = _first_move_failures(rows, "femur_tip_mm", "femur_axis_deg")
+    carm = _first_move_failures(rows, "tip_mm", "cm_axis_deg")
     return {
         "unflagged_gross_failures": len(bad),
         "unflagged_gross_failure_trials": bad,
         "unflagged_first_move_failures": len(first),
         "unflagged_first_move_failure_trials": first,
+        "unflagged_first_move_failures_carm_frame": len(carm),
+        "unflagged_first_move_failure_trials_carm_frame": carm,
     }
 
 

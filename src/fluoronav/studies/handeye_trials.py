@@ -110,6 +110,9 @@ NAVIGATION_METRICS = (
 #: navigation rows' further summarised figures: the robot-only error of the first move, the CM axis
 #: against the plan, and the verification registration's own errors against the truth
 NAVIGATION_DIAGNOSTICS = (
+    "femur_tip_mm",
+    "femur_axis_deg",
+    "cm_axis_deg",
     "reposition_robot_mm",
     "reposition_axis_deg",
     "reposition_open_loop_axis_deg",
@@ -121,6 +124,7 @@ NAVIGATION_DIAGNOSTICS = (
 NAVIGATION_CHECKS = (
     "cm_landmark_residual_mm",
     "cm_edge_ncc",
+    "cm_fbg_departure_sigmas",
     "pelvis_cost",
     "femur_cost",
     "verify_cm_landmark_residual_mm",
@@ -386,6 +390,8 @@ def navigation_row(run: Any, cfg: HandEyeStudyConfig) -> dict[str, Any]:
         "tip_mm": "cm_tip_mm",
         "entry_mm": "femur_entry_mm",
         "relative_mm": "cm_relative_mm",
+        "femur_tip_mm": "cm_femur_tip_mm",
+        "femur_axis_deg": "cm_femur_axis_deg",
         "base_translation_mm": "cm_base_translation_mm",
         "base_rotation_deg": "cm_base_rotation_deg",
         "notch_rotation_deg": "cm_notch_rotation_deg",

@@ -10,6 +10,9 @@ Frames: single-view and multiple-CM work in the world frame of the (known) C-arm
 relates the views through the pelvis (§II-C): each view's pelvis registration gives
 ``camera_k_from_ct``, and femur and CM are registered in the CT frame with those cameras. Errors are
 computed in the C-arm frame of the first view.
+
+A study may run in a simulated world (``StudyConfig.world``; :mod:`fluoronav.studies.world_trials`):
+the images of the patient, the case's CT, cameras and FBG reading given to the registration.
 """
 
 from __future__ import annotations
@@ -24,21 +27,15 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 
 from fluoronav import __version__
 from fluoronav.anatomy.io import resolve_ct
 from fluoronav.anatomy.volume import Volume
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.errors import FluoronavError, InputError
+from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.kinematics import CMKinematics
-from fluoronav.registration.bone import (
-    PELVIS_PRESET,
-    register_femur,
-    register_pelvis,
-    static_view_composite,
-    views_from_images,
-)
+from fluoronav.registration.bone import PELVIS_PRESET, static_view_composite
 from fluoronav.registration.centerline import (
     centerline_initialize,
     depth_range_about,
@@ -49,6 +46,7 @@ from fluoronav.registration.cm import (
     CMRegistrationConfig,
     CMRegistrationResult,
     CMView,
+    fbg_shape_prior,
     register_cm,
     register_cm_multistart,
     roll_scan_initialization,
@@ -66,14 +64,16 @@ from fluoronav.registration.view_set import (
     register_view_set_cm,
 )
 from fluoronav.runner import CsvLog, finish_row, mark_failed, new_row, run_tasks
-from fluoronav.simulation.articulated import anatomy_and_simulator
-from fluoronav.simulation.protocol import sample_trial, simulate_trial_images
+from fluoronav.simulation.world import IDEAL, World
+from fluoronav.studies.bone_errors import bone_registration_errors
+from fluoronav.studies.check_values import check_values
 from fluoronav.studies.figures import study_figures
 from fluoronav.studies.summary import summarize, write_summary
+from fluoronav.studies.world_trials import simulate_world_trial, world_rng
 
 log = logging.getLogger(__name__)
 
-__all__ = ["METRICS", "STUDY_WORKFLOWS", "StudyConfig", "run_study", "run_trial"]
+__all__ = ["METRICS", "STUDY_WORKFLOWS", "StudyConfig", "bone_registration_errors", "run_study", "run_trial"]
 
 STUDY_WORKFLOWS = ("centerline", "single-view", "multi-view", "multi-cm")
 BASE_METRICS = (
@@ -119,13 +119,11 @@ class StudyConfig:
     #: after the centreline initialisation, turn the CM about its chord to the best image score
     #: (:func:`~fluoronav.registration.cm.roll_scan`); the centreline study records θ before it too
     roll_scan: bool = True
+    #: the simulated world's error sources (:mod:`fluoronav.studies.world_trials`); ideal: none
+    world: World = IDEAL
 
 
 # ----- per-process caches ---------------------------------------------------------------------------
-def _anatomy(ct: str, phantom_seed: int, image_size: int, device: str) -> tuple[Volume, Any]:
-    return anatomy_and_simulator(ct, phantom_seed, image_size, device)
-
-
 @functools.lru_cache(maxsize=1)
 def _detector(device: str) -> Any:
     from fluoronav.detection.detector import Detector  # heavy: monai; oracle landmarks need no detector
@@ -148,26 +146,29 @@ def _full_to_image_px(uv_full: np.ndarray, binning: int) -> np.ndarray:
     return (np.asarray(uv_full, np.float64) + 0.5) / binning - 0.5
 
 
-def _detect(images: list[Any], trial: Any, cfg: StudyConfig, binning: int) -> list[FluoroView]:
-    """Per image a view named ``view<k>`` with the CM found in it: landmarks (2, 2), centreline,
-    confidences (2,) (1 for oracle landmarks) and segmentation; no detection where the detector found
-    no CM or one cut by the image border (:attr:`~fluoronav.detection.detector.Detection.usable`)."""
+def _detect(
+    images: list[Any], cameras: tuple[Camera, ...], oracle_px: np.ndarray, cfg: StudyConfig, binning: int
+) -> list[FluoroView]:
+    """Per image a view named ``view<k>`` with the registration's camera and the CM found in it:
+    landmarks (2, 2), centreline, confidences (2,) (1 for oracle landmarks: ``oracle_px``, full
+    detector) and segmentation; no detection where the detector found no CM or one cut by the image
+    border (:attr:`~fluoronav.detection.detector.Detection.usable`)."""
     views: list[FluoroView] = []
-    for i, sim in enumerate(images):
+    for i, (sim, camera) in enumerate(zip(images, cameras, strict=True)):
         if cfg.oracle_landmarks:
-            lm = _full_to_image_px(trial.oracle_landmarks_px[i], binning)
+            lm = _full_to_image_px(oracle_px[i], binning)
             mask, cl, conf, source = sim.mask.astype(bool), None, np.ones(2), "oracle"
         else:
             det = _detector(cfg.device).detect(sim.image, pixel_spacing_mm=sim.camera.pixel_spacing_mm)
             if not det.usable:  # no CM, or a CM cut by the image border (a landmark at the cut)
                 # the view still counts in the registration (ROI at the initial pose's projection);
                 # the initialisation needs view 0 (one-view workflows) or two views (multi-view)
-                views.append(FluoroView(f"view{i}", sim.image, sim.camera))
+                views.append(FluoroView(f"view{i}", sim.image, camera))
                 continue
             lm, mask, cl, source = det.landmarks_px, det.mask, det.centerline_px, "detector"
             conf = np.asarray(det.landmark_confidence, dtype=np.float64)
         cl = cl if cl is not None else extract_centerline(mask, lm[0], lm[1])
-        views.append(FluoroView(f"view{i}", sim.image, sim.camera, ViewDetection(lm, cl, mask, conf, source)))
+        views.append(FluoroView(f"view{i}", sim.image, camera, ViewDetection(lm, cl, mask, conf, source)))
     return views
 
 
@@ -189,12 +190,16 @@ class _TrialFailure(FluoronavError):
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class _Simulated:
-    """A trial's truth, its simulated images and the CM found in each (``views``)."""
+    """A trial's truth, its simulated images and the CM found in each (``views``); ``volume`` and
+    ``cameras`` are the CT and cameras the registration is given, ``tip_cm_true`` (3,) mm the tip of
+    the instrument as built (None: the model's)."""
 
     volume: Volume
     trial: Any
     images: list[Any]
     views: list[FluoroView]
+    cameras: tuple[Camera, ...]
+    tip_cm_true: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -233,7 +238,11 @@ def _view_set_settings(cfg: StudyConfig) -> ViewSetSettings:
     """The studies' registrations: the library's pelvis and femur presets, the CM registration's
     default levels, unchecked (a study measures every registration against the truth)."""
     return ViewSetSettings(
-        device=cfg.device, pelvis=PELVIS_PRESET, pelvis_refine=None, cm=CMRegistrationConfig(), cm_checks=None
+        device=cfg.device,
+        pelvis=PELVIS_PRESET,
+        pelvis_refine=None,
+        cm=fbg_shape_prior(CMRegistrationConfig(), cfg.world.fbg.stated_sigma()),
+        cm_checks=None,
     )
 
 
@@ -241,15 +250,24 @@ def _seeds(bone_seed: int, cm_seed: int = 0) -> ViewSetSeeds:
     return ViewSetSeeds(pelvis=bone_seed, femur=bone_seed + 1, pelvis_refine=bone_seed + 2, cm=cm_seed)
 
 
-def _simulate(cfg: StudyConfig, rng: np.random.Generator) -> _Simulated:
-    """The phantom, the trial's truth (§III-B), its physics-simulated images and the CM found in each."""
+def _simulate(cfg: StudyConfig, rng: np.random.Generator, world_generator: np.random.Generator) -> _Simulated:
+    """The phantom, the trial's truth (§III-B), its physics-simulated images in the config's world
+    (drawn from ``world_generator``, never ``rng``) and the CM found in each."""
     phantom_seed = 1000 * cfg.seed + int(rng.integers(cfg.n_phantoms))
-    volume, simulator = _anatomy(cfg.ct, phantom_seed, cfg.image_size, cfg.device)
     protocol_wf = "single-view" if cfg.workflow == "centerline" else cfg.workflow
-    trial = sample_trial(protocol_wf, volume, rng)
-    images = simulate_trial_images(trial, simulator, seed=int(rng.integers(2**31)), image_size=cfg.image_size)
-    binning = max(1, round(trial.cameras[0].cols / images[0].camera.cols))
-    return _Simulated(volume, trial, images, _detect(images, trial, cfg, binning))
+    w = simulate_world_trial(
+        protocol_wf,
+        cfg.ct,
+        phantom_seed,
+        cfg.world,
+        image_size=cfg.image_size,
+        device=cfg.device,
+        rng=rng,
+        world_rng=world_generator,
+    )
+    binning = max(1, round(w.trial.cameras[0].cols / w.images[0].camera.cols))
+    views = _detect(w.images, w.cameras, w.oracle_landmarks_px, cfg, binning)
+    return _Simulated(w.case_ct, w.trial, w.images, views, w.cameras, w.tip_cm_true)
 
 
 def _register_multi_view(
@@ -281,7 +299,7 @@ def _register_multi_view(
         res, init = vs.cm, vs.cm_init
         cams = list(vs.cameras_ct)
     else:
-        cams = [s.camera for s in sim.images]
+        cams = list(sim.cameras)
         res, init = register_view_set_cm(
             sim.views,
             cams,
@@ -295,6 +313,7 @@ def _register_multi_view(
     row["landmark_outliers"] = int((~init.landmark_inliers).sum())
     # the CM was registered in the CT frame of the pelvis-estimated views
     world_est_from_world = np.linalg.inv(cams[0].camera_from_world) @ sim.images[0].camera.camera_from_world
+    row.update(check_values(res, sim.views, sim.trial.initial_control_points_deg, _view_set_settings(cfg).cm))
     return _cm_estimate(row, sim, res, world_est_from_world, bones)
 
 
@@ -363,7 +382,9 @@ def _centerline_start(
             init,
             cl,
             tr.initial_control_points_deg,
-            config=CMRegistrationConfig(device=cfg.device, cm_config=tr.cm_config),
+            config=fbg_shape_prior(
+                CMRegistrationConfig(device=cfg.device, cm_config=tr.cm_config), cfg.world.fbg.stated_sigma()
+            ),
         )
         T_scan = cams[0].camera_from_world @ scan.world_from_cm
         # A is the CM origin: its depth is the pose's z; θ in the init's own convention is not
@@ -381,7 +402,7 @@ def _register_one_view(
     the multi-view workflow from a perturbed truth."""
     tr, images = sim.trial, sim.images
     bones = _register_bones(sim, cfg, int(rng.integers(2**31))) if _with_bones(sim.volume, cfg) else None
-    cams, world_est_from_world = [s.camera for s in images], np.eye(4)
+    cams, world_est_from_world = list(sim.cameras), np.eye(4)
     if cfg.workflow == "multi-view":  # the CM is registered in the CT frame of the pelvis-estimated views
         cams = list(bones.cameras) if bones is not None else cams
         world_est_from_world = np.linalg.inv(cams[0].camera_from_world) @ images[0].camera.camera_from_world
@@ -412,7 +433,7 @@ def _register_one_view(
             initial_control_points_deg=tr.initial_control_points_deg,
             initial_world_from_cm=world_est_from_world @ tr.initial_world_from_cm[0],
             base_from_cm=base_from_cm,
-            config=CMRegistrationConfig(device=cfg.device),
+            config=fbg_shape_prior(CMRegistrationConfig(device=cfg.device), cfg.world.fbg.stated_sigma()),
             seed=cm_seed,
         )
     else:
@@ -421,7 +442,7 @@ def _register_one_view(
             cm_start_poses(init, cams[0], tr.initial_control_points_deg, tr.cm_config),
             initial_control_points_deg=tr.initial_control_points_deg,
             base_from_cm=base_from_cm,
-            config=CMRegistrationConfig(device=cfg.device),
+            config=fbg_shape_prior(CMRegistrationConfig(device=cfg.device), cfg.world.fbg.stated_sigma()),
             seed=cm_seed,
         )
     return _cm_estimate(row, sim, res, world_est_from_world, bones)
@@ -441,17 +462,19 @@ def _record_errors(row: dict[str, Any], sim: _Simulated, est: _Estimate) -> None
     row.update(errs)
     # the estimate in the true world frame (view 0's true camera maps it there)
     row["est_world_from_cm"] = np.round(np.linalg.inv(cam0) @ est.carm_from_cm, 5).tolist()
+    cps = torch.as_tensor(np.stack([est.control_points_deg, tr.control_points_deg]), dtype=torch.float64)
+    tips = CMKinematics(tr.cm_config).tip_cm(cps).numpy()
+    tip_est = (est.carm_from_cm @ np.append(tips[0], 1.0))[:3]
+    tip_cm_true = tips[1] if sim.tip_cm_true is None else sim.tip_cm_true
+    tip_true = (carm0_true @ np.append(tip_cm_true, 1.0))[:3]
+    if sim.tip_cm_true is not None:  # the instrument as built, not the model: its own tip
+        row["tip_mm"] = point_error_mm(tip_est, tip_true)
     if est.bones is None:
         return
     entry_true_c = (cam0 @ np.append(tr.entry_world, 1.0))[:3]
     entry_est_c = (
         cam0 @ np.linalg.inv(est.world_est_from_world) @ np.append(est.bones.entry_world_est, 1.0)
     )[:3]
-    kin = CMKinematics(tr.cm_config)
-    cps = torch.as_tensor(np.stack([est.control_points_deg, tr.control_points_deg]), dtype=torch.float64)
-    tips = kin.tip_cm(cps).numpy()
-    tip_est = (est.carm_from_cm @ np.append(tips[0], 1.0))[:3]
-    tip_true = (carm0_true @ np.append(tips[1], 1.0))[:3]
     row["entry_mm"] = point_error_mm(entry_est_c, entry_true_c)
     row["relative_mm"] = relative_error_mm(entry_est_c, tip_est, entry_true_c, tip_true)
     row["seconds_bones"] = est.bones.seconds
@@ -484,7 +507,7 @@ def run_trial(trial_id: int, seed: int, *, cfg: StudyConfig) -> dict[str, Any]:
     rng = np.random.default_rng(seed)
     row = new_row(trial_id, seed, cfg.workflow)
     try:
-        sim = _simulate(cfg, rng)
+        sim = _simulate(cfg, rng, world_rng(seed))
         row["true_control_points_deg"] = np.round(sim.trial.control_points_deg, 4).tolist()
         row["true_world_from_cm"] = np.round(sim.trial.world_from_cm[0], 5).tolist()
         if cfg.workflow == "multi-view" and cfg.init != "perturbed":
@@ -511,6 +534,9 @@ def _columns(workflow: str) -> list[str]:
         "seconds_bones",
         "views_detected",
         "landmark_outliers",
+        "check_edge_ncc",
+        "check_landmark_residual_mm",
+        "check_fbg_departure_sigmas",
         "true_control_points_deg",
         "est_control_points_deg",
         "true_world_from_cm",
@@ -528,11 +554,12 @@ def run_study(
         )
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "config.json"
-    cfg_dict = {**dataclasses.asdict(cfg), "version": __version__}
+    cfg_dict = {**dataclasses.asdict(cfg), "world": cfg.world.to_dict(), "version": __version__}
     if cfg_path.exists():
         old = json.loads(cfg_path.read_text(encoding="utf-8"))
+        old.setdefault("world", IDEAL.to_dict())  # a study from before worlds ran in the ideal one
         keep = ["workflow", "seed", "ct", "oracle_landmarks", "image_size", "n_phantoms", "register_bones"]
-        keep.append("init")
+        keep += ["init", "world"]
         if any(old.get(k) != cfg_dict.get(k) for k in keep):
             raise InputError(cfg_path, "this directory holds a study with other settings; use another --out")
     if cfg.ct != "phantom":
@@ -560,40 +587,13 @@ def run_study(
         list(METRICS[cfg.workflow]),
         trials=cfg.trials,
         device=cfg.device,
-        extra={"oracle_landmarks": cfg.oracle_landmarks, "seed": cfg.seed, "ct": cfg.ct},
+        extra={
+            "oracle_landmarks": cfg.oracle_landmarks,
+            "seed": cfg.seed,
+            "ct": cfg.ct,
+            "world": cfg.world.to_dict(),
+        },
     )
     write_summary(out / "summary.json", summary)
     study_figures(rows, out / "figures", workflow=cfg.workflow)
     return summary
-
-
-def bone_registration_errors(trial: Any, images: list[Any], volume: Volume, *, seed: int) -> dict[str, float]:
-    """Register the pelvis (from the trial's initial pose) then the femur, jointly over the images;
-    errors w.r.t. the ground truth (mm, degrees) and run times (s, rough).
-
-    Keys: ``pelvis_mm`` (at the pelvis centre), ``pelvis_deg``, ``pelvis_depth_mm`` (along the first
-    view's axis), ``femur_deg``, ``entry_mm`` (‖entry_est − entry_true‖, frame independent),
-    ``pelvis_s``, ``femur_s``.
-    """
-    views = views_from_images(images)
-    pelvis = register_pelvis(
-        views, volume, initial_world_from_patient=trial.initial_world_from_patient, seed=seed
-    )
-    femur = register_femur(
-        views, volume, side=trial.side, world_from_patient=pelvis.world_from_bone, seed=seed + 1
-    )
-
-    def rot_deg(A: np.ndarray, B: np.ndarray) -> float:
-        return float(np.degrees(np.linalg.norm(Rotation.from_matrix(A[:3, :3] @ B[:3, :3].T).as_rotvec())))
-
-    c = (pelvis.world_from_bone @ np.append(trial.pelvis_center_ct, 1.0))[:3] - trial.pelvis_center_world
-    entry = (femur.world_from_bone @ np.append(trial.entry_ct, 1.0))[:3]
-    return {
-        "pelvis_mm": float(np.linalg.norm(c)),
-        "pelvis_deg": rot_deg(pelvis.world_from_bone, trial.world_from_patient),
-        "pelvis_depth_mm": float(abs((trial.cameras[0].camera_from_world[:3, :3] @ c)[2])),
-        "femur_deg": rot_deg(femur.world_from_bone, trial.world_from_femur),
-        "entry_mm": float(np.linalg.norm(entry - trial.entry_world)),
-        "pelvis_s": pelvis.seconds,
-        "femur_s": femur.seconds,
-    }

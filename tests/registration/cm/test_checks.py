@@ -22,9 +22,13 @@ from fluoronav.registration.cm.checks import (
     PredictedCMPose,
     judge_cm_views,
     judge_motion,
+    judge_shape,
     motion_agreement,
+    name_fbg_cause,
     register_cm_checked,
+    shape_departure_sigmas,
 )
+from fluoronav.registration.cm.config import CMRegistrationConfig
 from fluoronav.registration.cm.diagnostics import CMViewDiagnostics
 
 GOOD: dict[str, Any] = {"landmark_residual_mm": 0.4, "edge_ncc": 0.9}
@@ -72,6 +76,8 @@ class _Camera:
 @dataclass
 class _Config:
     cm_config: CMConfig = field(default_factory=CMConfig)
+    control_point_sigma_deg: float | None = 0.1
+    control_point_tolerance_deg: float = 0.0
 
 
 def _run(
@@ -80,19 +86,29 @@ def _run(
     *,
     tries: int = 1,
     motion: dict[int, float] | None = None,
+    shape: dict[int, np.ndarray] | None = None,
+    priors: list[Any] | None = None,
 ) -> tuple[_Reg, dict[str, Any], list[list[str]]]:
     """``bad[(start, view)]``: the diagnostics of that view in registrations from that start;
-    ``motion[start]``: the tip's distance from the predicted pose of registrations from that start."""
+    ``motion[start]``: the tip's distance from the predicted pose of registrations from that start;
+    ``shape[start]``: the control points registered from that start (the FBG reading is 0, σ 0.1°,
+    checked at 4 σ where given); ``priors`` collects the prior centre of continued registrations."""
     calls: list[list[str]] = []
     views = [_View(n, _Camera()) for n in ("AP", "orbit +20", "orbit -15")]
 
+    def reg(vs: list[_View], start: int) -> _Reg:
+        cp = np.zeros(5) if shape is None else shape[start]
+        return _Reg([v.name for v in vs], start, control_points_deg=cp)
+
     def multistart(vs: list[_View], starts: list[np.ndarray], **kw: Any) -> _Reg:
         calls.append([v.name for v in vs])
-        return _Reg([v.name for v in vs], int(starts[0][0, 3]))
+        return reg(vs, int(starts[0][0, 3]))
 
     def single(vs: list[_View], **kw: Any) -> _Reg:
         calls.append([v.name for v in vs])
-        return _Reg([v.name for v in vs], int(kw["initial_world_from_cm"][0, 3]))
+        if priors is not None:
+            priors.append(kw["prior_control_points_deg"])
+        return reg(vs, int(kw["initial_world_from_cm"][0, 3]))
 
     def diagnostics(cm: _Reg, lms: list[Any], ps: list[Any]) -> list[CMViewDiagnostics]:
         return [CMViewDiagnostics(**bad.get((cm.start, n), GOOD)) for n in cm.views]
@@ -118,7 +134,7 @@ def _run(
         diag,
         initial_control_points_deg=np.zeros(5),
         config=_Config(),  # type: ignore[arg-type]
-        checks=CMCheckConfig(),
+        checks=CMCheckConfig(max_shape_departure_sigmas=None if shape is None else 4.0),
         seed=0,
         predicted=None if motion is None else PredictedCMPose(np.eye(4), np.eye(4), max_tip_mm=3.0),
     )
@@ -189,3 +205,89 @@ def test_motion_agreement_is_measured_in_the_reference_frame() -> None:
     b = motion_agreement(predicted, moved, cfg)  # type: ignore[arg-type]
     assert b["motion_tip_mm"] == pytest.approx(2.5, abs=1e-9)
     assert judge_motion(b, 2.0) is not None and judge_motion(b, predicted.max_tip_mm) is None
+
+
+def test_shape_departure_is_counted_beyond_the_tolerance_in_sigmas() -> None:
+    reading = np.array([1.0, -2.0, 0.0, 0.5, 3.0])
+    x = reading + np.array([0.3, -1.5, 0.2, 0.0, 0.9])
+    # |Δ| − τ = (0.0, 1.2, 0, 0, 0.6) over σ 0.25
+    assert shape_departure_sigmas(x, reading, sigma_deg=0.25, tolerance_deg=0.3) == pytest.approx(4.8)
+    assert shape_departure_sigmas(reading, reading, sigma_deg=0.1, tolerance_deg=0.0) == 0.0
+
+
+def test_a_shape_pulled_off_the_fbg_reading_fails_naming_the_fbg() -> None:
+    cfg = _Config(control_point_sigma_deg=0.1)
+    near = _Reg(["AP"], 0, control_points_deg=np.array([0.0, 0.3, -0.2, 0.0, 0.1]))
+    dep, verdict = judge_shape(near, np.zeros(5), cfg, 4.0)  # type: ignore[arg-type]
+    assert dep == pytest.approx(3.0) and verdict is None
+    far = _Reg(["AP"], 0, control_points_deg=np.array([0.0, 0.3, -0.62, 0.0, 0.1]))
+    dep, verdict = judge_shape(far, np.zeros(5), cfg, 4.0)  # type: ignore[arg-type]
+    assert dep == pytest.approx(6.2) and verdict is not None and verdict.check == "fbg_shape"
+    assert "-0.62° at control point 2" in verdict.detail and "FBG" in verdict.detail
+
+
+def test_a_shape_check_failure_tries_the_next_start_then_refuses(monkeypatch: pytest.MonkeyPatch) -> None:
+    off = np.array([0.0, 0.0, 1.0, 0.0, 0.0])  # 10 σ of a 0.1° reading
+    cm, diag, _ = _run(monkeypatch, {}, tries=2, shape={0: off, 1: np.full(5, 0.05)})
+    assert cm.start == 1 and diag["fbg_departure_sigmas"] == pytest.approx(0.5)
+    with pytest.raises(RegistrationRefused) as err:
+        _run(monkeypatch, {}, tries=2, shape={0: off, 1: off})
+    assert err.value.stage == "cm" and err.value.check == "fbg_shape" and err.value.view == ""
+
+
+def test_a_continued_registration_keeps_its_prior_on_the_reading(monkeypatch: pytest.MonkeyPatch) -> None:
+    """After a view is left out the CM is registered again from its result: its shape starts there,
+    but the prior stays centred on the reading, not on the shape it had settled at."""
+    priors: list[Any] = []
+    settled = np.full(5, 0.2)
+    bad = {(0, "orbit +20"): {"landmark_residual_mm": 0.3, "edge_ncc": 0.05}}
+    _run(monkeypatch, bad, shape={0: settled}, priors=priors)
+    assert len(priors) == 1 and np.array_equal(priors[0], np.zeros(5))
+
+
+def _named(monkeypatch: pytest.MonkeyPatch, free_shape: np.ndarray | None, check: str = "edge_ncc") -> Any:
+    """:func:`name_fbg_cause` of a refusal (``check``), the registration with the shape free giving
+    ``free_shape`` (None: refused too); also the settings it was run with."""
+    seen: dict[str, Any] = {}
+
+    def registered(views: Any, lms: Any, tries: Any, diag: Any, **kw: Any) -> _Reg:
+        seen.update(kw)
+        if free_shape is None:
+            raise RegistrationRefused("cm", "edge_ncc", "still no fit", view="AP")
+        return _Reg(["AP", "orbit +20"], 0, control_points_deg=free_shape)
+
+    monkeypatch.setattr(checks, "register_cm_checked", registered)
+    refused = RegistrationRefused("cm", check, "NCC 0.54 (at least 0.7)", view="orbit +20")
+    cfg = CMRegistrationConfig(control_point_sigma_deg=0.085, control_point_tolerance_deg=0.0)
+    out = name_fbg_cause(
+        refused,
+        [],
+        [],
+        [],
+        reading_deg=np.zeros(5),
+        config=cfg,
+        checks=CMCheckConfig(max_shape_departure_sigmas=4.0),
+        seed=0,
+    )
+    return out, refused, seen
+
+
+def test_a_view_that_fails_because_the_fbg_reading_is_off_names_the_reading(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Held to a reading 1.5° off the CM fails a view; with the shape free it fits every view 1.5°
+    (18 σ) from the reading: the refusal names the FBG reading and keeps the view's failure."""
+    out, refused, seen = _named(monkeypatch, np.array([0.0, 1.5, 0.0, 0.0, 0.0]))
+    assert out is not refused and out.check == "fbg_shape" and out.view == ""
+    assert "+1.50° at control point 1" in out.detail and "orbit +20" in out.detail
+    assert seen["config"].control_point_tolerance_deg == 3.0  # searched ±3° of the reading
+    assert seen["checks"].max_shape_departure_sigmas is None
+
+
+def test_a_view_that_fails_for_another_reason_keeps_its_refusal(monkeypatch: pytest.MonkeyPatch) -> None:
+    near, _, _ = _named(monkeypatch, np.full(5, 0.1))  # the free shape agrees with the reading
+    assert near.check == "edge_ncc"
+    none, _, _ = _named(monkeypatch, None)  # nothing fits with the shape free either
+    assert none.check == "edge_ncc"
+    motion, refused, seen = _named(monkeypatch, np.full(5, 2.0), check="robot_motion")
+    assert motion is refused and not seen  # not a view's check: not searched

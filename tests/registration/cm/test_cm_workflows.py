@@ -326,3 +326,29 @@ def test_roll_scan_recovers_the_roll_about_the_chord(single_case) -> None:
         np.testing.assert_allclose(
             W[:3, :3] @ ab.T + W[:3, 3:4], W_true[:3, :3] @ ab.T + W_true[:3, 3:4], atol=1e-9
         )
+
+
+def test_a_tight_shape_prior_caps_the_control_points_steps(single_case) -> None:
+    """The control points' steps are at most the prior's tolerance + 2 σ: a reading stated to 0.085°
+    gets steps of 0.17° (the pose keeps its own); the default flat prior (1° + 2 × 0.25°) and one view's
+    Gaussian (2 × 1°) leave the levels' steps as they are."""
+    case = single_case
+    levels = (LevelConfig(sigma=CM_SIGMA, downsample=4, stride=5),)
+
+    def steps(**cfg: object) -> tuple[float, ...]:
+        prob = CMProblem(
+            case.views,
+            initial_world_from_cm=case.initial_world_from_cm,
+            initial_control_points_deg=case.initial_control_points_deg,
+            config=CMRegistrationConfig(levels=levels, **cfg),  # type: ignore[arg-type]
+        )
+        return tuple(prob.levels[0].sigma)
+
+    tight = steps(
+        control_point_sigma_deg=0.085,
+        control_point_tolerance_deg=0.0,
+        single_view_control_point_sigma_deg=None,
+    )
+    assert tight[:6] == CM_SIGMA[:6] and tight[6:] == pytest.approx((0.17,) * 5)
+    assert steps(single_view_control_point_sigma_deg=None) == CM_SIGMA  # flat: 1.5° cap, 1.5° steps
+    assert steps() == CM_SIGMA  # one view's Gaussian σ 1°: a 2° cap

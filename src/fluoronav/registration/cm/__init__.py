@@ -53,6 +53,7 @@ from fluoronav.registration.cm.config import (
     DEFAULT_CM_MU_PER_MM,
     CMRegistrationConfig,
     default_cm_levels,
+    fbg_shape_prior,
 )
 from fluoronav.registration.cm.multistart import register_cm_multistart
 from fluoronav.registration.cm.overlays import edge_mask, save_overlays, to_uint8
@@ -81,6 +82,7 @@ __all__ = [
     "cm_pose_errors",
     "default_cm_levels",
     "edge_mask",
+    "fbg_shape_prior",
     "judge_cm_views",
     "judge_motion",
     "motion_agreement",

@@ -43,8 +43,11 @@ __all__ = [
     "ViewVerdict",
     "judge_cm_views",
     "judge_motion",
+    "judge_shape",
     "motion_agreement",
+    "name_fbg_cause",
     "register_cm_checked",
+    "shape_departure_sigmas",
 ]
 
 #: how far (mm) the registered CM tip may lie from a predicted one: the robot's and the first
@@ -61,11 +64,19 @@ class CMCheckConfig:
             detector) from the detected one.
         min_edge_ncc: a view's gradient NCC on the registered CM's outline must reach this.
         min_views: views that must pass for a CM registration to stand.
+        max_shape_departure_sigmas: where the shape's prior is a measurement (the FBG reading), the
+            registered control points may depart from it by at most the prior's tolerance plus this
+            many of its σ (:func:`judge_shape`); None: not checked.
+        shape_search_tolerance_deg: where such a registration fails a view's check, it is registered
+            once more with the shape free within this of the reading (:func:`name_fbg_cause`): a
+            shape the images accept that far from the reading names the reading as the cause.
     """
 
     max_landmark_residual_mm: float = 2.0
     min_edge_ncc: float = 0.7
     min_views: int = 2
+    max_shape_departure_sigmas: float | None = None
+    shape_search_tolerance_deg: float = 3.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,6 +148,48 @@ def judge_cm_views(
         else:
             out.append(ViewVerdict(name, True))
     return out
+
+
+def shape_departure_sigmas(
+    control_points_deg: np.ndarray, reading_deg: np.ndarray, *, sigma_deg: float, tolerance_deg: float
+) -> float:
+    """The largest departure of registered control points from a reading beyond its tolerance, in
+    units of the reading's σ: ``max_i max(|x_i − r_i| − τ, 0) / σ`` (0 within the tolerance)."""
+    d = np.abs(np.asarray(control_points_deg, np.float64) - np.asarray(reading_deg, np.float64))
+    return float(np.max(np.maximum(d - tolerance_deg, 0.0)) / sigma_deg)
+
+
+def judge_shape(
+    cm: CMRegistrationResult, reading_deg: np.ndarray, config: CMRegistrationConfig, max_sigmas: float
+) -> tuple[float, ViewVerdict | None]:
+    """The registered shape against the reading its prior is centred on (``config``'s σ and
+    tolerance): (departure in σ, :func:`shape_departure_sigmas`; None where within ``max_sigmas``,
+    else the failed check ``fbg_shape``).
+
+    Notes:
+        A shape pulled away from an accurate reading is a shape bent to make up for something
+        else, typically a base tilted or rolled so that the tip still matches the images; the
+        first move carries that base's direction over its length. Either the reading (its
+        calibration) or the registration is wrong, and the images cannot say which.
+    """
+    sigma = config.control_point_sigma_deg
+    assert sigma is not None
+    dep = shape_departure_sigmas(
+        cm.control_points_deg, reading_deg, sigma_deg=sigma, tolerance_deg=config.control_point_tolerance_deg
+    )
+    if dep <= max_sigmas:
+        return dep, None
+    worst = int(np.argmax(np.abs(np.asarray(cm.control_points_deg) - np.asarray(reading_deg))))
+    gap = float(cm.control_points_deg[worst] - reading_deg[worst])
+    return dep, ViewVerdict(
+        "",
+        False,
+        "fbg_shape",
+        f"the registered CM shape departs from the FBG reading by {gap:+.2f}° at control point {worst} "
+        f"({dep:.1f} σ of the reading, at most {max_sigmas:g}): the shape makes up for a base "
+        "that is not where the images put it, or the FBG reading is off; check the FBG sensor's "
+        "calibration",
+    )
 
 
 def judge_motion(motion: Mapping[str, float], max_tip_mm: float) -> ViewVerdict | None:
@@ -232,7 +285,8 @@ def register_cm_checked(
                 [spacing[k] for k in use],
                 checks,
                 predicted,
-                config.cm_config,
+                config,
+                np.asarray(initial_control_points_deg, np.float64),
             )
             failed = [v for v in verdicts if not v.passed]
             diagnostics.update(
@@ -261,6 +315,8 @@ def register_cm_checked(
                 initial_world_from_cm=cm.world_from_cm[0],
                 config=config,
                 seed=seed + 17 + t,
+                # the prior stays on the reading: a continued registration must not settle beside it
+                prior_control_points_deg=initial_control_points_deg,
             )
         if t + 1 < len(tries):
             log.warning(
@@ -282,13 +338,88 @@ def _judge(
     spacing: list[float | None],
     checks: CMCheckConfig,
     predicted: PredictedCMPose | None,
-    cm_config: CMConfig,
+    config: CMRegistrationConfig,
+    reading_deg: np.ndarray,
 ) -> tuple[list[CMViewDiagnostics], list[ViewVerdict], dict[str, float] | None, ViewVerdict | None]:
-    """A registration's per-view diagnostics and verdicts and, where every view passed and a pose is
-    predicted, its agreement with that pose (:func:`motion_agreement`) and the verdict on it."""
+    """A registration's per-view diagnostics and verdicts and, where every view passed, its shape
+    against the reading of the prior (:func:`judge_shape`, where checked) and, where a pose is
+    predicted, its agreement with that pose (:func:`motion_agreement`): those figures and the
+    verdict on them."""
     diags = cm_view_diagnostics(cm, landmarks_px, spacing)
     verdicts = judge_cm_views(names, [d.to_dict() for d in diags], checks)
-    if predicted is None or not all(v.passed for v in verdicts):
+    if not all(v.passed for v in verdicts):
         return diags, verdicts, None, None
-    motion = motion_agreement(predicted, cm, cm_config)
-    return diags, verdicts, motion, judge_motion(motion, predicted.max_tip_mm)
+    extra: dict[str, float] = {}
+    if checks.max_shape_departure_sigmas is not None and config.control_point_sigma_deg is not None:
+        dep, shape = judge_shape(cm, reading_deg, config, checks.max_shape_departure_sigmas)
+        extra["fbg_departure_sigmas"] = dep
+        if shape is not None:
+            return diags, verdicts, extra, shape
+    if predicted is None:
+        return diags, verdicts, extra or None, None
+    motion = motion_agreement(predicted, cm, config.cm_config)
+    return diags, verdicts, {**extra, **motion}, judge_motion(motion, predicted.max_tip_mm)
+
+
+def name_fbg_cause(
+    refused: RegistrationRefused,
+    views: Sequence[CMView],
+    landmarks_px: Sequence[np.ndarray | None],
+    tries: Sequence[Sequence[np.ndarray]],
+    *,
+    reading_deg: np.ndarray,
+    config: CMRegistrationConfig,
+    checks: CMCheckConfig,
+    seed: int,
+    stage: str = "cm",
+) -> RegistrationRefused:
+    """The refusal of a registration whose shape was held to an FBG reading, with its cause named
+    where the reading is it.
+
+    A reading that is off (its calibration lost) holds the shape where the images cannot fit it, and
+    a view's check fails (``edge_ncc``, ``landmark_residual``), which names a view, not the reading.
+    The CM is registered once more with its shape free within
+    ``checks.shape_search_tolerance_deg`` of the reading (flat, then the prior's σ): where that
+    registration passes every view's check with a shape further from the reading than its
+    stated accuracy allows (:func:`judge_shape`), the refusal names the FBG reading (check
+    ``fbg_shape``, with the view's failure after it); otherwise ``refused`` stands.
+
+    Args:
+        refused: the refusal of the registration held to the reading.
+        views, landmarks_px, tries, seed, stage: as :func:`register_cm_checked`.
+        reading_deg: (n_control_points,) the FBG reading.
+        config: the registration's settings (its control-point σ is the reading's).
+        checks: thresholds (``max_shape_departure_sigmas`` set).
+    """
+    sigma, max_sigmas = config.control_point_sigma_deg, checks.max_shape_departure_sigmas
+    if sigma is None or max_sigmas is None or refused.check not in ("edge_ncc", "landmark_residual"):
+        return refused
+    free = config.with_(control_point_tolerance_deg=checks.shape_search_tolerance_deg)
+    searched = CMCheckConfig(
+        max_landmark_residual_mm=checks.max_landmark_residual_mm,
+        min_edge_ncc=checks.min_edge_ncc,
+        min_views=checks.min_views,
+    )
+    try:
+        cm = register_cm_checked(
+            views,
+            landmarks_px,
+            tries,
+            {},
+            initial_control_points_deg=reading_deg,
+            config=free,
+            checks=searched,
+            seed=seed,
+            stage=stage,
+        )
+    except RegistrationRefused:
+        return refused
+    dep, verdict = judge_shape(cm, reading_deg, config, max_sigmas)
+    if verdict is None:
+        return refused
+    log.warning("%s: with its shape free the CM fits every view, %.1f σ from the FBG reading", stage, dep)
+    detail = (
+        f"{verdict.detail}: with its shape free the CM fits every view, held to the reading it "
+        f"fails ({refused})"
+    )
+    return RegistrationRefused(stage, "fbg_shape", detail)

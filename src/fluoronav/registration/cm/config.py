@@ -15,8 +15,10 @@ __all__ = [
     "CM_FINE_LINEARIZED_LEVEL",
     "CM_LOCAL_LEVEL",
     "DEFAULT_CM_MU_PER_MM",
+    "FBG_TOLERANCE_SIGMAS",
     "CMRegistrationConfig",
     "default_cm_levels",
+    "fbg_shape_prior",
     "local_cm_levels",
 ]
 
@@ -90,6 +92,12 @@ class CMRegistrationConfig:
             at the FBG error, and without any prior the base rotation trades against the shape
             (docs/validation.md). The tolerance is the FBG accuracy with a margin (the simulated
             reading is within ±0.5°).
+        control_point_step_sigmas: every level's step of the control points (CMA-ES σ, the
+            linearised optimiser's scale) is at most the prior's tolerance plus this many of its σ.
+            Why: a step far wider than a tight prior (an FBG reading stated to 0.1°) spends the
+            population on candidates the prior rules out, and the prior's cost then ranks them
+            rather than the images (docs/validation.md). The default prior's 1° + 2 × 0.25° leaves
+            the levels' steps as they are.
         single_view_control_point_sigma_deg: one view without a measured response (a single
             level, e.g. 384² images, or ``response="linear"``): a plain Gaussian of this σ instead of
             the flat-bottomed prior; there one view does not tell depth from shape. With the
@@ -127,6 +135,7 @@ class CMRegistrationConfig:
     landmark_sigma_full_px: float | None = 100.0
     control_point_sigma_deg: float | None = 0.25
     control_point_tolerance_deg: float = 1.0
+    control_point_step_sigmas: float = 2.0
     single_view_control_point_sigma_deg: float | None = 1.0
     use_background: bool = True
     cm_mu_per_mm: float = DEFAULT_CM_MU_PER_MM
@@ -152,3 +161,27 @@ class CMRegistrationConfig:
     def with_(self, **changes: Any) -> CMRegistrationConfig:
         """Copy with changes."""
         return replace(self, **changes)
+
+
+#: the shape is free within this many of the FBG reading's stated σ (about its 95 % interval), with
+#: Gaussian walls of σ beyond: an FBG's error is partly a bias shared by every control point, which a
+#: plain Gaussian of independent points holds the shape to, so the base tilts to make up for the
+#: bias's bend over 27 notches (docs/validation.md, "The FBG reading")
+FBG_TOLERANCE_SIGMAS = 2.0
+
+
+def fbg_shape_prior(cm: CMRegistrationConfig, fbg_sigma_deg: float | None) -> CMRegistrationConfig:
+    """The CM registration with its shape held to the FBG reading as a measurement of stated accuracy
+    σ: free within :data:`FBG_TOLERANCE_SIGMAS` σ of the reading, Gaussian walls of σ beyond; ``cm``
+    itself where no σ is stated (its own prior: the paper's ±0.5° reading, free within ±1°).
+
+    Notes:
+        The shape's freedom is the reading's: a tight reading leaves the base's direction nothing
+        to trade against, a loose one lets the images decide. A shape pulled beyond the reading's
+        accuracy is refused
+        (:attr:`~fluoronav.registration.cm.checks.CMCheckConfig.max_shape_departure_sigmas`).
+    """
+    if fbg_sigma_deg is None:
+        return cm
+    sigma = float(fbg_sigma_deg)
+    return cm.with_(control_point_sigma_deg=sigma, control_point_tolerance_deg=FBG_TOLERANCE_SIGMAS * sigma)

@@ -101,6 +101,7 @@ class CMProblem:
         base_from_cm: np.ndarray | None = None,
         config: CMRegistrationConfig | None = None,
         seed: int = 0,
+        prior_control_points_deg: np.ndarray | Sequence[float] | None = None,
     ) -> None:
         cfg = self.config = config or CMRegistrationConfig()
         views = self.views = list(views)
@@ -138,7 +139,9 @@ class CMProblem:
         )
         priors = self._landmark_priors()
         self.levels, self.pose_box = self._levels_and_box()
-        priors += self._control_point_priors(cp0)
+        reading = cp0 if prior_control_points_deg is None else np.asarray(prior_control_points_deg, float)
+        priors += self._control_point_priors(reading.reshape(-1))
+        self.levels = self._shape_steps_capped(self.levels)
         self.registration = Registration(
             self.moving,
             self.fixed,
@@ -227,17 +230,40 @@ class CMProblem:
             kept = [lv if lv.bounds is not None else lv.with_(bounds=bounds) for lv in kept]
         return kept, box
 
-    def _control_point_priors(self, cp0: np.ndarray) -> list[PriorFn]:
-        """The prior on the control points about the FBG reading ``cp0``: one view whose response is
-        not measured on several levels gets the single-view σ (none: no prior)."""
+    def _shape_prior(self) -> tuple[float, float] | None:
+        """(σ, tolerance) of the control points' prior in degrees: one view whose response is not
+        measured on several levels gets the single-view σ; None: no prior."""
         cfg = self.config
         sigma, tolerance = cfg.control_point_sigma_deg, cfg.control_point_tolerance_deg
         measured = cfg.response == "measured" and cfg.shaft_length_mm > 0 and len(self.levels) > 1
         if len(self.views) == 1 and cfg.single_view_control_point_sigma_deg is not None and not measured:
             sigma, tolerance = cfg.single_view_control_point_sigma_deg, 0.0
-        if sigma is None:
+        return None if sigma is None else (float(sigma), float(tolerance))
+
+    def _control_point_priors(self, cp0: np.ndarray) -> list[PriorFn]:
+        """The prior on the control points about the FBG reading ``cp0`` (:meth:`_shape_prior`)."""
+        prior = self._shape_prior()
+        if prior is None:
             return []
-        return [control_point_prior(cp0, n_leading=6, sigma_deg=sigma, tolerance_deg=tolerance)]
+        return [control_point_prior(cp0, n_leading=6, sigma_deg=prior[0], tolerance_deg=prior[1])]
+
+    def _shape_steps_capped(self, levels: list[LevelConfig]) -> list[LevelConfig]:
+        """The levels with the control points' steps at most the prior's tolerance plus
+        ``control_point_step_sigmas`` of its σ (:class:`CMRegistrationConfig`)."""
+        prior = self._shape_prior()
+        n_cp = self.config.cm_config.n_control_points
+        if prior is None:
+            return levels
+        cap = prior[1] + self.config.control_point_step_sigmas * prior[0]
+        out = []
+        for lv in levels:
+            if np.size(lv.sigma) not in (1, 6 + n_cp):  # another parameterisation's steps
+                out.append(lv)
+                continue
+            sigma = tuple(float(v) for v in np.broadcast_to(np.asarray(lv.sigma, float), (6 + n_cp,)))
+            capped = sigma[:6] + tuple(min(v, cap) for v in sigma[6:])
+            out.append(lv if capped == sigma else lv.with_(sigma=capped))
+        return out
 
     # ----- pieces -----------------------------------------------------------------------------
     def world_from_cm(self, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -418,6 +444,7 @@ def register_cm(
     base_from_cm: np.ndarray | None = None,
     config: CMRegistrationConfig | None = None,
     seed: int = 0,
+    prior_control_points_deg: np.ndarray | Sequence[float] | None = None,
 ) -> CMRegistrationResult:
     """Register the CM (pose + shape) to one or more X-ray images.
 
@@ -432,6 +459,8 @@ def register_cm(
             kinematics × hand-eye); their relative poses are held fixed.
         config: settings (default :class:`CMRegistrationConfig`).
         seed: CMA-ES seed.
+        prior_control_points_deg: (5,) the centre of the shape's prior (the FBG reading) where the
+            start is another shape (a registration continued); None: ``initial_control_points_deg``.
 
     Returns:
         :class:`CMRegistrationResult`.
@@ -444,6 +473,7 @@ def register_cm(
         base_from_cm=base_from_cm,
         config=config,
         seed=seed,
+        prior_control_points_deg=prior_control_points_deg,
     ).run()
 
 

@@ -36,7 +36,12 @@ from fluoronav.registration.centerline import (
     multiview_start_poses,
 )
 from fluoronav.registration.cm import CMRegistrationResult, CMView
-from fluoronav.registration.cm.checks import PredictedCMPose, motion_agreement, register_cm_checked
+from fluoronav.registration.cm.checks import (
+    PredictedCMPose,
+    motion_agreement,
+    name_fbg_cause,
+    register_cm_checked,
+)
 from fluoronav.registration.cm.config import CMRegistrationConfig, local_cm_levels
 from fluoronav.registration.cm.multistart import register_cm_multistart
 from fluoronav.registration.view_set.fusion import fuse_tip
@@ -128,20 +133,37 @@ def register_view_set_cm(
             seed,
             diag,
         )
-    cm = (
-        fast
-        if fast is not None
-        else register_cm_checked(
-            cm_views,
-            lm_views,
-            tries,
-            diag,
-            initial_control_points_deg=initial_control_points_deg,
-            config=cm_settings,
-            checks=settings.cm_checks,
-            seed=seed,
-        )
-    )
+    if fast is not None:
+        cm = fast
+    else:
+        try:
+            cm = register_cm_checked(
+                cm_views,
+                lm_views,
+                tries,
+                diag,
+                initial_control_points_deg=initial_control_points_deg,
+                config=cm_settings,
+                checks=settings.cm_checks,
+                seed=seed,
+            )
+        except RegistrationRefused as exc:
+            if predicted is not None:
+                raise
+            # a view's failure may be the FBG reading's: name it where it is
+            named = name_fbg_cause(
+                exc,
+                cm_views,
+                lm_views,
+                tries,
+                reading_deg=np.asarray(initial_control_points_deg, np.float64),
+                config=cm_settings,
+                checks=settings.cm_checks,
+                seed=seed + 101,
+            )
+            if named is exc:
+                raise
+            raise named from exc
     if predicted is not None:  # reported, not judged here: the caller knows what a disagreement means
         sigma = None if prior is None else prior.prediction_sigma_mm
         cm = _compare_and_fuse(cm, cm_views, predicted, sigma, settings, cm_config, diag)
