@@ -73,9 +73,8 @@ from fluoronav.navigation.simulated_scene import (
     verification_view_indices,
 )
 from fluoronav.registration.metrics import axis_error_deg
-from fluoronav.simulation.instrument import spline_fit_control_points_deg
 from fluoronav.simulation.robot_scene import verification_view_centre
-from fluoronav.simulation.world import fbg_reading
+from fluoronav.simulation.world import case_fbg_reading
 
 log = logging.getLogger(__name__)
 
@@ -186,14 +185,9 @@ def _first_case(
     the truth into ``run.truth``."""
     cfg, tr = s.config, s.sc.trial
     images = s.simulate(s.W_regi, s.cams, seed)
-    fbg = tr.initial_control_points_deg
-    # an FBG senses the strain of the fibre in the instrument as built: the reading is of its shape
-    # (the model's nearest to it), not of the commanded control points
-    sensed = s.cp_true if s.built is None else spline_fit_control_points_deg(s.built, s.cp_true).numpy()
-    if cfg.world.fbg.enabled:  # the reading of the true shape, as the FBG literature measures it
-        fbg = fbg_reading(sensed, cfg.world.fbg, s.world_rng)
-    elif s.built is not None:  # the ideal reading's error about the shape as built
-        fbg = np.asarray(fbg, np.float64) + (sensed - s.cp_true)
+    fbg = case_fbg_reading(
+        tr.initial_control_points_deg, s.cp_true, cfg.world.fbg, s.world_rng, built=s.built
+    )
     W0 = tr.initial_world_from_patient
     case = NavigationCase(
         volume=s.volume,

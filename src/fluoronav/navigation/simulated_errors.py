@@ -79,7 +79,8 @@ def first_registration_errors(
         config=sc.cm_config,
     )
     E.update({f"cm_{k}": float(v) for k, v in errs.items()})
-    tip_true_c = se3.apply(carm @ W_regi, _tip(sc, cp_true) if tip_cm_true is None else tip_cm_true)
+    tip_cm = _tip(sc, cp_true) if tip_cm_true is None else tip_cm_true
+    tip_true_c = se3.apply(carm @ W_regi, tip_cm)
     if tip_cm_true is not None:  # the instrument as built, not the model: its own tip
         E["cm_tip_mm"] = float(np.linalg.norm(se3.apply(carm_est, first.tip_ct_mm) - tip_true_c))
     E["cm_relative_mm"] = float(
@@ -88,14 +89,11 @@ def first_registration_errors(
     E["cm_tip_ct_mm"] = float(np.linalg.norm(first.tip_ct_mm - np.asarray(tip_ct_true_mm)))
     # what the first move acts on: the CM in the femur's frame (the plan's), where an error the
     # bones and the CM share (a camera's calibration) cancels
-    femur_from_cm_est = np.linalg.inv(first.ct_from_femur) @ first.ct_from_cm
+    femur_from_ct = np.linalg.inv(first.ct_from_femur)
+    femur_from_cm_est = femur_from_ct @ first.ct_from_cm
     femur_from_cm_true = np.linalg.inv(tr.world_from_femur) @ W_regi
-    tip_cm = _tip(sc, cp_true) if tip_cm_true is None else tip_cm_true
     E["cm_femur_tip_mm"] = float(
-        np.linalg.norm(
-            se3.apply(np.linalg.inv(first.ct_from_femur), first.tip_ct_mm)
-            - se3.apply(femur_from_cm_true, tip_cm)
-        )
+        np.linalg.norm(se3.apply(femur_from_ct, first.tip_ct_mm) - se3.apply(femur_from_cm_true, tip_cm))
     )
     E["cm_femur_axis_deg"] = axis_error_deg(femur_from_cm_est[:3, 2], femur_from_cm_true[:3, 2])
     if first.cm_init is not None:

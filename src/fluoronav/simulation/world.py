@@ -37,7 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from fluoronav.errors import InputError, read_json_object
 from fluoronav.geometry.camera import CIOS_FUSION, Camera
-from fluoronav.simulation.instrument import InstrumentWorld
+from fluoronav.simulation.instrument import BuiltCM, InstrumentWorld, spline_fit_control_points_deg
 
 __all__ = [
     "IDEAL",
@@ -48,6 +48,7 @@ __all__ = [
     "MotionWorld",
     "World",
     "case_camera",
+    "case_fbg_reading",
     "fbg_reading",
     "flexed_camera",
     "load_world",
@@ -428,6 +429,41 @@ def fbg_reading(true_control_points_deg: np.ndarray, cfg: FBGWorld, rng: np.rand
     cp = np.asarray(true_control_points_deg, dtype=np.float64)
     sign = np.where(rng.uniform(size=cp.shape[:-1]) < 0.5, 1.0, -1.0)[..., None]
     return cp + sign * cfg.bias_deg + cfg.noise_sd_deg * rng.standard_normal(cp.shape)
+
+
+def case_fbg_reading(
+    ideal_reading_deg: np.ndarray,
+    true_control_points_deg: np.ndarray,
+    cfg: FBGWorld,
+    rng: np.random.Generator,
+    *,
+    built: BuiltCM | None = None,
+) -> np.ndarray:
+    """The FBG reading a simulated case gives: :func:`fbg_reading` of the true shape where the FBG
+    source is on, else the ideal world's reading (the protocol's, truth ± 0.5°).
+
+    An FBG senses the strain of the fibre in the instrument it is in: with the instrument as built
+    (``built``) the reading is of that shape (the model's nearest to it,
+    :func:`~fluoronav.simulation.instrument.spline_fit_control_points_deg`), not of the commanded
+    control points; the ideal reading keeps its error about that shape.
+
+    Args:
+        ideal_reading_deg: (n,) the ideal world's reading of the commanded control points.
+        true_control_points_deg: (n,) the commanded (true) control points, degrees.
+        cfg: the FBG errors.
+        rng: drawn from only where the FBG source is on (:func:`fbg_reading`).
+        built: the instrument as built, or None (the model).
+
+    Returns:
+        (n,) float64 reading, degrees; ``ideal_reading_deg`` itself in the ideal world.
+    """
+    cp = np.asarray(true_control_points_deg, np.float64)
+    sensed = cp if built is None else spline_fit_control_points_deg(built, cp).numpy()
+    if cfg.enabled:
+        return fbg_reading(sensed, cfg, rng)
+    if built is None:
+        return ideal_reading_deg
+    return np.asarray(ideal_reading_deg, np.float64) + (sensed - cp)
 
 
 def _unit_vector(rng: np.random.Generator) -> np.ndarray:

@@ -49,13 +49,12 @@ from fluoronav.simulation.instrument import (
     build_instrument,
     built_landmarks_cm,
     built_tip_cm,
-    spline_fit_control_points_deg,
 )
 from fluoronav.simulation.protocol import Trial, sample_trial
 from fluoronav.simulation.world import (
     World,
     case_camera,
-    fbg_reading,
+    case_fbg_reading,
     flexed_camera,
     patient_motion,
 )
@@ -202,15 +201,10 @@ def simulate_world_trial(
             for p in dict.fromkeys(positions)
         }
         cameras = tuple(case[p] for p in positions)
-    # an FBG senses the strain of the fibre in the instrument as built: the reading is of its shape
-    # (the model's nearest to it), not of the commanded control points
-    cp = np.asarray(trial.control_points_deg, np.float64)
-    sensed = cp if built is None else spline_fit_control_points_deg(built, cp).numpy()
-    if world.fbg.enabled:  # the reading of the true shape, as the FBG literature measures it
-        reading = fbg_reading(sensed, world.fbg, world_rng)
-        trial = dataclasses.replace(trial, initial_control_points_deg=reading)
-    elif built is not None:  # the protocol's reading error about the shape as built
-        reading = np.asarray(trial.initial_control_points_deg, np.float64) + (sensed - cp)
+    if world.fbg.enabled or built is not None:
+        reading = case_fbg_reading(
+            trial.initial_control_points_deg, trial.control_points_deg, world.fbg, world_rng, built=built
+        )
         trial = dataclasses.replace(trial, initial_control_points_deg=reading)
     return WorldTrial(
         patient=anatomy.patient,

@@ -15,6 +15,7 @@ The thresholds are :class:`CMCheckConfig` and :attr:`PredictedCMPose.max_tip_mm`
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -395,11 +396,7 @@ def name_fbg_cause(
     if sigma is None or max_sigmas is None or refused.check not in ("edge_ncc", "landmark_residual"):
         return refused
     free = config.with_(control_point_tolerance_deg=checks.shape_search_tolerance_deg)
-    searched = CMCheckConfig(
-        max_landmark_residual_mm=checks.max_landmark_residual_mm,
-        min_edge_ncc=checks.min_edge_ncc,
-        min_views=checks.min_views,
-    )
+    searched = dataclasses.replace(checks, max_shape_departure_sigmas=None)  # the views' checks alone
     try:
         cm = register_cm_checked(
             views,
