@@ -22,9 +22,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fluoronav.geometry import se3
-from fluoronav.navigation.simulated_scene import SimulatedNavigationConfig, build_scenario
 from fluoronav.registration.bone import BoneView
 from fluoronav.registration.view_set.unmoved import unmoved_ncc
+from fluoronav.simulation.navigation.scenario import SimulatedNavigationConfig, build_scenario
 from fluoronav.simulation.world import IDEAL, MotionWorld
 
 #: (label, the patient's motion moved_from_world) of each comparison

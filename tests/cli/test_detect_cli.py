@@ -13,7 +13,7 @@ from torch import nn
 
 from fluoronav.cli.main import main
 from fluoronav.detection.model import DetectorConfig, DetectorNet
-from fluoronav.detection.train import save_model
+from fluoronav.detection.training.train import save_model
 
 _VIEW = {"network": {"channels": (4, 8, 16)}, "sampler": {"size": 32}}
 TINY = DetectorConfig.model_validate({"coarse": _VIEW, "fine": _VIEW})

@@ -16,7 +16,7 @@ import torch
 from scipy import ndimage
 
 from fluoronav.detection.config import STAGE_ORDER, DetectorConfig
-from fluoronav.detection.train import TrainConfig, train
+from fluoronav.detection.training.train import TrainConfig, train
 
 
 def with_settings(config: DetectorConfig, *, add: tuple[str, ...] = (), **updates: Any) -> DetectorConfig:

@@ -10,7 +10,8 @@ from det_synthetic import with_settings, write_dataset
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fluoronav.detection.augment import (
+from fluoronav.detection.config import DetectorConfig
+from fluoronav.detection.training.augment import (
     AugmentConfig,
     apply_affine,
     augment_geometric,
@@ -19,8 +20,7 @@ from fluoronav.detection.augment import (
     lower_dose,
     view_affine,
 )
-from fluoronav.detection.config import DetectorConfig
-from fluoronav.detection.dataset import (
+from fluoronav.detection.training.dataset import (
     CMDetectionDataset,
     Sample,
     collimate,

@@ -14,13 +14,13 @@ from det_synthetic import first_tiny_model, tiny_config, with_settings
 from torch import nn
 
 from fluoronav.detection.config import DetectorConfig
-from fluoronav.detection.dataset import EndsDataset
 from fluoronav.detection.decoder import cm_start_index, end_zone_paste, tube_paste
 from fluoronav.detection.detector import Detector
 from fluoronav.detection.model import DetectorNet
 from fluoronav.detection.patches import RefinePatch, patch_grid_px, sample_patches, tube_frames
-from fluoronav.detection.train import TrainConfig, sidecar_path, train
-from fluoronav.detection.training_patches import EndJitter, training_end_patch, training_tube_patch
+from fluoronav.detection.training.dataset import EndsDataset
+from fluoronav.detection.training.patches import EndJitter, training_end_patch, training_tube_patch
+from fluoronav.detection.training.train import TrainConfig, sidecar_path, train
 
 NO_JITTER = EndJitter(along_sigma_px=0.0, across_sigma_px=0.0, angle_sigma_deg=0.0, p_mirror=0.0)
 

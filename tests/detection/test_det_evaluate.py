@@ -11,9 +11,9 @@ from det_synthetic import write_dataset
 from test_det_detector import empty_net
 
 from fluoronav.cli.main import main
-from fluoronav.detection.dataset import load_sample, read_manifest, shaft_length_of
 from fluoronav.detection.detector import Detection, Detector
-from fluoronav.detection.evaluate import (
+from fluoronav.detection.training.dataset import load_sample, read_manifest, shaft_length_of
+from fluoronav.detection.training.evaluate import (
     OVER_SHAFT_MAX_DEG,
     VIEW_KINDS,
     _confidence_classes,
@@ -24,7 +24,7 @@ from fluoronav.detection.evaluate import (
     shaft_angle_deg,
     view_kind,
 )
-from fluoronav.detection.train import save_model
+from fluoronav.detection.training.train import save_model
 
 
 def test_dice_score() -> None:

@@ -12,12 +12,12 @@ import torch
 from det_synthetic import first_tiny_model, tiny_config, with_settings
 
 from fluoronav.detection.config import DetectorConfig
-from fluoronav.detection.dataset import RefineDataset
 from fluoronav.detection.decoder import add_center_prior, decode_refine_logits
 from fluoronav.detection.detector import Detector
 from fluoronav.detection.model import DetectorNet
 from fluoronav.detection.patches import RefinePatch, landmark_direction, refine_patch
-from fluoronav.detection.train import TrainConfig, sidecar_path, train
+from fluoronav.detection.training.dataset import RefineDataset
+from fluoronav.detection.training.train import TrainConfig, sidecar_path, train
 
 
 def test_patch_frame_maps_hand_computed_points_and_round_trips() -> None:

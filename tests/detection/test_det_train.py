@@ -10,10 +10,10 @@ import pytest
 import torch
 from det_synthetic import tiny_config, with_settings, write_dataset
 
-from fluoronav.detection.augment import AugmentConfig
 from fluoronav.detection.config import DetectorConfig
 from fluoronav.detection.detector import Detector
-from fluoronav.detection.train import TrainConfig, checkpoint_path, log_path, sidecar_path, train
+from fluoronav.detection.training.augment import AugmentConfig
+from fluoronav.detection.training.train import TrainConfig, checkpoint_path, log_path, sidecar_path, train
 from fluoronav.errors import InputError
 
 TINY = tiny_config()

@@ -15,8 +15,8 @@ import torch
 from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.detection.config import STAGE_ORDER, DetectorConfig
 from fluoronav.detection.detector import Detector, shipped_model_path
-from fluoronav.detection.evaluate import dice_score
 from fluoronav.detection.model import MODEL_FORMAT_VERSION
+from fluoronav.detection.training.evaluate import dice_score
 from fluoronav.simulation.scene import SceneSampling, sample_scene
 from fluoronav.simulation.xray import SimulationConfig, XraySimulator
 

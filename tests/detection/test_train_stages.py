@@ -6,10 +6,10 @@ import dataclasses
 
 import pytest
 
-from fluoronav.detection.augment import AugmentConfig
-from fluoronav.detection.train_config import TrainConfig
-from fluoronav.detection.train_stages import STAGE_SETUPS, recorded_augmentation, stage_setup
-from fluoronav.detection.training_patches import EndJitter, RefineJitter
+from fluoronav.detection.training.augment import AugmentConfig
+from fluoronav.detection.training.config import TrainConfig
+from fluoronav.detection.training.patches import EndJitter, RefineJitter
+from fluoronav.detection.training.stages import STAGE_SETUPS, recorded_augmentation, stage_setup
 
 PATCH_STAGES = ("refine", "ends", "tube", "shaft")
 

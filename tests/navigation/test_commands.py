@@ -9,6 +9,7 @@ import pytest
 
 from fluoronav.geometry import se3
 from fluoronav.manipulator.robot import UR10
+from fluoronav.navigation.checks.safety import SafetyConfig
 from fluoronav.navigation.commands import (
     CommandMotion,
     KinematicsVerdict,
@@ -21,7 +22,6 @@ from fluoronav.navigation.commands import (
     name_kinematics_disagreement,
 )
 from fluoronav.navigation.result import NavigationRefused
-from fluoronav.navigation.safety import SafetyConfig
 from fluoronav.navigation.targeting import SweptPath
 
 SAFETY = SafetyConfig()

@@ -10,7 +10,7 @@ import pytest
 
 from fluoronav.geometry import se3
 from fluoronav.navigation.kinematic_prior import KinematicUncertainty, prediction_sigma_mm
-from fluoronav.navigation.simulated_scene import verification_view_indices
+from fluoronav.simulation.navigation.scenario import verification_view_indices
 
 
 class _Robot:

@@ -21,12 +21,12 @@ import fluoronav.navigation.pipeline as pipeline
 import fluoronav.navigation.verification as verification
 from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
-from fluoronav.navigation.case import VerificationViews, write_navigation_case
+from fluoronav.navigation.case.model import VerificationViews, write_navigation_case
+from fluoronav.navigation.checks.safety import SafetyConfig
 from fluoronav.navigation.detect import band_mask
 from fluoronav.navigation.pipeline import NavigationConfig, NavigationRefused, navigate
 from fluoronav.navigation.planning import planned_femur_from_cm
 from fluoronav.navigation.result import navigation_cm_config, navigation_refusals
-from fluoronav.navigation.safety import SafetyConfig
 
 
 def test_no_cm_in_the_views_refuses_at_detection_without_a_command(make_no_cm_case) -> None:

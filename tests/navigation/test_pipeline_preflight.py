@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fluoronav.navigation.case import write_navigation_case
+from fluoronav.navigation.case.model import write_navigation_case
 from fluoronav.navigation.pipeline import NavigationConfig, navigate
 
 

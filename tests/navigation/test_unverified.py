@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from fluoronav.navigation.outputs.report import _banner
 from fluoronav.navigation.pipeline import NavigationRefused
-from fluoronav.navigation.report import _banner
 from fluoronav.navigation.result import NavigationConfig, NavigationResult
 
 

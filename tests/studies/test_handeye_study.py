@@ -247,7 +247,7 @@ def test_summary_counts_refusals_apart_and_flags_unflagged_gross_failures() -> N
 def test_navigation_rows_take_the_final_tip_and_the_checks() -> None:
     from fluoronav.navigation.pipeline import NavigationConfig
     from fluoronav.navigation.result import NavigationResult, StageRecord
-    from fluoronav.navigation.simulated import SimulatedNavigation, SimulatedNavigationConfig
+    from fluoronav.simulation.navigation.loop import SimulatedNavigation, SimulatedNavigationConfig
     from fluoronav.studies.handeye_study import navigation_row
 
     res = NavigationResult(config=NavigationConfig())
@@ -340,7 +340,7 @@ def test_fault_handeye_errors_come_from_the_fault_unless_given(
 def test_fault_rows_record_the_check_and_the_outcome() -> None:
     from fluoronav.navigation.pipeline import NavigationConfig
     from fluoronav.navigation.result import NavigationRefused, NavigationResult, StageRecord
-    from fluoronav.navigation.simulated import SimulatedNavigation, SimulatedNavigationConfig
+    from fluoronav.simulation.navigation.loop import SimulatedNavigation, SimulatedNavigationConfig
     from fluoronav.studies.handeye_study import navigation_row
 
     cfg = HandEyeStudyConfig(workflow="navigation", trials=1, seed=0, fault="mirror_one")

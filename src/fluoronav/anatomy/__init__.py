@@ -10,18 +10,23 @@
   that the demo, the studies and the tests use.
 """
 
-from fluoronav.anatomy.io import VOLUME_SUFFIXES, load_ct, load_label_map, resolve_ct, save_volume
-from fluoronav.anatomy.landmarks import (
-    read_fcsv,
-    read_landmarks,
-    read_landmarks_json,
-    write_fcsv,
-    write_landmarks,
-    write_landmarks_json,
-)
-from fluoronav.anatomy.markups import MarkupNode, read_markup_nodes, read_markups, write_markups
-from fluoronav.anatomy.phantom import LABEL_NAMES, hip_phantom
-from fluoronav.anatomy.volume import MU_WATER_PER_MM, Volume, hu_to_mu
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.anatomy.io import VOLUME_SUFFIXES, load_ct, load_label_map, resolve_ct, save_volume
+    from fluoronav.anatomy.landmarks import (
+        read_fcsv,
+        read_landmarks,
+        read_landmarks_json,
+        write_fcsv,
+        write_landmarks,
+        write_landmarks_json,
+    )
+    from fluoronav.anatomy.markups import MarkupNode, read_markup_nodes, read_markups, write_markups
+    from fluoronav.anatomy.phantom import LABEL_NAMES, hip_phantom
+    from fluoronav.anatomy.volume import MU_WATER_PER_MM, Volume, hu_to_mu
 
 __all__ = [
     "LABEL_NAMES",  # the phantom's labels: {1: "pelvis", 2: "femur_left", 3: "femur_right"}
@@ -45,3 +50,21 @@ __all__ = [
     "write_landmarks_json",  # write landmarks in fluoronav's JSON format
     "write_markups",  # write one markup (point list, line or curve) as a Slicer .mrk.json file
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.anatomy.io": ("VOLUME_SUFFIXES", "load_ct", "load_label_map", "resolve_ct", "save_volume"),
+        "fluoronav.anatomy.landmarks": (
+            "read_fcsv",
+            "read_landmarks",
+            "read_landmarks_json",
+            "write_fcsv",
+            "write_landmarks",
+            "write_landmarks_json",
+        ),
+        "fluoronav.anatomy.markups": ("MarkupNode", "read_markup_nodes", "read_markups", "write_markups"),
+        "fluoronav.anatomy.phantom": ("LABEL_NAMES", "hip_phantom"),
+        "fluoronav.anatomy.volume": ("MU_WATER_PER_MM", "Volume", "hu_to_mu"),
+    },
+)

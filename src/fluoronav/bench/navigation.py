@@ -39,9 +39,9 @@ from fluoronav.bench.registration import REFERENCE_CONFIG
 from fluoronav.geometry import se3
 from fluoronav.navigation.pipeline import navigate
 from fluoronav.navigation.result import NavigationConfig, VerificationConfig, reference_cm_config
-from fluoronav.navigation.simulated import SimulatedNavigationConfig, run_simulated_navigation
 from fluoronav.registration.bone import BoneView, register_pelvis
 from fluoronav.registration.bone.presets import PELVIS_CMAES_PRESET, BoneRegistrationConfig, femur_config
+from fluoronav.simulation.navigation.loop import SimulatedNavigationConfig, run_simulated_navigation
 
 __all__ = ["BENCH_SEED", "run"]
 

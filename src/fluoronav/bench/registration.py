@@ -23,12 +23,12 @@ import torch
 
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.registration.centerline.single import centerline_initialize
-from fluoronav.registration.cm.case import CMCase, cm_case_from_simulation
+from fluoronav.registration.cm.case import CMCase
 from fluoronav.registration.cm.config import CMRegistrationConfig, default_cm_levels
 from fluoronav.registration.cm.problem import CMProblem
 from fluoronav.registration.cm.result import cm_pose_errors
 from fluoronav.rendering.cm import CMRenderer
-from fluoronav.simulation.cm_case import simulate_cm_case
+from fluoronav.simulation.cm_case import cm_case_from_simulation, simulate_cm_case
 from fluoronav.simulation.xray import envelope_config
 
 __all__ = ["REFERENCE_CONFIG", "evaluate_cm_registration", "run", "summarize"]

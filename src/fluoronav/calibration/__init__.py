@@ -12,30 +12,35 @@ The robot model (DH, IK, kinematic errors) is :mod:`fluoronav.manipulator.robot`
 equations are in docs/robot-and-calibration.md.
 """
 
-from fluoronav.calibration.handeye import (
-    AX_XB_METHODS,
-    AX_YB_METHODS,
-    calibrate_hand_eye,
-    calibrate_robot_world_hand_eye,
-    check_motion,
-    estimate_rbase_from_tracker,
-    handeye_residuals,
-    simulate_tracker_calibration,
-    tip_errors,
-    tip_rbase_image_chain,
-    tip_rbase_tracker_chain,
-    transform_error,
-)
-from fluoronav.calibration.image_handeye import (
-    ImageHandEyeConfig,
-    ImageHandEyeProblem,
-    ImageHandEyeResult,
-    calibrate_hand_eye_from_images,
-    default_handeye_levels,
-    initial_world_from_rbase_pnp,
-)
-from fluoronav.calibration.results import HandEyeFailure, HandEyeResult, TipErrors
-from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker, RigidBody, TrackedPose, kabsch
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.calibration.handeye import (
+        AX_XB_METHODS,
+        AX_YB_METHODS,
+        calibrate_hand_eye,
+        calibrate_robot_world_hand_eye,
+        check_motion,
+        estimate_rbase_from_tracker,
+        handeye_residuals,
+        simulate_tracker_calibration,
+        tip_errors,
+        tip_rbase_image_chain,
+        tip_rbase_tracker_chain,
+        transform_error,
+    )
+    from fluoronav.calibration.image_handeye import (
+        ImageHandEyeConfig,
+        ImageHandEyeProblem,
+        ImageHandEyeResult,
+        calibrate_hand_eye_from_images,
+        default_handeye_levels,
+        initial_world_from_rbase_pnp,
+    )
+    from fluoronav.calibration.results import HandEyeFailure, HandEyeResult, TipErrors
+    from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker, RigidBody, TrackedPose, kabsch
 
 __all__ = [
     "AX_XB_METHODS",  # OpenCV calibrateHandEye methods by name (TSAI, PARK, HORAUD, ANDREFF, ...)
@@ -65,3 +70,39 @@ __all__ = [
     "tip_rbase_tracker_chain",  # eq. 9: the tip in the robot base through the tracker chain
     "transform_error",  # (rotation °, translation mm) of inv(reference) · estimated
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.calibration.handeye": (
+            "AX_XB_METHODS",
+            "AX_YB_METHODS",
+            "calibrate_hand_eye",
+            "calibrate_robot_world_hand_eye",
+            "check_motion",
+            "estimate_rbase_from_tracker",
+            "handeye_residuals",
+            "simulate_tracker_calibration",
+            "tip_errors",
+            "tip_rbase_image_chain",
+            "tip_rbase_tracker_chain",
+            "transform_error",
+        ),
+        "fluoronav.calibration.image_handeye": (
+            "ImageHandEyeConfig",
+            "ImageHandEyeProblem",
+            "ImageHandEyeResult",
+            "calibrate_hand_eye_from_images",
+            "default_handeye_levels",
+            "initial_world_from_rbase_pnp",
+        ),
+        "fluoronav.calibration.results": ("HandEyeFailure", "HandEyeResult", "TipErrors"),
+        "fluoronav.calibration.tracker": (
+            "DEFAULT_BODY",
+            "OpticalTracker",
+            "RigidBody",
+            "TrackedPose",
+            "kabsch",
+        ),
+    },
+)

@@ -1,6 +1,6 @@
 """``fluoronav demo``: the navigation loop on the built-in phantom, no files needed.
 
-See :mod:`fluoronav.navigation.demo`. Writes the simulated case to ``DIR/case/`` and the truth to
+See :mod:`fluoronav.simulation.navigation.demo`. Writes the simulated case to ``DIR/case/`` and the truth to
 ``DIR/truth.json``, runs the navigation pipeline on those files, and writes ``DIR/results.json``,
 ``DIR/navigation.json``, ``DIR/slicer/`` and ``DIR/report.html``; prints errors and timings.
 """
@@ -32,15 +32,15 @@ def run(
     """Run the demo, print its table, write its files; returns the exit status (3: refused). With
     ``igtl`` (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer)."""
     from fluoronav.device import resolve_device  # heavy: torch
-    from fluoronav.navigation.demo import (  # lazy: fast --help
+    from fluoronav.navigation.outputs.igtl import IGTLinkStreamer, chain_stage_callbacks  # lazy: fast --help
+    from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES  # lazy: fast --help
+    from fluoronav.simulation.navigation.demo import (  # lazy: fast --help
         ERROR_ROWS,
         ordered_timings,
         run_demo,
         write_demo_outputs,
     )
-    from fluoronav.navigation.igtl import IGTLinkStreamer, chain_stage_callbacks  # lazy: fast --help
-    from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES  # lazy: fast --help
-    from fluoronav.navigation.simulated import (
+    from fluoronav.simulation.navigation.loop import (
         SIMULATION_STAGES,
         SimulatedNavigationConfig,
     )  # lazy: fast --help

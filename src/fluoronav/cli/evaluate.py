@@ -42,7 +42,7 @@ def evaluate_command(
     """Dice, landmark error (px, mm), found rate and false-positive rate of a detector on one or more
     data sets (several: each set's figures and the pooled ones)."""
     from fluoronav.detection.detector import Detector  # lazy: fast --help
-    from fluoronav.detection.evaluate import evaluate, evaluate_sets  # lazy: fast --help
+    from fluoronav.detection.training.evaluate import evaluate, evaluate_sets  # lazy: fast --help
 
     if split not in ("train", "val", "all"):
         raise InputError("--split", f"unknown split {split!r}; use train, val or all")

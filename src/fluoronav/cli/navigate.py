@@ -88,9 +88,9 @@ def run(case_path: Path, out: Path, *, seed: int, device: str, igtl: str | None 
     """Navigate on a case file and write the outputs; returns the exit status. With ``igtl``
     (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer)."""
     from fluoronav.device import resolve_device  # heavy: torch
-    from fluoronav.navigation.case import load_navigation_case  # lazy: fast --help
-    from fluoronav.navigation.igtl import IGTLinkStreamer, chain_stage_callbacks  # lazy: fast --help
-    from fluoronav.navigation.outputs import write_outputs  # lazy: fast --help
+    from fluoronav.navigation.case.model import load_navigation_case  # lazy: fast --help
+    from fluoronav.navigation.outputs.files import write_outputs  # lazy: fast --help
+    from fluoronav.navigation.outputs.igtl import IGTLinkStreamer, chain_stage_callbacks  # lazy: fast --help
     from fluoronav.navigation.pipeline import (  # lazy: fast --help
         STAGES,
         VERIFY_STAGES,

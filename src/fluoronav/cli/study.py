@@ -65,7 +65,7 @@ def _navigation_options(
     if fault is not None or handeye_error_mm is not None or handeye_error_deg is not None:
         if workflow != "navigation":
             raise InputError("--fault", "--fault and --handeye-error-* are options of study navigation")
-        from fluoronav.navigation.faults import get_fault  # lazy: fast --help
+        from fluoronav.simulation.navigation.faults import get_fault  # lazy: fast --help
 
         get_fault(fault)
         out.update(fault=fault, handeye_error_mm=handeye_error_mm, handeye_error_deg=handeye_error_deg)

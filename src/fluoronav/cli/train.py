@@ -11,7 +11,7 @@ import typer
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
 
 if TYPE_CHECKING:
-    from fluoronav.detection.train_config import TrainConfig
+    from fluoronav.detection.training.config import TrainConfig
 
 _DATA_OPTION = typer.Option(
     ...,
@@ -98,7 +98,7 @@ _COARSE_SIZE_OPTION = typer.Option(
 def _checked_config(coarse_size: int | None, **settings: object) -> TrainConfig:
     """The training settings, their rules broken as a bad parameter (TrainConfig holds the rules:
     which --stage combinations train, ranges)."""
-    from fluoronav.detection.train import TrainConfig, check_coarse_size  # lazy: fast --help
+    from fluoronav.detection.training.train import TrainConfig, check_coarse_size  # lazy: fast --help
 
     try:
         config = TrainConfig(**settings)  # type: ignore[arg-type]
@@ -134,7 +134,7 @@ def train_command(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
 ) -> None:
     """Train the detector (segmentation + landmark heatmaps, or the landmark refinement) and write MODEL."""
-    from fluoronav.detection.train import train  # lazy: fast --help
+    from fluoronav.detection.training.train import train  # lazy: fast --help
 
     config = _checked_config(
         coarse_size,

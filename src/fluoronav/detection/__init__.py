@@ -14,22 +14,25 @@ detector.Detector` runs them. Modules:
   :class:`~fluoronav.detection.result.Detection` and output files; ``image_io``: image files.
 - ``centerline``, ``instrument``, ``tube_profile``: the centreline, the instrument masks and the
   tube's intensity profile, from a detection.
-- ``dataset``, ``augment``, ``training_patches``, ``loss``, ``train``: training; ``evaluate``,
-  ``bench``: accuracy and speed.
+- ``training``: data sets, augmentation, losses, training and evaluation (not loaded by
+  ``navigate``).
 """
 
-from fluoronav.detection.centerline import extract_centerline, resample_polyline
-from fluoronav.detection.config import DetectorConfig
-from fluoronav.detection.detector import Detector, load_image, shipped_model_path
-from fluoronav.detection.instrument import instrument_mask, instrument_masks
-from fluoronav.detection.result import Detection, detection_to_dict, write_detection
-from fluoronav.detection.train import TrainConfig, train
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.detection.centerline import extract_centerline, resample_polyline
+    from fluoronav.detection.config import DetectorConfig
+    from fluoronav.detection.detector import Detector, load_image, shipped_model_path
+    from fluoronav.detection.instrument import instrument_mask, instrument_masks
+    from fluoronav.detection.result import Detection, detection_to_dict, write_detection
 
 __all__ = [
     "Detection",  # one image's result: landmarks A and B, confidences, mask, centreline, why not
     "Detector",  # the learned CM detector (the shipped model by default), CPU or CUDA
     "DetectorConfig",  # a model's declared stages and their settings
-    "TrainConfig",  # settings of a training run (data, stages, schedule, seed)
     "detection_to_dict",  # a detection as a JSON-ready dict (the detect command's output)
     "extract_centerline",  # the CM's 2D centreline from its mask and landmarks
     "instrument_mask",  # the CM and its mounting shaft in one image, to leave out of bone similarity
@@ -37,6 +40,16 @@ __all__ = [
     "load_image",  # an X-ray image file (npy, png, tiff, DICOM) as a log image and its pixel spacing
     "resample_polyline",  # a polyline resampled by arc length
     "shipped_model_path",  # the path of the detector model shipped with fluoronav
-    "train",  # trains (or resumes) a detector model on simulated data sets
     "write_detection",  # writes a detection's JSON, mask and overlay
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.detection.centerline": ("extract_centerline", "resample_polyline"),
+        "fluoronav.detection.config": ("DetectorConfig",),
+        "fluoronav.detection.detector": ("Detector", "load_image", "shipped_model_path"),
+        "fluoronav.detection.instrument": ("instrument_mask", "instrument_masks"),
+        "fluoronav.detection.result": ("Detection", "detection_to_dict", "write_detection"),
+    },
+)

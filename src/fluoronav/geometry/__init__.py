@@ -11,40 +11,45 @@
 The frame conventions used everywhere in fluoronav are in docs/conventions.md.
 """
 
-from fluoronav.geometry import se3
-from fluoronav.geometry.camera import (
-    CIOS_FUSION,
-    Camera,
-    DetectorSpec,
-    project_points,
-    stack_cameras,
-    triangulate_points,
-    triangulate_points_robust,
-)
-from fluoronav.geometry.carm import carm_camera, carm_camera_from_world, centre_on, orbit_camera, recentre
-from fluoronav.geometry.dicom import camera_from_dicom, camera_from_dicom_tags
-from fluoronav.geometry.rotations import (
-    angle_between_rotations_deg,
-    axis_angle_to_matrix,
-    euler_to_matrix,
-    matrix_to_quat,
-    matrix_to_rotvec,
-    quat_to_matrix,
-    random_rotation_about_random_axis,
-    rotvec_to_matrix,
-    rotx,
-    roty,
-    rotz,
-)
-from fluoronav.geometry.transforms import (
-    apply_transform,
-    compose,
-    invert_transform,
-    make_transform,
-    params_from_transform,
-    rotation_about_point,
-    transform_from_params,
-)
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.geometry import se3
+    from fluoronav.geometry.camera import (
+        CIOS_FUSION,
+        Camera,
+        DetectorSpec,
+        project_points,
+        stack_cameras,
+        triangulate_points,
+        triangulate_points_robust,
+    )
+    from fluoronav.geometry.carm import carm_camera, carm_camera_from_world, centre_on, orbit_camera, recentre
+    from fluoronav.geometry.dicom import camera_from_dicom, camera_from_dicom_tags
+    from fluoronav.geometry.rotations import (
+        angle_between_rotations_deg,
+        axis_angle_to_matrix,
+        euler_to_matrix,
+        matrix_to_quat,
+        matrix_to_rotvec,
+        quat_to_matrix,
+        random_rotation_about_random_axis,
+        rotvec_to_matrix,
+        rotx,
+        roty,
+        rotz,
+    )
+    from fluoronav.geometry.transforms import (
+        apply_transform,
+        compose,
+        invert_transform,
+        make_transform,
+        params_from_transform,
+        rotation_about_point,
+        transform_from_params,
+    )
 
 __all__ = [
     "CIOS_FUSION",  # DetectorSpec of the Siemens CIOS Fusion: 1536², 0.194 mm pixels, SDD 1020 mm
@@ -81,3 +86,49 @@ __all__ = [
     "triangulate_points",  # linear (DLT) triangulation of points seen in several cameras
     "triangulate_points_robust",  # the same, dropping views whose pixel disagrees with the others
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.geometry": ("se3",),
+        "fluoronav.geometry.camera": (
+            "CIOS_FUSION",
+            "Camera",
+            "DetectorSpec",
+            "project_points",
+            "stack_cameras",
+            "triangulate_points",
+            "triangulate_points_robust",
+        ),
+        "fluoronav.geometry.carm": (
+            "carm_camera",
+            "carm_camera_from_world",
+            "centre_on",
+            "orbit_camera",
+            "recentre",
+        ),
+        "fluoronav.geometry.dicom": ("camera_from_dicom", "camera_from_dicom_tags"),
+        "fluoronav.geometry.rotations": (
+            "angle_between_rotations_deg",
+            "axis_angle_to_matrix",
+            "euler_to_matrix",
+            "matrix_to_quat",
+            "matrix_to_rotvec",
+            "quat_to_matrix",
+            "random_rotation_about_random_axis",
+            "rotvec_to_matrix",
+            "rotx",
+            "roty",
+            "rotz",
+        ),
+        "fluoronav.geometry.transforms": (
+            "apply_transform",
+            "compose",
+            "invert_transform",
+            "make_transform",
+            "params_from_transform",
+            "rotation_about_point",
+            "transform_from_params",
+        ),
+    },
+)

@@ -13,22 +13,27 @@
 Frames and the CM base frame are in docs/conventions.md.
 """
 
-from fluoronav.manipulator.config import CMConfig, load_cm_config, with_shaft
-from fluoronav.manipulator.geometry import VoxelizedCM, inside_cm, inside_cm_straight, voxelize_cm
-from fluoronav.manipulator.kinematics import CMKinematics
-from fluoronav.manipulator.mesh import cm_surface_mesh, mesh_volume, read_stl, write_stl
-from fluoronav.manipulator.robot import (
-    UR10,
-    DHRow,
-    IKFailure,
-    IKSolution,
-    RobotErrorModel,
-    SerialRobot,
-    load_robot,
-    random_configurations_deg,
-    robot_to_dict,
-    wrap_deg,
-)
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.manipulator.config import CMConfig, load_cm_config, with_shaft
+    from fluoronav.manipulator.geometry import VoxelizedCM, inside_cm, inside_cm_straight, voxelize_cm
+    from fluoronav.manipulator.kinematics import CMKinematics
+    from fluoronav.manipulator.mesh import cm_surface_mesh, mesh_volume, read_stl, write_stl
+    from fluoronav.manipulator.robot import (
+        UR10,
+        DHRow,
+        IKFailure,
+        IKSolution,
+        RobotErrorModel,
+        SerialRobot,
+        load_robot,
+        random_configurations_deg,
+        robot_to_dict,
+        wrap_deg,
+    )
 
 __all__ = [
     "UR10",  # SerialRobot with Universal Robots' published DH table of the UR10 (CB3)
@@ -54,3 +59,25 @@ __all__ = [
     "wrap_deg",  # angles wrapped to (−180°, 180°]
     "write_stl",  # write a binary STL (float32, mm) with unit face normals
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.manipulator.config": ("CMConfig", "load_cm_config", "with_shaft"),
+        "fluoronav.manipulator.geometry": ("VoxelizedCM", "inside_cm", "inside_cm_straight", "voxelize_cm"),
+        "fluoronav.manipulator.kinematics": ("CMKinematics",),
+        "fluoronav.manipulator.mesh": ("cm_surface_mesh", "mesh_volume", "read_stl", "write_stl"),
+        "fluoronav.manipulator.robot": (
+            "UR10",
+            "DHRow",
+            "IKFailure",
+            "IKSolution",
+            "RobotErrorModel",
+            "SerialRobot",
+            "load_robot",
+            "random_configurations_deg",
+            "robot_to_dict",
+            "wrap_deg",
+        ),
+    },
+)

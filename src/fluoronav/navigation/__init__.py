@@ -1,32 +1,37 @@
 """From registered poses to a robot command: the navigation loop of Gao et al. (2022), III-D.
 
-- :mod:`~fluoronav.navigation.case`: a navigation case (CT, plan, CM, robot, C-arm views) and its
-  file; :mod:`~fluoronav.navigation.planning`: plans;
-- :mod:`~fluoronav.navigation.preflight`: the case's inputs and plan checked before any registration;
-- :mod:`~fluoronav.navigation.pipeline`: detection, registration of each set of views, the robot
-  command, verification and correction (``fluoronav navigate``);
-- :mod:`~fluoronav.navigation.targeting`: eqs. 7–8, the robot target and the tip correction;
-- :mod:`~fluoronav.navigation.safety`: the thresholds a registration must pass before the robot acts;
-- :mod:`~fluoronav.navigation.outputs`, :mod:`~fluoronav.navigation.report`,
-  :mod:`~fluoronav.navigation.slicer`, :mod:`~fluoronav.navigation.igtl`: navigation.json, the HTML
-  report, 3D Slicer files and the OpenIGTLink stream;
-- :mod:`~fluoronav.navigation.simulated`, :mod:`~fluoronav.navigation.demo`: the loop on simulated
-  cases with a simulated robot (the demo and ``study navigation``).
+- ``case``: a navigation case (CT, plan, CM, robot, C-arm views), its schema and files;
+  ``planning``: plans; ``targeting``: eqs. 7–8, the robot target and the tip correction;
+- ``pipeline``: detection, registration of each set of views, the robot command, verification and
+  correction (``fluoronav navigate``); ``config``: its settings tree;
+- ``checks``: the preflight of the inputs and plan, and the safety thresholds;
+- ``outputs``: navigation.json, the HTML report, 3D Slicer files and the OpenIGTLink stream.
+
+The simulated loop (demo, ``study navigation``) is :mod:`fluoronav.simulation.navigation`.
 """
 
-from fluoronav.navigation.case import CaseView, NavigationCase, VerificationViews, load_navigation_case
-from fluoronav.navigation.pipeline import (
-    NavigationConfig,
-    NavigationRefused,
-    NavigationResult,
-    navigate,
-    verify,
-)
-from fluoronav.navigation.planning import Plan, load_plan, planned_femur_from_cm
-from fluoronav.navigation.preflight import PreflightConfig, PreflightFinding, preflight
-from fluoronav.navigation.safety import SafetyConfig
-from fluoronav.navigation.simulated import SimulatedNavigationConfig, run_simulated_navigation
-from fluoronav.navigation.targeting import UnreachableTarget, robot_target, tip_correction_target
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.navigation.case.model import (
+        CaseView,
+        NavigationCase,
+        VerificationViews,
+        load_navigation_case,
+    )
+    from fluoronav.navigation.checks.preflight import PreflightConfig, PreflightFinding, preflight
+    from fluoronav.navigation.checks.safety import SafetyConfig
+    from fluoronav.navigation.pipeline import (
+        NavigationConfig,
+        NavigationRefused,
+        NavigationResult,
+        navigate,
+        verify,
+    )
+    from fluoronav.navigation.planning import Plan, load_plan, planned_femur_from_cm
+    from fluoronav.navigation.targeting import UnreachableTarget, robot_target, tip_correction_target
 
 __all__ = [
     "CaseView",  # one C-arm image of a case: image, camera, optional landmarks and mask
@@ -38,7 +43,6 @@ __all__ = [
     "PreflightConfig",  # thresholds of the checks that run before any registration
     "PreflightFinding",  # one preflight problem: input (exit 2) or plan (refusal, exit 3)
     "SafetyConfig",  # thresholds a registration must pass before the robot may act on it
-    "SimulatedNavigationConfig",  # the simulated world of the demo and study navigation
     "UnreachableTarget",  # the robot cannot reach the pose the plan needs
     "VerificationViews",  # the images after the move and the joints read with them
     "load_navigation_case",  # reads and validates a navigation case file
@@ -47,7 +51,29 @@ __all__ = [
     "planned_femur_from_cm",  # the CM base pose in the femur frame that realises a plan
     "preflight",  # every input and plan check of a case, before registration
     "robot_target",  # eqs. 7–8 and inverse kinematics: the joint target for a planned CM pose
-    "run_simulated_navigation",  # the loop on a simulated patient and robot, with the truth
     "tip_correction_target",  # the corrective move that slides the registered CM's tip onto the plan
     "verify",  # registers the verification views and commands one correction
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.navigation.case.model": (
+            "CaseView",
+            "NavigationCase",
+            "VerificationViews",
+            "load_navigation_case",
+        ),
+        "fluoronav.navigation.checks.preflight": ("PreflightConfig", "PreflightFinding", "preflight"),
+        "fluoronav.navigation.checks.safety": ("SafetyConfig",),
+        "fluoronav.navigation.pipeline": (
+            "NavigationConfig",
+            "NavigationRefused",
+            "NavigationResult",
+            "navigate",
+            "verify",
+        ),
+        "fluoronav.navigation.planning": ("Plan", "load_plan", "planned_femur_from_cm"),
+        "fluoronav.navigation.targeting": ("UnreachableTarget", "robot_target", "tip_correction_target"),
+    },
+)

@@ -5,13 +5,13 @@ how far each joint turns, the path the CM tip sweeps while the joints move linea
 its largest deviation from the straight segment), and how far the CM tip travels and the CM turns
 between its registered pose and the target. The measurements go into the stage's diagnostics
 (``navigation.json``, the report); a command beyond a bound of
-:class:`~fluoronav.navigation.safety.SafetyConfig` is refused (:class:`NavigationRefused`) with a
+:class:`~fluoronav.navigation.checks.safety.SafetyConfig` is refused (:class:`NavigationRefused`) with a
 reason that names the plan, the measured value and the bound.
 
 The verification is judged here too: the joints read with its images against the first move's
 command (:func:`check_joint_readings`), and the CM its images show against where the robot's
 kinematics put it (:func:`judge_kinematics`: they agree, the images overrule the kinematics with a
-warning, or the navigation is refused; :mod:`fluoronav.navigation.safety`).
+warning, or the navigation is refused; :mod:`fluoronav.navigation.checks.safety`).
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ import numpy as np
 
 from fluoronav.geometry import se3
 from fluoronav.manipulator.robot import SerialRobot
+from fluoronav.navigation.checks.safety import SafetyConfig
 from fluoronav.navigation.result import NavigationRefused
-from fluoronav.navigation.safety import SafetyConfig
 from fluoronav.navigation.targeting import SweptPath, joint_motion_deg, swept_tip_path
 
 __all__ = [
@@ -163,7 +163,7 @@ def check_correction(
     """Refuse a correction beyond ``max_correction_mm``, ``max_correction_deg``, what the
     verification vouches for (:func:`correction_allowed_mm`; not where ``images_overrule``: the
     images were judged unambiguous enough to be trusted over the kinematics,
-    :mod:`fluoronav.navigation.safety`) or ``max_joint_motion_deg``.
+    :mod:`fluoronav.navigation.checks.safety`) or ``max_joint_motion_deg``.
 
     Raises:
         NavigationRefused: check ``correction_length``, ``correction_rotation``,
@@ -245,7 +245,7 @@ def judge_kinematics(
     *,
     stage: str = "correct",
 ) -> KinematicsVerdict:
-    """The verification's CM against the robot's kinematics (:mod:`fluoronav.navigation.safety`).
+    """The verification's CM against the robot's kinematics (:mod:`fluoronav.navigation.checks.safety`).
 
     Args:
         cm_diagnostics: the ``verify_cm`` stage's diagnostics: ``motion_tip_mm`` (how far the CM

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from fluoronav.detection.centerline import extract_centerline
-from fluoronav.navigation.case_view import CaseView
+from fluoronav.navigation.case.view import CaseView
 from fluoronav.navigation.result import NavigationConfig
 from fluoronav.registration.view_set import ViewDetection
 

@@ -31,7 +31,7 @@ prediction), else from the images' own starts; its tip is then fused with the pr
 weighted by its stated uncertainty (:mod:`~fluoronav.navigation.kinematic_prior`,
 :mod:`~fluoronav.registration.view_set.fusion`), where the two are consistent. ``correct``: the
 registered CM compared with the robot's kinematics (a disagreement is refused or, where the images
-are unambiguous, overruled with a warning: :mod:`~fluoronav.navigation.safety`), then one
+are unambiguous, overruled with a warning: :mod:`~fluoronav.navigation.checks.safety`), then one
 corrective command from the verification joints that slides the registered CM so that its tip
 meets the plan (:func:`~fluoronav.navigation.targeting.tip_correction_target`), measured and
 bounded as the first move is.
@@ -41,7 +41,7 @@ with the first registration and the robot's kinematics as its prior
 (:class:`~fluoronav.registration.view_set.ViewSetPrior`).
 
 A stage that cannot go on (fewer than two views with a CM, the target out of the robot's reach, a
-command beyond a bound of :class:`~fluoronav.navigation.safety.SafetyConfig`) ends the run with
+command beyond a bound of :class:`~fluoronav.navigation.checks.safety.SafetyConfig`) ends the run with
 status ``"refused"`` and a reason naming the stage, the view and the check; no robot command is
 given then.
 
@@ -62,7 +62,8 @@ import numpy as np
 import torch
 
 from fluoronav.manipulator.kinematics import CMKinematics
-from fluoronav.navigation.case import CaseView, NavigationCase
+from fluoronav.navigation.case.model import CaseView, NavigationCase
+from fluoronav.navigation.checks.preflight import preflight, raise_for_input
 from fluoronav.navigation.commands import (
     check_correction,
     check_first_move,
@@ -73,7 +74,6 @@ from fluoronav.navigation.commands import (
 from fluoronav.navigation.detect import detect_views
 from fluoronav.navigation.kinematic_prior import prediction_sigma_mm
 from fluoronav.navigation.planning import Plan, planned_femur_from_cm
-from fluoronav.navigation.preflight import preflight, raise_for_input
 from fluoronav.navigation.result import (
     NavigationConfig,
     NavigationRefused,
@@ -249,7 +249,8 @@ def _tip_cm(kin: CMKinematics, control_points_deg: np.ndarray) -> np.ndarray:
 
 
 def _preflight(case: NavigationCase, config: NavigationConfig, stage: _Stages) -> None:
-    """The case's inputs and plan checked before any registration (:mod:`fluoronav.navigation.preflight`).
+    """The case's inputs and plan checked before any registration
+    (:mod:`fluoronav.navigation.checks.preflight`).
 
     Raises:
         InputError: bad input (exit status 2), naming the case file and the first problem.

@@ -18,10 +18,10 @@ import numpy as np
 from fluoronav import __version__
 from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
+from fluoronav.navigation.checks.preflight_config import PreflightConfig
+from fluoronav.navigation.checks.safety import SafetyConfig
 from fluoronav.navigation.kinematic_prior import KinematicUncertainty
 from fluoronav.navigation.planning import Plan
-from fluoronav.navigation.preflight_config import PreflightConfig
-from fluoronav.navigation.safety import SafetyConfig
 from fluoronav.registration.bone.presets import (
     PELVIS_LINEARIZED_PRESET,
     PELVIS_REFINE_PRESET,
@@ -90,7 +90,7 @@ class NavigationConfig:
         ik_tol_mm, ik_tol_deg: inverse-kinematics acceptance.
         safety: the thresholds of the registration checks.
         preflight: the thresholds of the checks of the case's inputs and plan before any
-            registration (:mod:`fluoronav.navigation.preflight`); None: none.
+            registration (:mod:`fluoronav.navigation.checks.preflight`); None: none.
         pelvis: the per-view pelvis registration's levels (its ``device`` is replaced by ``device``):
             CMA-ES to ~96 px, then the linearised refinement at ~128 and ~256 px.
         femur: the femur registration's levels; None: the multi-view preset

@@ -20,7 +20,8 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from fluoronav.navigation.case import CaseView, NavigationCase
+from fluoronav.navigation.case.model import CaseView, NavigationCase
+from fluoronav.navigation.checks.safety import SafetyConfig
 from fluoronav.navigation.commands import name_kinematics_disagreement
 from fluoronav.navigation.result import (
     NavigationConfig,
@@ -29,7 +30,6 @@ from fluoronav.navigation.result import (
     StageRecord,
     navigation_refusals,
 )
-from fluoronav.navigation.safety import SafetyConfig
 from fluoronav.registration.stages import StageRecorder
 from fluoronav.registration.view_set import (
     FluoroView,

@@ -17,31 +17,36 @@ parameterisation, a renderer, a similarity and priors (``engine``, ``optimizer``
 against a ground truth (``metrics``) and the stage records of a view set (``stages``).
 """
 
-from fluoronav.registration.engine import Registration, RegistrationResult
-from fluoronav.registration.levels import LevelConfig
-from fluoronav.registration.linearized import LinearizedRefiner
-from fluoronav.registration.metrics import axis_error_deg, base_error, cm_errors, point_error_mm
-from fluoronav.registration.optimizer import CMAES, NelderMead, OptimizationResult, Optimizer
-from fluoronav.registration.parameterization import (
-    CMPoseShape,
-    HandEye,
-    MultiCMReference,
-    Parameterization,
-    RigidAboutPoint,
-    RotationAboutPoint,
-)
-from fluoronav.registration.priors import LandmarkPrior, control_point_prior, gaussian_parameter_prior
-from fluoronav.registration.similarity import NCC, GradNCC, PatchGradNCC
-from fluoronav.registration.stages import StageRecord, StageRecorder
-from fluoronav.registration.trace import LevelTrace, RegistrationTrace
-from fluoronav.registration.view_set import (
-    FluoroView,
-    ViewDetection,
-    ViewSetPrior,
-    ViewSetRegistration,
-    ViewSetSettings,
-    register_view_set,
-)
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.registration.engine import Registration, RegistrationResult
+    from fluoronav.registration.levels import LevelConfig
+    from fluoronav.registration.linearized import LinearizedRefiner
+    from fluoronav.registration.metrics import axis_error_deg, base_error, cm_errors, point_error_mm
+    from fluoronav.registration.optimizer import CMAES, NelderMead, OptimizationResult, Optimizer
+    from fluoronav.registration.parameterization import (
+        CMPoseShape,
+        HandEye,
+        MultiCMReference,
+        Parameterization,
+        RigidAboutPoint,
+        RotationAboutPoint,
+    )
+    from fluoronav.registration.priors import LandmarkPrior, control_point_prior, gaussian_parameter_prior
+    from fluoronav.registration.similarity import NCC, GradNCC, PatchGradNCC
+    from fluoronav.registration.stages import StageRecord, StageRecorder
+    from fluoronav.registration.trace import LevelTrace, RegistrationTrace
+    from fluoronav.registration.view_set import (
+        FluoroView,
+        ViewDetection,
+        ViewSetPrior,
+        ViewSetRegistration,
+        ViewSetSettings,
+        register_view_set,
+    )
 
 __all__ = [
     "CMAES",  # CMA-ES (pycma) behind the ask/tell optimiser interface
@@ -79,3 +84,34 @@ __all__ = [
     "point_error_mm",  # distance between two points, mm
     "register_view_set",  # one set of views registered: pelvis per view, femur, CM, with checks
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.registration.engine": ("Registration", "RegistrationResult"),
+        "fluoronav.registration.levels": ("LevelConfig",),
+        "fluoronav.registration.linearized": ("LinearizedRefiner",),
+        "fluoronav.registration.metrics": ("axis_error_deg", "base_error", "cm_errors", "point_error_mm"),
+        "fluoronav.registration.optimizer": ("CMAES", "NelderMead", "OptimizationResult", "Optimizer"),
+        "fluoronav.registration.parameterization": (
+            "CMPoseShape",
+            "HandEye",
+            "MultiCMReference",
+            "Parameterization",
+            "RigidAboutPoint",
+            "RotationAboutPoint",
+        ),
+        "fluoronav.registration.priors": ("LandmarkPrior", "control_point_prior", "gaussian_parameter_prior"),
+        "fluoronav.registration.similarity": ("NCC", "GradNCC", "PatchGradNCC"),
+        "fluoronav.registration.stages": ("StageRecord", "StageRecorder"),
+        "fluoronav.registration.trace": ("LevelTrace", "RegistrationTrace"),
+        "fluoronav.registration.view_set": (
+            "FluoroView",
+            "ViewDetection",
+            "ViewSetPrior",
+            "ViewSetRegistration",
+            "ViewSetSettings",
+            "register_view_set",
+        ),
+    },
+)

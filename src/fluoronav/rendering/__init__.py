@@ -11,10 +11,15 @@ Each module with a numba kernel provides ``compile_kernels()`` (run at install b
 ``fluoronav.cli.compile_kernels``).
 """
 
-from fluoronav.rendering.cm import CMRenderer
-from fluoronav.rendering.ct import DEFAULT_STEP_VOXELS, CTRenderer, mipmap_factors, render_line_integrals
-from fluoronav.rendering.reference import siddon_line_integrals
-from fluoronav.rendering.response import veil_response
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.rendering.cm import CMRenderer
+    from fluoronav.rendering.ct import DEFAULT_STEP_VOXELS, CTRenderer, mipmap_factors, render_line_integrals
+    from fluoronav.rendering.reference import siddon_line_integrals
+    from fluoronav.rendering.response import veil_response
 
 __all__ = [
     "DEFAULT_STEP_VOXELS",  # default ray-march step, in units of the smallest voxel spacing
@@ -25,3 +30,18 @@ __all__ = [
     "siddon_line_integrals",  # float64 exact voxel traversal (Siddon/Jacobs), the tests' reference
     "veil_response",  # −ln((1 − f)·exp(−g·L) + f): a −log image's response to line integrals L
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.rendering.cm": ("CMRenderer",),
+        "fluoronav.rendering.ct": (
+            "DEFAULT_STEP_VOXELS",
+            "CTRenderer",
+            "mipmap_factors",
+            "render_line_integrals",
+        ),
+        "fluoronav.rendering.reference": ("siddon_line_integrals",),
+        "fluoronav.rendering.response": ("veil_response",),
+    },
+)

@@ -13,16 +13,21 @@ the detector and quantum noise (docs/simulation.md), so that no test commits an 
 - :mod:`~fluoronav.simulation.dataset`: the detector's training data sets.
 """
 
-from fluoronav.simulation.articulated import ArticulatedSimulator, anatomy_and_simulator, split_femur
-from fluoronav.simulation.cm_case import SimulatedCMCase, simulate_cm_case
-from fluoronav.simulation.dataset import DatasetSpec, check_dataset, simulate_dataset
-from fluoronav.simulation.materials import decompose_hu, hu_to_density, linear_attenuation_per_mm
-from fluoronav.simulation.physics import XrayPhysics
-from fluoronav.simulation.protocol import ProtocolConfig, Trial, sample_trial, simulate_trial_images
-from fluoronav.simulation.robot_scene import HandEyeScenario, sample_handeye_scenario
-from fluoronav.simulation.scene import Scene, SceneSampling, sample_scene
-from fluoronav.simulation.spectrum import Spectrum, load_spectrum
-from fluoronav.simulation.xray import SimulatedImage, SimulationConfig, XraySimulator
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.simulation.articulated import ArticulatedSimulator, anatomy_and_simulator, split_femur
+    from fluoronav.simulation.cm_case import SimulatedCMCase, simulate_cm_case
+    from fluoronav.simulation.dataset import DatasetSpec, check_dataset, simulate_dataset
+    from fluoronav.simulation.materials import decompose_hu, hu_to_density, linear_attenuation_per_mm
+    from fluoronav.simulation.physics import XrayPhysics
+    from fluoronav.simulation.protocol import ProtocolConfig, Trial, sample_trial, simulate_trial_images
+    from fluoronav.simulation.robot_scene import HandEyeScenario, sample_handeye_scenario
+    from fluoronav.simulation.scene import Scene, SceneSampling, sample_scene
+    from fluoronav.simulation.spectrum import Spectrum, load_spectrum
+    from fluoronav.simulation.xray import SimulatedImage, SimulationConfig, XraySimulator
 
 __all__ = [
     "ArticulatedSimulator",  # images of a patient whose femur moves relative to the pelvis
@@ -52,3 +57,19 @@ __all__ = [
     "simulate_trial_images",  # the physics-simulated images of a study trial
     "split_femur",  # the femur's voxels and bounding box, cut from the patient volume
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.simulation.articulated": ("ArticulatedSimulator", "anatomy_and_simulator", "split_femur"),
+        "fluoronav.simulation.cm_case": ("SimulatedCMCase", "simulate_cm_case"),
+        "fluoronav.simulation.dataset": ("DatasetSpec", "check_dataset", "simulate_dataset"),
+        "fluoronav.simulation.materials": ("decompose_hu", "hu_to_density", "linear_attenuation_per_mm"),
+        "fluoronav.simulation.physics": ("XrayPhysics",),
+        "fluoronav.simulation.protocol": ("ProtocolConfig", "Trial", "sample_trial", "simulate_trial_images"),
+        "fluoronav.simulation.robot_scene": ("HandEyeScenario", "sample_handeye_scenario"),
+        "fluoronav.simulation.scene": ("Scene", "SceneSampling", "sample_scene"),
+        "fluoronav.simulation.spectrum": ("Spectrum", "load_spectrum"),
+        "fluoronav.simulation.xray": ("SimulatedImage", "SimulationConfig", "XraySimulator"),
+    },
+)

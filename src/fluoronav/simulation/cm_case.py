@@ -11,7 +11,7 @@ points truth + U(−0.5°, 0.5°), landmarks truth + U(−3, 3) full-detector pi
 
 :func:`simulate_cm_case` gives a :class:`SimulatedCMCase` of plain arrays and cameras; the
 registration's own case type is assembled from it by
-:func:`fluoronav.registration.cm.case.cm_case_from_simulation`.
+:func:`cm_case_from_simulation`.
 """
 
 from __future__ import annotations
@@ -26,6 +26,10 @@ from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.anatomy.volume import Volume
 from fluoronav.geometry.camera import Camera
 from fluoronav.geometry.carm import orbit_camera
+from fluoronav.registration.cm.background import CTBackground
+from fluoronav.registration.cm.case import CMCase
+from fluoronav.registration.cm.config import CMRegistrationConfig
+from fluoronav.registration.cm.views import CMView
 from fluoronav.simulation.physics import XrayPhysics
 from fluoronav.simulation.scene import Scene, SceneSampling, sample_scene
 from fluoronav.simulation.xray import SimulationConfig, XraySimulator
@@ -36,6 +40,7 @@ __all__ = [
     "CMWorkflow",
     "SimulatedCMCase",
     "SimulatedCMView",
+    "cm_case_from_simulation",
     "default_volume",
     "perturb_pose",
     "simulate_cm_case",
@@ -285,4 +290,44 @@ def simulate_cm_case(
             [s.world_from_cm for s in (scenes if workflow == "multi-cm" else scenes[:1])]
         ),
         control_points_true_deg=cp_true,
+    )
+
+
+def cm_case_from_simulation(
+    simulated: SimulatedCMCase,
+    *,
+    background: bool = False,
+    config: CMRegistrationConfig | None = None,
+    device: str = "cpu",
+) -> CMCase:
+    """The registration case of a simulated one.
+
+    Args:
+        simulated: from :func:`~fluoronav.simulation.cm_case.simulate_cm_case`.
+        background: attach the anatomy DRR of the simulated CT at the true CT pose to each view (the
+            bone registration result in the studies).
+        config: registration settings stored in the case (default :class:`CMRegistrationConfig`).
+        device: the background renderer's device.
+    """
+    bg_renderer = CTBackground(simulated.volume, device=device) if background else None
+    views = [
+        CMView(
+            image=v.image,
+            camera=v.camera,
+            landmarks_px=v.landmarks_px,
+            background=bg_renderer,
+            binning=v.binning,
+            name=v.name,
+        )
+        for v in simulated.views
+    ]
+    return CMCase(
+        workflow=simulated.workflow,
+        views=views,
+        initial_world_from_cm=simulated.initial_world_from_cm,
+        initial_control_points_deg=simulated.initial_control_points_deg,
+        base_from_cm=simulated.base_from_cm,
+        world_from_cm_true=simulated.world_from_cm_true,
+        control_points_true_deg=simulated.control_points_true_deg,
+        config=config or CMRegistrationConfig(),
     )

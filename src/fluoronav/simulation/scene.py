@@ -22,6 +22,7 @@ from fluoronav.geometry.camera import CIOS_FUSION, Camera, DetectorSpec
 from fluoronav.geometry.carm import carm_camera_from_world
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.manipulator.projection import angle_between_deg, project_cm_points, shaft_ends_cm
 from fluoronav.simulation.instrument import BuiltCM
 
 __all__ = [
@@ -244,21 +245,6 @@ def projected_shaft_angle_deg(
     return angle_between_deg(uv[1] - uv[0], uv[2] - uv[0])
 
 
-def angle_between_deg(u: np.ndarray, v: np.ndarray) -> float:
-    """Angle (degrees, 0–180) between two vectors (2-D or 3-D); NaN where either has no length."""
-    u = np.asarray(u, dtype=np.float64)
-    v = np.asarray(v, dtype=np.float64)
-    den = float(np.linalg.norm(u) * np.linalg.norm(v))
-    if not den > 0.0:
-        return math.nan
-    return math.degrees(math.acos(float(np.clip(u @ v / den, -1.0, 1.0))))
-
-
-def shaft_ends_cm(shaft_length_mm: float) -> np.ndarray:
-    """The mounting shaft's ends (2, 3) in the CM's base frame: A and ``shaft_length_mm`` behind it."""
-    return np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -float(shaft_length_mm)]])
-
-
 def projected_length_mm(camera: Camera, world_from_cm: np.ndarray, ends_cm: np.ndarray) -> float:
     """Distance on the detector (mm, at the detector plane) between the projections of two points
     (2, 3) given in the CM's base frame, posed by ``world_from_cm`` (4, 4) and seen by ``camera``."""
@@ -266,13 +252,6 @@ def projected_length_mm(camera: Camera, world_from_cm: np.ndarray, ends_cm: np.n
     if camera.pixel_spacing_mm is None:
         raise ValueError("the camera has no pixel spacing")
     return float(np.linalg.norm(uv[1] - uv[0]) * camera.pixel_spacing_mm)
-
-
-def project_cm_points(camera: Camera, world_from_cm: np.ndarray, points_cm: np.ndarray) -> np.ndarray:
-    """Pixels (N, 2) (u, v) of points (N, 3) given in the CM's base frame, posed by
-    ``world_from_cm`` (4, 4) and seen by ``camera``."""
-    w = np.asarray(world_from_cm, dtype=np.float64)
-    return camera.project(np.asarray(points_cm, dtype=np.float64) @ w[:3, :3].T + w[:3, 3])
 
 
 def _projected_length_mm(scene: Scene, ends_cm: np.ndarray) -> float:

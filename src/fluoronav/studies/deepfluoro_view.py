@@ -32,7 +32,7 @@ from fluoronav.anatomy.markups import write_markups
 from fluoronav.anatomy.volume import Volume
 from fluoronav.geometry import se3
 from fluoronav.geometry.camera import Camera
-from fluoronav.navigation.slicer import femur_surface, write_model, write_transform
+from fluoronav.navigation.outputs.slicer import femur_surface, write_model, write_transform
 from fluoronav.registration.bone import (
     BoneView,
     bone_excess_mu,

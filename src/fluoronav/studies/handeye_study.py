@@ -20,8 +20,8 @@ import numpy as np
 from fluoronav import __version__
 from fluoronav.anatomy.io import resolve_ct
 from fluoronav.errors import InputError
-from fluoronav.navigation.faults import get_fault
 from fluoronav.runner import CsvLog, run_tasks
+from fluoronav.simulation.navigation.faults import get_fault
 from fluoronav.simulation.world import IDEAL, World
 from fluoronav.studies.figures import column, study_figures
 from fluoronav.studies.handeye_trials import (
@@ -323,7 +323,7 @@ def run_handeye_or_navigation_study(
     ``world``: the navigation's simulated world (:mod:`fluoronav.simulation.world`);
     ``verify_views``: the navigation's verification images per case (1, 2 or 3).
 
-    ``fault``: an input fault (:data:`fluoronav.navigation.faults.FAULTS`) for navigation;
+    ``fault``: an input fault (:data:`fluoronav.simulation.navigation.faults.FAULTS`) for navigation;
     ``handeye_error_mm`` / ``handeye_error_deg``: the navigation's hand-eye error (None: the fault's,
     else :class:`HandEyeStudyConfig`'s default).
     """

@@ -14,7 +14,7 @@ authors' 10° / 10 mm, FBG = truth + U(−0.5, 0.5)°. The tracker baseline (AX 
 simulated shaft marker O_s) and its eq. 9 tip error run on the same poses. Landmarks: the truth +
 U(−3, 3) full-detector px (oracle, as the authors' code) unless the detector is asked for.
 
-Navigation trial: the simulated navigation loop of :mod:`fluoronav.navigation.simulated`, the same
+Navigation trial: the simulated navigation loop of :mod:`fluoronav.simulation.navigation.loop`, the same
 pipeline as ``fluoronav navigate`` and the demo: three views, detection (or oracle landmarks),
 pelvis per view, femur, multi-view CM registration, plan (the CM tip on the femur entry point, its
 axis along the neck), eqs. 7–8 and IK with the nominal model and a hand-eye of documented error
@@ -49,12 +49,12 @@ from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker
 from fluoronav.errors import FluoronavError
 from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
-from fluoronav.navigation.faults import fault_outcome, get_fault
-from fluoronav.navigation.simulated import SimulatedNavigationConfig, run_simulated_navigation
 from fluoronav.registration.cm import CMView
 from fluoronav.registration.metrics import cm_errors
 from fluoronav.runner import finish_row, mark_failed, new_row
 from fluoronav.simulation.articulated import anatomy_and_simulator
+from fluoronav.simulation.navigation.faults import fault_outcome, get_fault
+from fluoronav.simulation.navigation.loop import SimulatedNavigationConfig, run_simulated_navigation
 from fluoronav.simulation.robot_scene import (
     HandEyeScenario,
     perturb_transform,
@@ -163,7 +163,7 @@ class HandEyeStudyConfig:
         oracle_landmarks: use truth + U(−3, 3) px (and the true CM mask) instead of the detector.
         world: navigation: the simulated world's error sources (:mod:`fluoronav.simulation.world`).
         verify_views: navigation: how many verification images each case gives (1, 2 or 3).
-        fault: navigation: an input fault of :data:`fluoronav.navigation.faults.FAULTS` injected
+        fault: navigation: an input fault of :data:`fluoronav.simulation.navigation.faults.FAULTS` injected
             into every trial's case (None: none); rows then carry ``fault``, ``fault_outcome`` and
             ``fault_handled``.
     """
@@ -379,7 +379,8 @@ def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> d
 
 
 def navigation_row(run: Any, cfg: HandEyeStudyConfig) -> dict[str, Any]:
-    """A ``trials.csv`` row's figures from a simulated navigation (:mod:`fluoronav.navigation.simulated`).
+    """A ``trials.csv`` row's figures from a simulated navigation
+    (:mod:`fluoronav.simulation.navigation.loop`).
 
     ``reposition_open_loop_mm`` is the first move's error, ``reposition_tip_mm`` the final one (after
     the correction when ``corrections`` is 1), ``reposition_registered_mm`` what the verification
@@ -483,7 +484,7 @@ def _fault_fields(run: Any, row: dict[str, Any], name: str) -> dict[str, Any]:
 
 def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, Any]:
     """One navigation trial → one ``trials.csv`` row: the shared simulated navigation loop
-    (:func:`fluoronav.navigation.simulated.run_simulated_navigation`), the same pipeline as
+    (:func:`fluoronav.simulation.navigation.loop.run_simulated_navigation`), the same pipeline as
     ``fluoronav navigate`` and the demo."""
     t0 = time.perf_counter()
     torch.set_num_threads(1)

@@ -2,7 +2,7 @@
 
 The registration studies (:mod:`fluoronav.studies.pipeline`) take the simulated world of the
 navigation study (:mod:`fluoronav.simulation.world`), source by source as the simulated navigation
-does (:mod:`fluoronav.navigation.simulated_scene`):
+does (:mod:`fluoronav.simulation.navigation.scenario`):
 
 - CT (``world.ct``): the images are rendered from the *patient*, whose landmarks and poses are the
   truth, and the registration is given the case's CT

@@ -25,9 +25,9 @@ from fluoronav.registration.cm import (
     save_overlays,
     view_roi,
 )
-from fluoronav.registration.cm.case import CMCase, cm_case_from_simulation
+from fluoronav.registration.cm.case import CMCase
 from fluoronav.registration.levels import CM_SIGMA, LevelConfig
-from fluoronav.simulation.cm_case import perturb_pose, simulate_cm_case
+from fluoronav.simulation.cm_case import cm_case_from_simulation, perturb_pose, simulate_cm_case
 
 FAST_LEVELS = default_cm_levels(refine=False, popsize=30)
 

@@ -14,11 +14,10 @@ import pytest
 
 from fluoronav.registration.centerline import mirror_about_chord
 from fluoronav.registration.cm import CMRegistrationConfig, CMView, register_cm
-from fluoronav.registration.cm.case import cm_case_from_simulation
 from fluoronav.registration.cm.checks import CMCheckConfig, judge_cm_views
 from fluoronav.registration.cm.diagnostics import cm_view_diagnostics, edge_ncc
 from fluoronav.registration.levels import CM_SIGMA, LevelConfig
-from fluoronav.simulation.cm_case import simulate_cm_case
+from fluoronav.simulation.cm_case import cm_case_from_simulation, simulate_cm_case
 
 HOLD = CMRegistrationConfig(
     levels=(

@@ -57,37 +57,42 @@ The parts, one job each (all names are importable from here):
 
 from __future__ import annotations
 
-from fluoronav.registration.centerline.cost import centerline_cost, polyline_distance_cost
-from fluoronav.registration.centerline.evaluate import (
-    CenterlineScene,
-    evaluate_centerline_init,
-    synthetic_centerline_scene,
-)
-from fluoronav.registration.centerline.geometry import (
-    mirror_about_chord,
-    poses_from_depth_theta,
-    roll_about_axis_deg,
-    turn_about_chord,
-)
-from fluoronav.registration.centerline.joint_fit import JointFitConfig
-from fluoronav.registration.centerline.multiview import (
-    MultiViewInitConfig,
-    MultiViewInitResult,
-    centerline_initialize_multiview,
-    multiview_start_poses,
-)
-from fluoronav.registration.centerline.shaft_depth import (
-    ShaftDepthCue,
-    measure_shaft_depth,
-    shaft_depth_residual,
-)
-from fluoronav.registration.centerline.single import (
-    ANATOMY_DEPTH_WINDOW_MM,
-    CenterlineInitConfig,
-    CenterlineInitResult,
-    centerline_initialize,
-    depth_range_about,
-)
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.registration.centerline.cost import centerline_cost, polyline_distance_cost
+    from fluoronav.registration.centerline.evaluate import (
+        CenterlineScene,
+        evaluate_centerline_init,
+        synthetic_centerline_scene,
+    )
+    from fluoronav.registration.centerline.geometry import (
+        mirror_about_chord,
+        poses_from_depth_theta,
+        roll_about_axis_deg,
+        turn_about_chord,
+    )
+    from fluoronav.registration.centerline.joint_fit import JointFitConfig
+    from fluoronav.registration.centerline.multiview import (
+        MultiViewInitConfig,
+        MultiViewInitResult,
+        centerline_initialize_multiview,
+        multiview_start_poses,
+    )
+    from fluoronav.registration.centerline.shaft_depth import (
+        ShaftDepthCue,
+        measure_shaft_depth,
+        shaft_depth_residual,
+    )
+    from fluoronav.registration.centerline.single import (
+        ANATOMY_DEPTH_WINDOW_MM,
+        CenterlineInitConfig,
+        CenterlineInitResult,
+        centerline_initialize,
+        depth_range_about,
+    )
 
 __all__ = [
     "ANATOMY_DEPTH_WINDOW_MM",
@@ -113,3 +118,40 @@ __all__ = [
     "synthetic_centerline_scene",
     "turn_about_chord",
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.registration.centerline.cost": ("centerline_cost", "polyline_distance_cost"),
+        "fluoronav.registration.centerline.evaluate": (
+            "CenterlineScene",
+            "evaluate_centerline_init",
+            "synthetic_centerline_scene",
+        ),
+        "fluoronav.registration.centerline.geometry": (
+            "mirror_about_chord",
+            "poses_from_depth_theta",
+            "roll_about_axis_deg",
+            "turn_about_chord",
+        ),
+        "fluoronav.registration.centerline.joint_fit": ("JointFitConfig",),
+        "fluoronav.registration.centerline.multiview": (
+            "MultiViewInitConfig",
+            "MultiViewInitResult",
+            "centerline_initialize_multiview",
+            "multiview_start_poses",
+        ),
+        "fluoronav.registration.centerline.shaft_depth": (
+            "ShaftDepthCue",
+            "measure_shaft_depth",
+            "shaft_depth_residual",
+        ),
+        "fluoronav.registration.centerline.single": (
+            "ANATOMY_DEPTH_WINDOW_MM",
+            "CenterlineInitConfig",
+            "CenterlineInitResult",
+            "centerline_initialize",
+            "depth_range_about",
+        ),
+    },
+)

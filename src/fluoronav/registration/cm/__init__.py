@@ -38,29 +38,34 @@ The parts, one job each (all names are importable from here):
 
 from __future__ import annotations
 
-from fluoronav.registration.cm.checks import (
-    CMCheckConfig,
-    PredictedCMPose,
-    ViewVerdict,
-    judge_cm_views,
-    judge_motion,
-    motion_agreement,
-    register_cm_checked,
-)
-from fluoronav.registration.cm.config import (
-    CM_COARSE_LEVEL,
-    CM_FINE_LEVEL,
-    DEFAULT_CM_MU_PER_MM,
-    CMRegistrationConfig,
-    default_cm_levels,
-    fbg_shape_prior,
-)
-from fluoronav.registration.cm.multistart import register_cm_multistart
-from fluoronav.registration.cm.overlays import edge_mask, save_overlays, to_uint8
-from fluoronav.registration.cm.problem import CMProblem, Workflow, register_cm
-from fluoronav.registration.cm.result import CMRegistrationResult, cm_pose_errors
-from fluoronav.registration.cm.roll_scan import RollScanResult, roll_scan, roll_scan_initialization
-from fluoronav.registration.cm.views import BackgroundFn, CMView, ViewROI, view_roi
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.registration.cm.checks import (
+        CMCheckConfig,
+        PredictedCMPose,
+        ViewVerdict,
+        judge_cm_views,
+        judge_motion,
+        motion_agreement,
+        register_cm_checked,
+    )
+    from fluoronav.registration.cm.config import (
+        CM_COARSE_LEVEL,
+        CM_FINE_LEVEL,
+        DEFAULT_CM_MU_PER_MM,
+        CMRegistrationConfig,
+        default_cm_levels,
+        fbg_shape_prior,
+    )
+    from fluoronav.registration.cm.multistart import register_cm_multistart
+    from fluoronav.registration.cm.overlays import edge_mask, save_overlays, to_uint8
+    from fluoronav.registration.cm.problem import CMProblem, Workflow, register_cm
+    from fluoronav.registration.cm.result import CMRegistrationResult, cm_pose_errors
+    from fluoronav.registration.cm.roll_scan import RollScanResult, roll_scan, roll_scan_initialization
+    from fluoronav.registration.cm.views import BackgroundFn, CMView, ViewROI, view_roi
 
 # the former private names of the overlay helpers, still imported by ``fluoronav.cli.calibrate``
 
@@ -95,3 +100,32 @@ __all__ = [
     "to_uint8",
     "view_roi",
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.registration.cm.checks": (
+            "CMCheckConfig",
+            "PredictedCMPose",
+            "ViewVerdict",
+            "judge_cm_views",
+            "judge_motion",
+            "motion_agreement",
+            "register_cm_checked",
+        ),
+        "fluoronav.registration.cm.config": (
+            "CM_COARSE_LEVEL",
+            "CM_FINE_LEVEL",
+            "DEFAULT_CM_MU_PER_MM",
+            "CMRegistrationConfig",
+            "default_cm_levels",
+            "fbg_shape_prior",
+        ),
+        "fluoronav.registration.cm.multistart": ("register_cm_multistart",),
+        "fluoronav.registration.cm.overlays": ("edge_mask", "save_overlays", "to_uint8"),
+        "fluoronav.registration.cm.problem": ("CMProblem", "Workflow", "register_cm"),
+        "fluoronav.registration.cm.result": ("CMRegistrationResult", "cm_pose_errors"),
+        "fluoronav.registration.cm.roll_scan": ("RollScanResult", "roll_scan", "roll_scan_initialization"),
+        "fluoronav.registration.cm.views": ("BackgroundFn", "CMView", "ViewROI", "view_roi"),
+    },
+)

@@ -2,7 +2,8 @@
 
 :class:`CMCase` is what :func:`~fluoronav.registration.cm.problem.register_cm` needs; case files
 (``fluoronav register``) and simulated cases
-(:func:`fluoronav.simulation.cm_case.simulate_cm_case`, assembled by :func:`cm_case_from_simulation`)
+(:func:`fluoronav.simulation.cm_case.simulate_cm_case`, assembled by
+:func:`~fluoronav.simulation.cm_case.cm_case_from_simulation`)
 give one.
 """
 
@@ -12,12 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fluoronav.registration.cm.background import CTBackground
 from fluoronav.registration.cm.config import CMRegistrationConfig
 from fluoronav.registration.cm.views import CMView
-from fluoronav.simulation.cm_case import SimulatedCMCase
 
-__all__ = ["CMCase", "cm_case_from_simulation"]
+__all__ = ["CMCase"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,43 +44,3 @@ class CMCase:
     control_points_true_deg: np.ndarray | None = None
     config: CMRegistrationConfig = field(default_factory=CMRegistrationConfig)
     source: str = ""
-
-
-def cm_case_from_simulation(
-    simulated: SimulatedCMCase,
-    *,
-    background: bool = False,
-    config: CMRegistrationConfig | None = None,
-    device: str = "cpu",
-) -> CMCase:
-    """The registration case of a simulated one.
-
-    Args:
-        simulated: from :func:`~fluoronav.simulation.cm_case.simulate_cm_case`.
-        background: attach the anatomy DRR of the simulated CT at the true CT pose to each view (the
-            bone registration result in the studies).
-        config: registration settings stored in the case (default :class:`CMRegistrationConfig`).
-        device: the background renderer's device.
-    """
-    bg_renderer = CTBackground(simulated.volume, device=device) if background else None
-    views = [
-        CMView(
-            image=v.image,
-            camera=v.camera,
-            landmarks_px=v.landmarks_px,
-            background=bg_renderer,
-            binning=v.binning,
-            name=v.name,
-        )
-        for v in simulated.views
-    ]
-    return CMCase(
-        workflow=simulated.workflow,
-        views=views,
-        initial_world_from_cm=simulated.initial_world_from_cm,
-        initial_control_points_deg=simulated.initial_control_points_deg,
-        base_from_cm=simulated.base_from_cm,
-        world_from_cm_true=simulated.world_from_cm_true,
-        control_points_true_deg=simulated.control_points_true_deg,
-        config=config or CMRegistrationConfig(),
-    )

@@ -40,11 +40,16 @@ Frames: ``ct`` (LPS, mm) is the world frame of the registered views; ``femur`` i
 moved with the femur (``ct_from_femur``).
 """
 
-from fluoronav.registration.view_set.bones import ViewSetBones, register_view_set_bones
-from fluoronav.registration.view_set.cm import register_view_set_cm
-from fluoronav.registration.view_set.register import ViewSetRegistration, register_view_set
-from fluoronav.registration.view_set.settings import ViewSetPrior, ViewSetSeeds, ViewSetSettings
-from fluoronav.registration.view_set.views import FluoroView, ViewDetection, bone_views
+from typing import TYPE_CHECKING
+
+from fluoronav.lazy import lazy_face
+
+if TYPE_CHECKING:
+    from fluoronav.registration.view_set.bones import ViewSetBones, register_view_set_bones
+    from fluoronav.registration.view_set.cm import register_view_set_cm
+    from fluoronav.registration.view_set.register import ViewSetRegistration, register_view_set
+    from fluoronav.registration.view_set.settings import ViewSetPrior, ViewSetSeeds, ViewSetSettings
+    from fluoronav.registration.view_set.views import FluoroView, ViewDetection, bone_views
 
 __all__ = [
     "FluoroView",  # one C-arm image of a set: image, camera, the CM found in it
@@ -59,3 +64,14 @@ __all__ = [
     "register_view_set_bones",  # the pelvis per view, then the femur (checked)
     "register_view_set_cm",  # the CM in a set whose cameras are known in one frame
 ]
+
+__getattr__, __dir__ = lazy_face(
+    __name__,
+    {
+        "fluoronav.registration.view_set.bones": ("ViewSetBones", "register_view_set_bones"),
+        "fluoronav.registration.view_set.cm": ("register_view_set_cm",),
+        "fluoronav.registration.view_set.register": ("ViewSetRegistration", "register_view_set"),
+        "fluoronav.registration.view_set.settings": ("ViewSetPrior", "ViewSetSeeds", "ViewSetSettings"),
+        "fluoronav.registration.view_set.views": ("FluoroView", "ViewDetection", "bone_views"),
+    },
+)

@@ -1,0 +1,406 @@
+"""Navigation cases: everything ``fluoronav navigate`` needs, as data.
+
+A case is the CT (with labels and landmarks), the plan, the CM, the robot's state while imaging and
+its hand-eye matrix, and the C-arm views; optionally the views taken after the robot moved
+(verification). On disk it is one JSON file whose paths are relative to it (docs/data-formats.md,
+"Navigation case"); :func:`load_navigation_case` reads and validates it, :func:`write_navigation_case`
+writes one (the demo's simulated cases).
+
+Frames: ``ct`` is the CT's physical frame (LPS, mm, as SimpleITK reads it). Every view's camera
+holds ``camera_from_ct`` as it is known before registration (a C-arm calibration, the DICOM geometry
+with the CT placed at the isocentre, or a rough manual alignment); the pelvis registration corrects
+it per view. Cameras given as ``"dicom"`` are the image's own geometry tags, whose world is the
+C-arm isocentre frame; the case's ``isocenter_ct_mm`` (default: the plan side's femoral head
+landmark) is the CT point at the isocentre, and the CT's LPS axes are taken as the isocentre
+frame's (a supine patient): ``camera_from_ct = camera_from_iso @ translate(−isocenter_ct_mm)``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fluoronav.anatomy.io import load_ct, resolve_ct, save_volume
+from fluoronav.anatomy.volume import Volume
+from fluoronav.errors import InputError, read_json_object
+from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.robot import UR10, SerialRobot, robot_to_dict
+from fluoronav.navigation.case.parse import (
+    keyed,
+    parse_cm_config,
+    parse_joints,
+    parse_robot,
+    parse_views,
+    require_file,
+    vector,
+    write_views,
+)
+from fluoronav.navigation.case.view import CaseView
+from fluoronav.navigation.planning import Plan, load_plan, plan_from_dict, save_plan
+
+__all__ = [
+    "CASE_KEYS",
+    "COMMENT_KEYS",
+    "CaseView",
+    "NavigationCase",
+    "VerificationViews",
+    "load_navigation_case",
+    "write_navigation_case",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Top-level keys of a navigation case file (besides the comment keys :data:`COMMENT_KEYS`).
+CASE_KEYS = (
+    "ct",
+    "phantom_seed",
+    "labels",
+    "landmarks",
+    "plan",
+    "side",
+    "cm",
+    "fbg_control_points_deg",
+    "fbg_sigma_deg",
+    "robot",
+    "isocenter_ct_mm",
+    "views",
+    "verification",
+)
+#: Keys the reader skips (free text for people); any key starting with ``_`` is skipped too.
+COMMENT_KEYS = ("description", "notes")
+_VERIFICATION_KEYS = ("joints_deg", "views")
+
+
+@dataclass(frozen=True, eq=False)
+class VerificationViews:
+    """The images taken after the robot moved to the commanded pose.
+
+    Attributes:
+        joints_deg: (n_joints,) the robot's joint readings while these images were taken.
+        views: the images; their cameras' ``camera_from_ct`` is again only an initial estimate.
+    """
+
+    joints_deg: np.ndarray
+    views: tuple[CaseView, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class NavigationCase:
+    """A navigation case (module docstring).
+
+    Attributes:
+        volume: the CT in HU with labels ``pelvis`` and ``femur_<side>`` and landmark
+            ``femoral_head_<side>`` (``pelvis_center`` optional).
+        plan: the planned target in the CT frame.
+        side: the femur ("left" / "right") the plan is in.
+        cm_config: the CM's geometry.
+        fbg_control_points_deg: (n_control_points,) the CM shape from its FBG sensor, or None (then
+            straight).
+        fbg_sigma_deg: the FBG reading's stated accuracy, one standard deviation per control point
+            (degrees): the CM registration holds its shape to the reading with a Gaussian prior of
+            this σ; None: the reading is taken as accurate to about ±0.5° (the paper's simulated
+            reading) and the shape is free within ±1° of it.
+        robot: the kinematic model the robot controller uses.
+        joints_deg: (n_joints,) joint readings while the views were taken.
+        ee_from_cm: (4, 4) hand-eye matrix (mm).
+        views: the C-arm images taken with the robot at ``joints_deg``.
+        verification: images after the move, or None.
+        source: the case file (for messages), or None for a case built in memory.
+    """
+
+    volume: Volume
+    plan: Plan
+    side: str
+    cm_config: CMConfig
+    fbg_control_points_deg: np.ndarray | None
+    robot: SerialRobot
+    joints_deg: np.ndarray
+    ee_from_cm: np.ndarray
+    views: tuple[CaseView, ...]
+    verification: VerificationViews | None = None
+    source: Path | None = None
+    fbg_sigma_deg: float | None = None
+
+
+# ----- reading ---------------------------------------------------------------------------------
+def _volume(d: dict[str, Any], src: str, root: Path) -> tuple[Volume, str]:
+    """The CT with labels and landmarks → (volume, the ``ct`` value for messages)."""
+    ct = d.get("ct")
+    if ct is None:
+        raise InputError(src, "'ct': missing (give a CT file, a DICOM directory or \"phantom\")")
+    if not isinstance(ct, str) or not ct.strip():
+        raise InputError(src, f"'ct' must be a CT file, a DICOM directory or \"phantom\", got {ct!r}")
+    if ct.strip().lower() == "phantom":
+        extra = [k for k in ("labels", "landmarks") if d.get(k) is not None]
+        if extra:
+            raise InputError(src, f"{extra} cannot be given with 'ct': \"phantom\" (it has its own)")
+        seed = d.get("phantom_seed", 0)
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise InputError(src, f"'phantom_seed' must be an integer ≥ 0, got {seed!r}")
+        return resolve_ct("phantom", seed=seed), "phantom"
+    if "phantom_seed" in d:
+        raise InputError(src, "'phantom_seed' is only for 'ct': \"phantom\"")
+    if not (root / ct).exists():
+        raise InputError(src, f"'ct' file not found: {ct}")
+    labels = landmarks = None
+    if d.get("labels") is not None:
+        labels = require_file(src, root, d["labels"], "'labels'", what="a label map file")
+    if d.get("landmarks") is not None:
+        landmarks = require_file(src, root, d["landmarks"], "'landmarks'", what="a landmark file")
+    try:
+        volume = load_ct(root / ct, labels_path=labels, landmarks_path=landmarks)
+    except InputError as exc:  # name the key of the file at fault
+        key = {str(labels): "'labels'", str(landmarks): "'landmarks'"}.get(exc.source, "'ct'")
+        raise InputError(src, f"{key}: {exc.source}: {exc.problem}") from None
+    return volume, ct
+
+
+def _side(d: dict[str, Any], volume: Volume, plan: Plan, src: str, ct: str) -> str:
+    """The plan's side (given, or the femoral head nearest the entry point), its anatomy checked."""
+    side = d.get("side")
+    lms = volume.landmarks_world
+    heads = {s: lms[f"femoral_head_{s}"] for s in ("left", "right") if f"femoral_head_{s}" in lms}
+    if side is None:
+        if not heads:
+            raise InputError(
+                src, f"'ct' {ct} has no landmark femoral_head_left or femoral_head_right (give 'landmarks')"
+            )
+        side = min(heads, key=lambda s: float(np.linalg.norm(heads[s] - plan.entry_point_world_mm)))
+        logger.info("%s: side %s (femoral head nearest the plan's entry point)", src, side)
+    elif side not in ("left", "right"):
+        raise InputError(src, f'side must be "left" or "right", got {side!r}')
+    missing = []
+    for label in ("pelvis", f"femur_{side}"):
+        value = volume.label_value(label)
+        if volume.labels is None or value is None or not np.any(volume.labels == value):
+            missing.append(f"label {label!r}")
+    if side not in heads:
+        missing.append(f"landmark 'femoral_head_{side}'")
+    if missing:
+        raise InputError(
+            src,
+            f"'ct' {ct} lacks {', '.join(missing)} (navigating the {side} femur needs labels 'pelvis' "
+            f"and 'femur_{side}' and landmark 'femoral_head_{side}')",
+        )
+    return str(side)
+
+
+def load_navigation_case(path: str | Path) -> NavigationCase:
+    """Read and validate a navigation case file (docs/data-formats.md, "Navigation case").
+
+    Args:
+        path: the case JSON; paths inside are relative to its folder.
+
+    Returns:
+        the case, with ``source`` = ``path``; cameras hold ``camera_from_ct``.
+
+    Raises:
+        InputError: for any missing, unreadable or inconsistent entry, naming the case file and the
+            key (and the other file at fault, where there is one). Unknown top-level keys are errors
+            (except ``description``, ``notes`` and keys starting with ``_``).
+    """
+    p = Path(path)
+    src = str(p)
+    root = p.parent
+    d = read_json_object(p, what="navigation case")
+    unknown = sorted(k for k in d if k not in CASE_KEYS and k not in COMMENT_KEYS and not k.startswith("_"))
+    if unknown:
+        raise InputError(
+            src,
+            f"unknown key(s) {unknown}; allowed: {list(CASE_KEYS)} "
+            f"(and {list(COMMENT_KEYS)} or keys starting with '_' for comments)",
+        )
+    volume, ct = _volume(d, src, root)
+
+    pv = d.get("plan")
+    if pv is None:
+        raise InputError(src, "'plan': missing (a plan file or an inline plan object)")
+    if isinstance(pv, dict):
+        with keyed(src, "'plan'"):
+            plan = plan_from_dict(pv, source=src)
+    else:
+        plan_path = require_file(src, root, pv, "'plan'", what="a plan file or an inline plan object")
+        with keyed(src, "'plan'"):
+            plan = load_plan(plan_path)
+    cm_config = parse_cm_config(d.get("cm"), src, root)
+    n_cp = cm_config.n_control_points
+    if plan.control_points_deg is not None and len(plan.control_points_deg) != n_cp:
+        raise InputError(
+            src, f"'plan' control_points_deg has {len(plan.control_points_deg)} values, the CM has {n_cp}"
+        )
+    fbg = None
+    if d.get("fbg_control_points_deg") is not None:
+        fbg = vector(
+            d["fbg_control_points_deg"], "fbg_control_points_deg", src, n=n_cp, why=f"the CM has {n_cp}"
+        )
+    fbg_sigma = _fbg_sigma(d, fbg, src)
+    side = _side(d, volume, plan, src, ct)
+    robot, joints, ee_from_cm = parse_robot(d, src, root)
+
+    if d.get("isocenter_ct_mm") is not None:
+        iso = vector(d["isocenter_ct_mm"], "isocenter_ct_mm", src, n=3, why="a CT point has 3")
+    else:
+        iso = np.asarray(volume.landmarks_world[f"femoral_head_{side}"], dtype=np.float64)
+    views = parse_views(d.get("views"), key="views", src=src, root=root, isocenter_ct_mm=iso)
+
+    verification = None
+    vd = d.get("verification")
+    if vd is not None:
+        if not isinstance(vd, dict):
+            raise InputError(src, "'verification' must be an object with joints_deg and views")
+        unknown = sorted(set(vd) - set(_VERIFICATION_KEYS))
+        if unknown:
+            raise InputError(
+                src, f"verification: unknown key(s) {unknown}; allowed: {list(_VERIFICATION_KEYS)}"
+            )
+        verification = VerificationViews(
+            joints_deg=parse_joints(vd.get("joints_deg"), "verification.joints_deg", robot, src),
+            views=parse_views(
+                vd.get("views"),
+                key="verification.views",
+                src=src,
+                root=root,
+                isocenter_ct_mm=iso,
+                default_prefix="verify",
+            ),
+        )
+    if verification is not None:
+        names = {v.name for v in views}
+        for k, v in enumerate(verification.views):
+            if v.moved_from is not None and v.moved_from not in names:
+                raise InputError(
+                    src, f"verification.views[{k}] names view {v.moved_from!r}, which is not among the views"
+                )
+    n_verify = 0 if verification is None else len(verification.views)
+    logger.info("%s: %s side, %d view(s), %d verification view(s)", src, side, len(views), n_verify)
+    return NavigationCase(
+        volume=volume,
+        plan=plan,
+        side=side,
+        cm_config=cm_config,
+        fbg_control_points_deg=fbg,
+        robot=robot,
+        joints_deg=joints,
+        ee_from_cm=ee_from_cm,
+        views=views,
+        verification=verification,
+        source=p,
+        fbg_sigma_deg=fbg_sigma,
+    )
+
+
+def _fbg_sigma(d: dict[str, Any], fbg: np.ndarray | None, src: str) -> float | None:
+    """The case's ``fbg_sigma_deg``: a positive number, and only with a reading."""
+    v = d.get("fbg_sigma_deg")
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
+        raise InputError(src, f"'fbg_sigma_deg' must be a positive number of degrees, got {v!r}")
+    if fbg is None:
+        raise InputError(src, "'fbg_sigma_deg' is given without 'fbg_control_points_deg'")
+    return float(v)
+
+
+# ----- writing ---------------------------------------------------------------------------------
+def _relative(path: Path, directory: Path) -> str:
+    try:
+        return Path(os.path.relpath(path.resolve(), directory.resolve())).as_posix()
+    except ValueError:  # another drive
+        return str(path.resolve())
+
+
+def write_navigation_case(
+    case: NavigationCase,
+    directory: str | Path,
+    *,
+    ct_path: str | None = None,
+    extra: dict[str, Any] | None = None,
+) -> Path:
+    """Write ``case`` as ``directory/navigation.json`` and the files it names.
+
+    Files: ``ct.nii.gz`` (+ ``ct_labels.nii.gz``, ``ct.labels.json``, ``ct_landmarks.json``, as
+    :func:`~fluoronav.anatomy.io.save_volume` writes them) unless ``ct_path`` is given,
+    ``plan.json``, ``robot_dh.json`` (only for a robot other than the UR10), per view
+    ``<name>.npz`` (``image`` float32, ``pixel_spacing_mm`` when the camera has one),
+    ``<name>_camera.json`` (``camera_from_world`` = camera_from_ct) and ``<name>_mask.png``;
+    verification views likewise with the prefix ``verification_``. The CM config is written inline.
+    :func:`load_navigation_case` of the result gives back an equal case (float32 images, NIfTI
+    geometry to float32 precision).
+
+    Args:
+        case: the case.
+        directory: created if needed.
+        ct_path: an existing CT (as ``ct`` reads it, or ``"phantom"``) holding ``case.volume``, with
+            its label and landmark siblings; the case then points to it (relative to ``directory``
+            where possible) instead of writing the volume.
+        extra: more top-level keys: comment keys (``description``, ``notes``, ``_…``) or case keys
+            the writer does not set itself (``phantom_seed``, ``isocenter_ct_mm``).
+
+    Returns:
+        the path of ``navigation.json``.
+
+    Raises:
+        ValueError: ``extra`` keys that the reader would reject or that the writer sets itself; a
+            view with a mask but no landmarks.
+        FileNotFoundError: ``ct_path`` does not exist.
+    """
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    d: dict[str, Any] = {}
+    if ct_path is None:
+        written = save_volume(case.volume, out / "ct.nii.gz")
+        d["ct"] = written[0].name
+        for f in written[1:]:
+            if f.name.endswith("_labels.nii.gz"):
+                d["labels"] = f.name
+            elif f.name.endswith("_landmarks.json"):
+                d["landmarks"] = f.name
+    elif ct_path.strip().lower() == "phantom":
+        d["ct"] = "phantom"
+    else:
+        if not Path(ct_path).exists():
+            raise FileNotFoundError(f"ct_path {ct_path} does not exist")
+        d["ct"] = _relative(Path(ct_path), out)
+    d["plan"] = save_plan(case.plan, out / "plan.json").name
+    d["side"] = case.side
+    d["cm"] = case.cm_config.model_dump(mode="json")
+    if case.fbg_control_points_deg is not None:
+        d["fbg_control_points_deg"] = [float(v) for v in case.fbg_control_points_deg]
+        if case.fbg_sigma_deg is not None:
+            d["fbg_sigma_deg"] = float(case.fbg_sigma_deg)
+    if case.robot == UR10:
+        model = "UR10"
+    else:
+        model = "robot_dh.json"
+        (out / model).write_text(json.dumps(robot_to_dict(case.robot), indent=2) + "\n", encoding="utf-8")
+    d["robot"] = {
+        "model": model,
+        "joints_deg": [float(v) for v in case.joints_deg],
+        "ee_from_cm": np.asarray(case.ee_from_cm, dtype=np.float64).tolist(),
+    }
+    d["views"] = write_views(case.views, out)
+    if case.verification is not None:
+        d["verification"] = {
+            "joints_deg": [float(v) for v in case.verification.joints_deg],
+            "views": write_views(case.verification.views, out, prefix="verification_"),
+        }
+    for key, value in (extra or {}).items():
+        if key in d:
+            raise ValueError(f"extra key {key!r} is written from the case itself")
+        if key not in CASE_KEYS and key not in COMMENT_KEYS and not key.startswith("_"):
+            raise ValueError(
+                f"extra key {key!r} would not load; use {list(COMMENT_KEYS)}, a key starting with '_', "
+                f"or one of {list(CASE_KEYS)}"
+            )
+        d[key] = value
+    path = out / "navigation.json"
+    path.write_text(json.dumps(d, indent=2) + "\n", encoding="utf-8")
+    logger.info("wrote navigation case %s (%d view(s))", path, len(case.views))
+    return path

@@ -1,0 +1,109 @@
+"""The pre-registration checks' thresholds and what a failed check reports.
+
+:class:`PreflightConfig` holds every threshold of :mod:`fluoronav.navigation.checks.preflight` (the plan
+and the labels) and :mod:`fluoronav.navigation.checks.preflight_images` (the images and cameras);
+:class:`PreflightFinding` is one failed check, its ``kind`` saying how the navigation ends
+(``"input"``: bad input, exit status 2; ``"plan"``: a refusal, exit status 3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+__all__ = [
+    "PreflightConfig",
+    "PreflightFinding",
+    "finding",
+]
+
+
+@dataclass(frozen=True)
+class PreflightConfig:
+    """Thresholds of the pre-registration checks (lengths in mm, volumes in mL).
+
+    Attributes:
+        target_margin_mm: the plan's CM tip target may lie at most this far outside the surface of
+            the femur label (``femur_<side>``). Label maps are segmented to within a voxel or two,
+            and a core-decompression plan puts the tip on the entry point, on the surface.
+        entry_surface_max_mm: the plan's entry point must lie within this distance of the femur
+            label's surface, inside or outside: the entry is where the CM meets the bone.
+        direction_probe_mm: the point this far along the insertion direction from the entry must
+            lie inside the femur label: a direction that points away from the bone (a flipped
+            sign) would put the CM's body inside it.
+        max_insertion_depth_mm: a site's own limit on the plan's insertion depth beyond the entry;
+            None: only the CM's reach (:func:`insertion_limit_mm`) limits it.
+        landmark_margin_mm: the femoral-head landmark (the head centre, ~20 mm deep in the head) may
+            lie at most this far outside the femur label: clicking error, not a wrong label.
+        pelvis_volume_ml: plausible (low, high) volume of the ``pelvis`` label. Wide: a CT cropped
+            to one hip keeps a hemipelvis (a few hundred mL); a whole adult pelvis with the sacrum is
+            ~0.6–1.3 L. Outside: a wrong label value, a label map on another grid, or wrong spacing.
+        femur_volume_ml: plausible (low, high) volume of the ``femur_<side>`` label: from a head and
+            neck cropped just below the trochanters (~60 mL) to a whole adult femur (~1 L).
+        sdd_mm: plausible (low, high) source-to-detector distance (focal length × pixel spacing)
+            of a C-arm, for views whose camera gives the pixel spacing (mobile C-arms ~1000 mm).
+        pixel_spacing_mm: plausible (low, high) pixel spacing at the stored resolution: a flat
+            panel's pitch (~0.1–0.2 mm) up to a 64² image of a 30 cm detector (~5 mm).
+        detector_span: plausible (low, high) field of view as the detector's width over the
+            source-to-detector distance (``cols / fx``, ``rows / fy``; no pixel spacing needed):
+            a 9″ image intensifier at 1.2 m is ~0.2, a 43 cm panel at 1 m ~0.43, a crop less.
+        max_focal_aspect: largest ratio of ``fx`` and ``fy``: C-arm pixels are square.
+        identical_ncc: two images of one shape whose normalised correlation reaches this are the
+            same image given twice. Views of one anatomy from orbits 15–20° apart, and images
+            retaken with new noise, stay well below it; a copy rounded to 8 bits stays above.
+        drr_size_px: the inversion check compares each image with a DRR at about this many pixels
+            along its longer side (the image is box-binned to it).
+        drr_voxel_mm: the CT is box-averaged to about this voxel size for that DRR.
+        inverted_ncc: an image whose correlation with that DRR is below this (negative) value is
+            taken as inverted. At an initial pose within a few cm and ~10° of the truth the DRR
+            correlates positively with the image (body outline, pelvis and femur bright), and an
+            inverted image as strongly negatively; poses off by 6 cm and 15° or more can correlate
+            negatively by chance, hence the margin below 0.
+        mirrored_ncc: an image whose left–right mirror correlates with that DRR at least this much,
+            and more than the image inverted does (``−c``), looks mirrored rather than inverted. A
+            mirrored image also correlates negatively (body outline and bones land on soft
+            tissue), so the two are told apart by which repair explains the image better: on the
+            demo's views the mirror of a mirrored image scored 0.80–0.97 against 0.05–0.66 for its
+            inverse, and the mirror of an inverted image 0.05–0.63 against 0.80–0.97.
+    """
+
+    target_margin_mm: float = 3.0
+    entry_surface_max_mm: float = 5.0
+    direction_probe_mm: float = 10.0
+    max_insertion_depth_mm: float | None = None
+    landmark_margin_mm: float = 2.0
+    pelvis_volume_ml: tuple[float, float] = (100.0, 3000.0)
+    femur_volume_ml: tuple[float, float] = (25.0, 1500.0)
+    sdd_mm: tuple[float, float] = (600.0, 1600.0)
+    pixel_spacing_mm: tuple[float, float] = (0.05, 10.0)
+    detector_span: tuple[float, float] = (0.05, 0.8)
+    max_focal_aspect: float = 1.05
+    identical_ncc: float = 0.9999
+    drr_size_px: int = 64
+    drr_voxel_mm: float = 4.0
+    inverted_ncc: float = -0.5
+    mirrored_ncc: float = 0.5
+
+
+@dataclass(frozen=True)
+class PreflightFinding:
+    """One failed check.
+
+    Attributes:
+        kind: ``"plan"`` (the plan is refused, exit status 3) or ``"input"`` (bad input, exit 2).
+        subject: what it is about: ``"plan 'entry'"``, ``"label 'femur_left'"``,
+            ``"landmark 'femoral_head_left'"``, ``"view 'AP'"``, ``"verification view 'AP'"``.
+        reason: one line that names the subject, says what is wrong and what to check.
+        check: a short name of the check (``"target_in_femur"``, ``"identical_views"``, …).
+    """
+
+    kind: Literal["plan", "input"]
+    subject: str
+    reason: str
+    check: str
+
+
+def finding(kind: Literal["plan", "input"], subject: str, text: str, check: str) -> PreflightFinding:
+    """A finding whose reason is ``subject`` followed by ``text``, its whitespace runs made single
+    spaces (one line)."""
+    return PreflightFinding(kind, subject, " ".join(f"{subject}{text}".split()), check)
