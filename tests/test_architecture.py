@@ -1,4 +1,4 @@
-"""The package's structure, held as tests: no import cycles, registration's top level small, short functions.
+"""The package's structure, held as tests: no import cycles, a small top, short functions and docstrings.
 
 The layer contracts themselves are import-linter's (``lint-imports``, pyproject.toml); these tests
 hold what a contract cannot say.
@@ -15,7 +15,9 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src" / "fluoronav"
 
 #: the longest a function of ``src/`` may be, in lines (docstring included)
-MAX_FUNCTION_LINES = 120
+MAX_FUNCTION_LINES = 80
+#: the longest a module docstring of ``src/`` may be, in lines (the theory goes to docs/)
+MAX_MODULE_DOCSTRING_LINES = 12
 #: the most modules the top of ``fluoronav.registration`` may hold (the methods are packages)
 MAX_REGISTRATION_TOP_MODULES = 15
 
@@ -102,6 +104,19 @@ def _long_functions() -> list[str]:
 
 def test_no_function_is_too_long() -> None:
     assert _long_functions() == []
+
+
+def _long_module_docstrings() -> list[str]:
+    out = []
+    for path in sorted(SRC.rglob("*.py")):
+        doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8")), clean=False)
+        if doc is not None and len(doc.splitlines()) > MAX_MODULE_DOCSTRING_LINES:
+            out.append(f"{path.relative_to(SRC)} ({len(doc.splitlines())} lines)")
+    return out
+
+
+def test_module_docstrings_are_short() -> None:
+    assert _long_module_docstrings() == []
 
 
 @pytest.mark.parametrize("package", ["bone", "cm", "centerline"])

@@ -23,10 +23,11 @@ from fluoronav.errors import RegistrationRefused
 from fluoronav.geometry import se3
 from fluoronav.navigation.case.model import VerificationViews, write_navigation_case
 from fluoronav.navigation.checks.safety import SafetyConfig
+from fluoronav.navigation.config import navigation_cm_config
 from fluoronav.navigation.detect import band_mask
 from fluoronav.navigation.pipeline import NavigationConfig, NavigationRefused, navigate
 from fluoronav.navigation.planning import planned_femur_from_cm
-from fluoronav.navigation.result import navigation_cm_config, navigation_refusals
+from fluoronav.navigation.result import navigation_refusals
 
 
 def test_no_cm_in_the_views_refuses_at_detection_without_a_command(make_no_cm_case) -> None:
@@ -335,7 +336,7 @@ def test_joint_readings_that_differ_from_the_command_are_refused_before_any_regi
 
 
 def _local_config() -> NavigationConfig:
-    from fluoronav.navigation.result import VerificationConfig
+    from fluoronav.navigation.config import VerificationConfig
 
     return dataclasses.replace(_CFG, verification=VerificationConfig(local_bones=True))
 
@@ -347,7 +348,7 @@ _LOCAL = _local_config()
 def test_the_verification_registers_the_bones_locally_by_default_or_with_the_whole_ladders(
     make_no_cm_case, monkeypatch: pytest.MonkeyPatch, local_bones: bool
 ) -> None:
-    from fluoronav.navigation.result import VerificationConfig
+    from fluoronav.navigation.config import VerificationConfig
 
     case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=1.0)
     slide = se3.make(np.eye(3), (-40.0, 15.0, 0.0))
@@ -420,7 +421,7 @@ def test_one_view_without_a_relation_keeps_every_camera_and_the_whole_ladders(
 def test_the_reference_verification_uses_neither_the_carm_motion_nor_the_kinematics(
     make_no_cm_case, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from fluoronav.navigation.result import VerificationConfig
+    from fluoronav.navigation.config import VerificationConfig
 
     case = _robot_case(make_no_cm_case, monkeypatch, roll_deg=60.0, verify_offset_mm=1.0)
     case = _with_relations(case, [("view0", np.eye(4)), ("view0", np.eye(4))])

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from fluoronav.navigation.config import NavigationConfig
 from fluoronav.navigation.outputs.report import _banner
 from fluoronav.navigation.pipeline import NavigationRefused
-from fluoronav.navigation.result import NavigationConfig, NavigationResult
+from fluoronav.navigation.result import NavigationResult
 
 
 def test_a_result_without_verification_is_unverified_in_json_and_report() -> None:

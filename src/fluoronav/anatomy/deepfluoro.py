@@ -1,30 +1,13 @@
 """Reader of the DeepFluoro data set: real cadaver X-rays with ground-truth poses (HDF5, read lazily).
 
-DeepFluoro (Grupp et al., "Automatic annotation of hip anatomy in fluoroscopy for robust and
-efficient 2D/3D registration", IJCARS 15(5):759–769, 2020; data CC BY-NC 4.0) holds 6 cadaveric
-specimens, 366 C-arm images of 1536² pixels at 0.194 mm, CTs at 1 mm with labels, 14 3D landmarks
-with their 2D projections and per image the ground-truth poses of the pelvis and both femurs. The
-user downloads the full-resolution file (``ipcai_2020_full_res_data.h5``) from the link in
-``rg2/DeepFluoroLabeling-IPCAI2020``; fluoronav ships none of it.
+The user downloads ``ipcai_2020_full_res_data.h5`` (Grupp et al., IJCARS 15(5), 2020; CC BY-NC
+4.0); fluoronav ships none of it. The file's layout and what a study does with it: docs/real-data.md.
 
-Layout (that repository's ``hdf5_layouts/Readme.md``; xReg's HDF5 code for the array orders):
-
-- ``proj-params/{intrinsic (3, 3), extrinsic (4, 4), num-rows, num-cols, pixel-row-spacing,
-  pixel-col-spacing}``, shared by all images;
-- per specimen (e.g. ``17-1882``): ``vol`` and ``vol-seg/image`` (image groups: ``pixels`` in
-  row-major (z, y, x) order, ``origin`` (3, 1), ``spacing`` (3, 1) as (x, y, z), ``dir-mat`` (3, 3),
-  LPS), ``vol-seg/labels-def/<N>`` (label names), ``vol-landmarks/<name>`` (3, 1) LPS mm;
-- ``projections/NNN/{image/pixels (rows, cols), gt-landmarks/<name> (2, 1) as (column, row),
-  gt-poses/{cam-to-pelvis-vol, cam-to-left-femur-vol, cam-to-right-femur-vol (4, 4),
-  left-femur-good-fov, right-femur-good-fov}, rot-180-for-up}``.
-
-Frames: a projection's camera is returned in fluoronav's convention (OpenCV, ``camera_from_world``
-with world = the specimen's CT, LPS, the pelvis at its CT pose), its image and 2D landmarks flipped
-to match (:mod:`fluoronav.anatomy.deepfluoro_frames`). A femur's pose is ``world_from_femur``: the
-CT's femur moved to where the image shows it, in the pelvis's CT frame
-(``cam-to-pelvis-vol · inv(cam-to-femur-vol)``). Labels become fluoronav's ``pelvis`` (hemipelves,
-vertebra, sacrum: what moves with the pelvis, as xReg's pelvis registration takes it),
-``femur_left`` and ``femur_right``.
+Frames (docs/conventions.md, "DeepFluoro frames"): a projection's camera is returned in fluoronav's
+convention (OpenCV, ``camera_from_world`` with world = the specimen's CT, LPS mm, the pelvis at its
+CT pose), its image and 2D landmarks flipped to match (:mod:`fluoronav.anatomy.deepfluoro_frames`).
+A femur's pose is ``world_from_femur``: the CT's femur moved to where the image shows it. Labels
+become fluoronav's ``pelvis`` (what moves with the pelvis), ``femur_left`` and ``femur_right``.
 """
 
 from __future__ import annotations

@@ -1,31 +1,14 @@
 """DeepFluoro's camera frame → fluoronav's, once (docs/conventions.md, "DeepFluoro frames").
 
-DeepFluoro (Grupp et al., IJCARS 15(5), 2020; ``hdf5_layouts/Readme.md`` of
-``rg2/DeepFluoroLabeling-IPCAI2020``) and xReg, which made it, project a CT point ``p`` (LPS, mm) of
-the pelvis into stored pixel ``(u, v)`` = (column, row) as
-
-    ``[u, v, 1]ᵀ ∝ intrinsic · extrinsic · inv(cam-to-pelvis-vol) · p``
-
-(xReg's ``CameraModel::phys_pt_to_ind_pt``): ``extrinsic`` maps the C-arm's "camera world" frame to
-the projective frame, ``cam-to-pelvis-vol`` maps the camera world frame to the CT. The projective
-frame has its origin at the source, x along increasing columns, y along increasing rows and z
-**towards the source**; the detector lies at z = −(source-to-detector distance) and ``intrinsic``
-has negative focal lengths (``−sdd / pixel spacing``), the principal point in the centre-of-pixel
-convention (767.5 for 1536 columns).
-
-fluoronav's camera (OpenCV) has z from the source **towards** the detector and positive focal
-lengths. A right-handed frame with x along the columns, y along the rows and z towards the source
-sees the detector from behind: the stored image is the mirror image of what a camera at the source
-sees. No rigid ``camera_from_world`` reproduces it, so the image is flipped instead:
-
-1. where ``rot-180-for-up`` is set, the image is turned by 180° first (the patient "up": superior at
-   the top), as the data set's preprocessing does;
-2. then, where the resulting pixel axes and the viewing direction form a left-handed frame (always
-   for the data set's negative focal lengths), the columns are mirrored.
-
-Both are pixel flips (:class:`ImageFlip`); the same flips apply to the 2D landmarks. The camera
-follows from ``flip · intrinsic · extrinsic · inv(cam-to-pelvis-vol)`` factored into positive
-intrinsics and a rigid pose with the CT in front (:func:`fluoronav_camera`).
+DeepFluoro (and xReg, which made it) projects a CT point ``p`` (LPS, mm) of the pelvis into stored
+pixel (u, v) = (column, row) as ``[u, v, 1]ᵀ ∝ intrinsic · extrinsic · inv(cam-to-pelvis-vol) · p``,
+in a projective frame whose z points **towards the source** (negative focal lengths). That frame
+sees the detector from behind, so no rigid ``camera_from_world`` reproduces a stored image; the
+image is flipped instead (:class:`ImageFlip`: turned by 180° where ``rot-180-for-up`` is set, then
+its columns mirrored where its pixel axes and the viewing direction form a left-handed frame), the
+2D landmarks with it. The camera follows from ``flip · intrinsic · extrinsic ·
+inv(cam-to-pelvis-vol)`` factored into positive intrinsics and a rigid pose with the CT in front
+(:func:`fluoronav_camera`).
 """
 
 from __future__ import annotations

@@ -1,17 +1,11 @@
-"""Reading and writing CT volumes with their label maps and landmarks.
+"""Reading and writing CT volumes with their label maps and landmarks (docs/data-formats.md).
 
-Formats: NIfTI (``.nii``, ``.nii.gz``), NRRD (``.nrrd``, ``.nhdr``), MetaImage (``.mha``, ``.mhd``)
-and DICOM series (a directory; the series with the most files is read). Geometry is kept exactly as
-SimpleITK reads it (world = LPS, mm): spacing, origin and direction cosines. NIfTI stores geometry
-in float32, so it round-trips to ~1e-6 relative; the other formats round-trip bit-exactly.
-
-Sibling files (found next to the CT; ``<stem>`` is the file name without its format suffix, or the
-DICOM directory's name):
-
-- ``<stem>_labels.<ext>``: an integer label map on the CT's grid (any supported volume format);
-- ``<stem>.labels.json``: label names, ``{"1": "pelvis", "2": "femur_left", ...}``;
-- ``<stem>_landmarks.fcsv`` or ``<stem>_landmarks.json``: landmarks (see
-  :mod:`fluoronav.anatomy.landmarks`); the FCSV wins when both exist.
+Formats: NIfTI, NRRD, MetaImage and DICOM series (a directory; the series with the most files is
+read). Geometry is kept exactly as SimpleITK reads it (world = LPS, mm): spacing, origin and
+direction cosines. Sibling files next to the CT (``<stem>``: the file name without its format
+suffix, or the DICOM directory's name): ``<stem>_labels.<ext>`` (a label map on the CT's grid),
+``<stem>.labels.json`` (label names) and ``<stem>_landmarks.fcsv`` or ``<stem>_landmarks.json``
+(landmarks, :mod:`fluoronav.anatomy.landmarks`; the FCSV wins when both exist).
 """
 
 from __future__ import annotations

@@ -1,24 +1,11 @@
-"""Landmark files: 3D Slicer markups (FCSV, and ``.mrk.json`` through
-:mod:`fluoronav.anatomy.markups`) and a small JSON format.
+"""Landmark files: 3D Slicer markups (FCSV, ``.mrk.json``) and a small JSON format.
 
 Landmarks are kept as ``name → (3,) float64 world point in mm`` in the CT's LPS frame (the frame
 SimpleITK reads). Files in RAS (Slicer's default) are converted on reading by negating x and y.
-
-FCSV (Slicer "Markups fiducial" CSV)::
-
-    # Markups fiducial file version = 4.11
-    # CoordinateSystem = LPS            (or RAS, or the old numeric form 0 = RAS, 1 = LPS)
-    # columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID
-    vtkMRMLMarkupsFiducialNode_0,12.5,-3.0,40.0,0,0,0,1,1,1,0,femoral_head_left,,
-
-The name is the ``label`` column (else the ``id``). Without a ``# columns`` line the Slicer default
-column order above is assumed; without a coordinate-system line, RAS (Slicer's default).
-
-JSON::
-
-    {"coordinate_system": "LPS", "landmarks": {"femoral_head_left": [12.5, -3.0, 40.0], ...}}
-
-``coordinate_system`` is ``"LPS"`` (default when absent) or ``"RAS"``.
+The formats (docs/data-formats.md, "Landmarks"): an FCSV names a point by its ``label`` column
+(else its ``id``) and has, without a ``# columns`` line, Slicer's default column order, without a
+coordinate-system line RAS; ``.mrk.json`` is read by :mod:`fluoronav.anatomy.markups`; the JSON
+format is ``{"coordinate_system": "LPS" or "RAS" (default LPS), "landmarks": {name: [x, y, z]}}``.
 """
 
 from __future__ import annotations

@@ -1,28 +1,11 @@
 """3D Slicer markups JSON files (``.mrk.json``): point lists, lines, curves and the other markups.
 
-The format follows Slicer's markups schema v1.0.3 (``Modules/Loadable/Markups/Resources/Schema/
-markups-schema-v1.0.3.json``) and its reader/writer (``vtkMRMLMarkupsJsonStorageNode``):
-
-* The top level is an object with the required keys ``"@schema"`` and ``"markups"`` (a list). Files
-  are written with the schema id Slicer itself writes, :data:`MARKUPS_SCHEMA_ID`; on reading, an
-  ``"@schema"`` that is present must name a ``markups-schema-v1.x.y.json`` (as Slicer accepts).
-* Each markup requires ``"type"`` (``"Fiducial"`` for point lists, ``"Line"``, ``"Curve"``, ...) and
-  may hold ``"name"``, ``"coordinateSystem"`` (``"LPS"`` or ``"RAS"``; **LPS when absent**, the
-  schema's default and Slicer's reading rule), ``"coordinateUnits"`` (mm; also the coded form
-  ``["mm", "UCUM", "millimeter"]``), ``"controlPoints"`` and ``"display"``.
-* A control point holds ``"label"``, ``"position"`` (three numbers in the markup's coordinate
-  system) and ``"positionStatus"`` (``"defined"`` when absent). Points whose status is
-  ``"undefined"`` or ``"preview"`` are not placed (Slicer writes an empty position for them) and
-  are skipped. ``"orientation"`` is a row-major 3×3 matrix stored, like the position, in the file's
-  coordinate system: the identity of Slicer's RAS scene is ``[-1, 0, 0, 0, -1, 0, 0, 0, 1]`` in LPS.
-
-Points are returned in LPS (the CT world frame SimpleITK reads, mm): RAS positions are converted by
-negating x and y.
-
-Node and point names: a markup's name is its ``"name"``, else the file name without ``.mrk.json``
-(the name Slicer gives the node it loads). A control point without a label is named
-``"<markup name>-<n>"`` with ``n`` its 1-based position in the markup's control point list, which
-is Slicer's default label format ``"%N-%d"``.
+The format is Slicer's markups schema v1.0.3 as its reader/writer
+(``vtkMRMLMarkupsJsonStorageNode``) handles it; the rules applied here are in docs/data-formats.md
+("Landmarks"). Points are returned in LPS (the CT world frame SimpleITK reads, mm): RAS positions
+are converted by negating x and y, and a markup without ``"coordinateSystem"`` is LPS (the
+schema's default). Points whose status is ``"undefined"`` or ``"preview"`` are skipped; a point
+without a label is named ``"<markup name>-<n>"`` (1-based, Slicer's default label format).
 """
 
 from __future__ import annotations
@@ -31,7 +14,7 @@ import json
 import logging
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -214,6 +197,37 @@ def read_markups(path: str | Path) -> dict[str, np.ndarray]:
     return out
 
 
+def _control_points(
+    points: Mapping[str, np.ndarray], flip: np.ndarray, orientation: Sequence[float] | np.ndarray
+) -> list[dict[str, Any]]:
+    """The file's control point entries, in order: ``points`` (label → (3,) LPS mm) times ``flip``
+    (the file's coordinate system), each with the identity's ``orientation`` (9 values).
+
+    Raises:
+        ValueError: a point that is not three finite numbers.
+    """
+    control_points = []
+    for i, (label, p) in enumerate(points.items(), start=1):
+        q = np.asarray(p, dtype=np.float64).reshape(-1)
+        if q.shape != (3,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"point {label!r} must be three finite numbers, got {p!r}")
+        control_points.append(
+            {
+                "id": str(i),
+                "label": str(label),
+                "description": "",
+                "associatedNodeID": "",
+                "position": [float(v) for v in q * flip],
+                "orientation": [float(v) for v in orientation],
+                "selected": True,
+                "locked": False,
+                "visibility": True,
+                "positionStatus": "defined",
+            }
+        )
+    return control_points
+
+
 def write_markups(
     path: str | Path,
     points: Mapping[str, np.ndarray],
@@ -257,25 +271,7 @@ def write_markups(
     flip = _RAS_TO_LPS if system == "RAS" else np.ones(3)
     # orientation of the identity (RAS scene) as Slicer writes it in the file's coordinate system
     orientation = [-1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0] if system == "LPS" else np.eye(3).ravel()
-    control_points = []
-    for i, (label, p) in enumerate(points.items(), start=1):
-        q = np.asarray(p, dtype=np.float64).reshape(-1)
-        if q.shape != (3,) or not np.all(np.isfinite(q)):
-            raise ValueError(f"point {label!r} must be three finite numbers, got {p!r}")
-        control_points.append(
-            {
-                "id": str(i),
-                "label": str(label),
-                "description": "",
-                "associatedNodeID": "",
-                "position": [float(v) for v in q * flip],
-                "orientation": [float(v) for v in orientation],
-                "selected": True,
-                "locked": False,
-                "visibility": True,
-                "positionStatus": "defined",
-            }
-        )
+    control_points = _control_points(points, flip, orientation)
     markup = {
         "type": kind,
         "name": name,

@@ -1,18 +1,14 @@
 """A procedural hip phantom: pelvis, sacrum, L5 and both proximal femurs in soft tissue, in HU.
 
-The anatomy is built from smooth implicit shapes (spheres, ellipsoids, tapered capsules, thick
-triangles) combined as signed-distance-style fields (smooth unions, a spherical socket carved out
-of each acetabulum). Each bone field is evaluated only inside each primitive's bounding box, then
-turned into a cortical shell over cancellous bone with anti-aliased (partial-volume) boundaries.
+The bones are smooth implicit shapes (spheres, ellipsoids, tapered capsules, thick triangles)
+combined as signed-distance-style fields (smooth unions, a socket carved out of each acetabulum),
+each evaluated only inside its bounding box and turned into a cortical shell over cancellous bone
+with anti-aliased (partial-volume) boundaries.
 
 Frame: world = LPS (mm), patient supine, direction identity, volume centre at the world origin
-(within half a voxel). +x = patient left, +y = posterior, +z = superior. The default field of view
-is 344 × 240 × 240 mm (x, y, z); at the default 1.0 mm spacing that is a (240, 240, 344) array
-(nz, ny, nx), ~20 M voxels (79 MB float32 + 20 MB uint8 labels).
-
-Seed 0 is the canonical anatomy; other seeds vary sizes (±~8 %), pelvis width, femoral head
-radius, neck-shaft angle, anteversion, neck length, femur pose (abduction, flexion, rotation about
-the head centre), body size, fat thickness, HU levels and the cancellous texture.
+(within half a voxel). The default field of view is 344 × 240 × 240 mm (x, y, z), at 1.0 mm spacing
+a (240, 240, 344) array (nz, ny, nx). Seed 0 is the canonical anatomy; other seeds vary the bones'
+sizes and angles, the femur's pose about its head, body size, fat, HU levels and texture.
 """
 
 from __future__ import annotations
@@ -326,6 +322,55 @@ def _texture(rng: np.random.Generator, shape: tuple[int, ...], cell_vox: float) 
     return out
 
 
+def _soft_tissue_hu(
+    p: _Params, marks: dict[str, np.ndarray], axes: list[np.ndarray], h: np.float32
+) -> np.ndarray:
+    """One axial slice of the soft tissue (ny, nx) HU: an elliptic cylinder (muscle) with a
+    subcutaneous fat layer, in air, anti-aliased over ``h`` mm."""
+    # widened where needed so the greater trochanters stay covered, but kept inside the default
+    # field of view
+    a_body, b_body = p.body_semi_axes_mm
+    bony_half_width = max(abs(marks["entry_left"][0]), abs(marks["entry_right"][0]))
+    a_body = min(max(a_body, bony_half_width + p.fat_mm + 8.0), 0.5 * DEFAULT_FOV_MM[0] - 1.5)
+    fat_mm = min(p.fat_mm, a_body - bony_half_width - 6.0)
+    d2 = _ellipse_sdf(axes[0][None, :], (axes[1] - np.float32(2.0))[:, None], a_body, b_body)
+    f_body = np.clip(0.5 - d2 / h, 0.0, 1.0)
+    f_muscle = np.clip(0.5 - (d2 + np.float32(fat_mm)) / h, 0.0, 1.0)
+    slice_hu: np.ndarray = AIR_HU * (1.0 - f_body) + (-100.0) * (f_body - f_muscle) + 40.0 * f_muscle
+    return slice_hu
+
+
+def _paint_bones(
+    data: np.ndarray,
+    labels: np.ndarray,
+    bones: list[tuple[Bone, int]],
+    axes: list[np.ndarray],
+    p: _Params,
+    h: np.float32,
+    spacing_mm: float,
+    rng: np.random.Generator | None,
+) -> None:
+    """Paint each bone into ``data`` (HU) in place, a cortical shell over cancellous bone (textured
+    from ``rng`` where given), and its label value (0: none) into ``labels``."""
+    margin = p.cortical_mm + 2.0 * spacing_mm
+    for bone, value in bones:
+        raster = _rasterise(bone, axes, margin)
+        if raster is None:
+            continue
+        box, d = raster
+        t = bone.thickness(_coords(box, axes)) if bone.thickness is not None else np.float32(p.cortical_mm)
+        f_out = np.clip(0.5 - d / h, 0.0, 1.0)
+        f_in = np.clip(0.5 - (d + t) / h, 0.0, 1.0)
+        canc: np.ndarray | np.float32 = np.float32(p.cancellous_hu)
+        if rng is not None:
+            canc = canc + np.float32(35.0) * _texture(rng, d.shape, 6.0 / spacing_mm)
+        region = data[box]
+        region *= 1.0 - f_out
+        region += np.float32(p.cortical_hu) * (f_out - f_in) + canc * f_in
+        if value:
+            labels[box][d < 0] = value
+
+
 def hip_phantom(
     *,
     seed: int = 0,
@@ -379,38 +424,13 @@ def hip_phantom(
         marks.update(fm)
     marks["pelvis_center"] = 0.5 * (marks["acetabulum_left"] + marks["acetabulum_right"])
 
-    # soft tissue: elliptic cylinder (muscle) with a subcutaneous fat layer, in air; widened where
-    # needed so the greater trochanters stay covered, but kept inside the default field of view
-    a_body, b_body = p.body_semi_axes_mm
-    bony_half_width = max(abs(marks["entry_left"][0]), abs(marks["entry_right"][0]))
-    a_body = min(max(a_body, bony_half_width + p.fat_mm + 8.0), 0.5 * DEFAULT_FOV_MM[0] - 1.5)
-    fat_mm = min(p.fat_mm, a_body - bony_half_width - 6.0)
-    d2 = _ellipse_sdf(axes[0][None, :], (axes[1] - np.float32(2.0))[:, None], a_body, b_body)
-    f_body = np.clip(0.5 - d2 / h, 0.0, 1.0)
-    f_muscle = np.clip(0.5 - (d2 + np.float32(fat_mm)) / h, 0.0, 1.0)
-    slice_hu = AIR_HU * (1.0 - f_body) + (-100.0) * (f_body - f_muscle) + 40.0 * f_muscle
+    slice_hu = _soft_tissue_hu(p, marks, axes, h)
     data = np.empty((nz, ny, nx), dtype=np.float32)
     data[:] = slice_hu.astype(np.float32)[None]
     labels = np.zeros((nz, ny, nx), dtype=np.uint8)
 
-    margin = p.cortical_mm + 2.0 * spacing_mm
     bones = [(spine, 0), (pelvis, 1), (femurs["left"], 2), (femurs["right"], 3)]
-    for bone, value in bones:
-        raster = _rasterise(bone, axes, margin)
-        if raster is None:
-            continue
-        box, d = raster
-        t = bone.thickness(_coords(box, axes)) if bone.thickness is not None else np.float32(p.cortical_mm)
-        f_out = np.clip(0.5 - d / h, 0.0, 1.0)
-        f_in = np.clip(0.5 - (d + t) / h, 0.0, 1.0)
-        canc: np.ndarray | np.float32 = np.float32(p.cancellous_hu)
-        if texture:
-            canc = canc + np.float32(35.0) * _texture(rng, d.shape, 6.0 / spacing_mm)
-        region = data[box]
-        region *= 1.0 - f_out
-        region += np.float32(p.cortical_hu) * (f_out - f_in) + canc * f_in
-        if value:
-            labels[box][d < 0] = value
+    _paint_bones(data, labels, bones, axes, p, h, spacing_mm, rng if texture else None)
 
     volume = Volume(
         data=data,

@@ -1,20 +1,13 @@
-"""Detection benchmark: ``detect_ms`` (the detection pipeline on a 1536² CIOS-size image) against
-``detect_ms_baseline`` (the coarse network applied once at the full input resolution), both measured
-here in the same run on the same image, with the shipped weights when present (else the default
-architecture with seeded random weights: the run time does not depend on the weight values).
+"""Detection benchmark: the detection pipeline on a 1536² image against a one-pass baseline.
 
-The image is a physics-simulated 1536² detector image of the CM over the hip phantom (unbinned
-0.194 mm pixels). The pipeline is timed stage by stage on the region of interest and the mask of the
-simulated CM, so the figure covers the whole path (coarse, every fine pass with its test-time
-transforms and ROI scales, mask mapping, the second look where the detection is unsure enough,
-landmark refinement, centreline, the tube-mask and mask-end stages where the model has them, the
-check that landmark A is not on a free end of a tube and the check that the mask ends on an image
-edge, where the model's decoding asks for them) whatever the weights detect; reading A again where
-it is on a free end (rare) is not timed. ``detect_second_look_ms`` times the
-same path with the second look forced (its wider view and, where that moves a landmark far enough, a
-second run of the fine stage): what an unsure detection costs. Both run every network in float32
-(the default precision); on a CPU with native bfloat16, ``detect_bfloat16_ms`` times the same
-pipeline with the model's ``bf16_stages`` in bfloat16 (``--precision bfloat16``).
+``detect_ms`` times the whole pipeline stage by stage on the simulated CM's region and mask, so the
+figure covers every stage whatever the weights detect; ``detect_ms_baseline`` is the coarse network
+applied once at the full input resolution. Both run in the same process on one physics-simulated
+detector image of the CM over the hip phantom (unbinned 0.194 mm pixels), with the shipped weights
+when present (else seeded random weights: the time does not depend on them).
+``detect_second_look_ms`` times the path with the second look forced (what an unsure detection
+costs); on a CPU with native bfloat16, ``detect_bfloat16_ms`` with the model's ``bf16_stages`` in
+bfloat16 (``--precision bfloat16``). The figures: docs/validation.md ("Speed").
 """
 
 from __future__ import annotations

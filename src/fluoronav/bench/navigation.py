@@ -1,35 +1,24 @@
-"""Navigation benchmarks (``fluoronav bench``): the pelvis on one view and the whole ``navigate``
-pipeline, each beside the same work with the registration settings of fluoronav 0.1.0.
+"""Navigation benchmarks (``fluoronav bench``): the pelvis on one view and the ``navigate`` pipeline.
 
-The problem is a simulated phantom case as ``fluoronav demo`` makes it (seed :data:`BENCH_SEED`,
-768² physics-simulated views, the shipped detector), without its verification views:
-
-- ``register_bone_view_s``: the pelvis registered to the case's first view with the navigation
-  pipeline's preset (:data:`~fluoronav.registration.bone.presets.PELVIS_LINEARIZED_PRESET`);
-  ``_reference``: the CMA-ES ladder (:data:`~fluoronav.registration.bone.presets.PELVIS_CMAES_PRESET`)
-  without empty-space skipping and with the similarity's torch ops, the settings of 0.1.0.
-- ``navigate_s``: :func:`~fluoronav.navigation.pipeline.navigate` from detection through the robot
-  command on the three views with the default settings; ``_reference``: the pelvis, femur and CM of
-  0.1.0 (CMA-ES ladders without skipping, the CM's CMA-ES levels
-  (:data:`~fluoronav.bench.registration.REFERENCE_CONFIG`), the similarity's torch ops).
-- ``navigate_verify_s``: the same case with its three verification views (the simulated navigation
-  run to its end): the pipeline's stages of the first images and of the verification, summed
-  (the simulation's own stages are not counted); ``_reference``: with the settings of 0.4.1 (the
-  CM's CMA-ES levels, every verification view's bones registered with the whole ladders, the
-  verification's CM from the images alone: :meth:`VerificationConfig.reference`). Each run
-  simulates its own verification images where its own command took the robot, so both are
-  complete navigations; ``*_corrected_tip_mm`` is each one's true tip to plan after the correction.
-- ``navigate_verify2_s``: the same with two verification views (the two orbits: the demo's 3 + 2),
-  against the same reference (3 + 3 with the settings of 0.4.1).
-
-Each ``_speedup`` is the reference over the figure. The errors of every run against the
-simulation's truth are reported too (``*_pelvis_mm``: the pelvis centre in the camera frame;
-``*_tip_mm``: the registered CM tip), so that a faster setting that got worse shows.
+The case is a simulated phantom case as ``fluoronav demo`` makes it (seed :data:`BENCH_SEED`, 768²
+views, the shipped detector). Keys: ``register_bone_view_s`` (the pelvis on the first view with the
+navigation's preset), ``navigate_s`` (:func:`~fluoronav.navigation.pipeline.navigate`, detection to
+robot command, three views), ``navigate_verify_s`` and ``navigate_verify2_s`` (the case run to its
+end with three or two verification views: the pipeline's stages summed, each run simulating its own
+verification images where its own command took the robot). Each has a ``_reference``, the same work
+with the reference settings (the CMA-ES presets without empty-space skipping,
+:data:`~fluoronav.bench.registration.REFERENCE_CONFIG`, the shipped settings ``reference-0.4.1``), a
+``_speedup`` and its errors against the truth (``*_pelvis_mm``, ``*_tip_mm``,
+``*_corrected_tip_mm``), so that a faster setting that got worse shows (docs/validation.md, "Speed").
 """
 
 from __future__ import annotations
 
 import logging
+import statistics
+import subprocess
+import sys
+import tempfile
 import time
 from dataclasses import replace
 
@@ -37,22 +26,25 @@ import numpy as np
 
 from fluoronav.bench.registration import REFERENCE_CONFIG
 from fluoronav.geometry import se3
+from fluoronav.navigation.config import NavigationConfig, shipped_settings
 from fluoronav.navigation.pipeline import navigate
-from fluoronav.navigation.result import NavigationConfig, VerificationConfig, reference_cm_config
 from fluoronav.registration.bone import BoneView, register_pelvis
 from fluoronav.registration.bone.presets import PELVIS_CMAES_PRESET, BoneRegistrationConfig, femur_config
 from fluoronav.simulation.navigation.loop import SimulatedNavigationConfig, run_simulated_navigation
 
-__all__ = ["BENCH_SEED", "run"]
+__all__ = ["BENCH_SEED", "REFERENCE_SETTINGS", "navigate_startup", "run"]
 
 log = logging.getLogger(__name__)
 
 #: the simulated case's seed
 BENCH_SEED = 3
 
+#: the shipped settings file of ``navigate_verify_s_reference`` (the settings of fluoronav 0.4.1)
+REFERENCE_SETTINGS = "reference-0.4.1"
+
 
 def _reference(preset: BoneRegistrationConfig) -> BoneRegistrationConfig:
-    """A bone preset as fluoronav 0.1.0 ran it: no empty-space skipping, the similarity's torch ops."""
+    """The reference of a bone preset: no empty-space skipping, the similarity's torch ops."""
     levels = tuple(
         replace(lv, optimizer=lv.optimizer.with_(similarity_backend="torch")) for lv in preset.levels
     )
@@ -60,7 +52,7 @@ def _reference(preset: BoneRegistrationConfig) -> BoneRegistrationConfig:
 
 
 def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
-    """Seconds of one pelvis view and of one navigation, each with its 0.1.0 reference (one repeat:
+    """Seconds of one pelvis view and of one navigation, each with its reference (one repeat:
     a navigation takes minutes at the reference settings; ``quick`` changes nothing)."""
     sim = run_simulated_navigation(SimulatedNavigationConfig(seed=BENCH_SEED, device=device), until="case")
     case = replace(sim.artifacts["case"], verification=None)
@@ -72,7 +64,7 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
     centre = np.asarray(case.volume.landmarks_world.get("pelvis_center", case.volume.center_world))
     reference_pelvis = _reference(PELVIS_CMAES_PRESET)
     for key, preset in (
-        ("register_bone_view_s", NavigationConfig().pelvis),
+        ("register_bone_view_s", NavigationConfig().views.pelvis),
         ("register_bone_view_s_reference", reference_pelvis),
     ):
         t0 = time.perf_counter()
@@ -96,9 +88,12 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
             NavigationConfig(
                 device=device,
                 seed=BENCH_SEED,
-                pelvis=reference_pelvis,
-                femur=reference_femur,
-                cm=REFERENCE_CONFIG,
+                views=replace(
+                    NavigationConfig().views,
+                    pelvis=reference_pelvis,
+                    femur=reference_femur,
+                    cm=REFERENCE_CONFIG,
+                ),
             ),
         ),
     ):
@@ -114,19 +109,14 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
     for key in ("register_bone_view_s", "navigate_s", "navigate_verify_s"):
         out[f"{key}_speedup"] = out[f"{key}_reference"] / out[key]
     out["navigate_verify2_s_speedup"] = out["navigate_verify_s_reference"] / out["navigate_verify2_s"]
+    out.update(navigate_startup(quick))
     return out
 
 
 def _navigate_verify(device: str) -> dict[str, float]:
     """``navigate_verify_s`` and its reference (module docstring)."""
     out: dict[str, float] = {}
-    reference = NavigationConfig(
-        device=device,
-        seed=BENCH_SEED,
-        cm=reference_cm_config(),
-        verify_cm=reference_cm_config(),
-        verification=VerificationConfig.reference(),
-    )
+    reference = shipped_settings(REFERENCE_SETTINGS, NavigationConfig(device=device, seed=BENCH_SEED))
     default = NavigationConfig(device=device, seed=BENCH_SEED)
     for key, nav, k in (
         ("navigate_verify_s", default, 3),
@@ -144,3 +134,59 @@ def _navigate_verify(device: str) -> dict[str, float]:
         )
         log.info("%s: %.1f s (%s)", key, out[key], res.status)
     return out
+
+
+#: a process's code up to where ``fluoronav navigate`` starts its work: the command on a case that is
+#: not there loads what it runs, then stops at reading the case (exit status 2 as 0 here)
+_NAVIGATE_UNTIL_WORK = """
+import sys
+from fluoronav.cli.main import main
+try:
+    main(["navigate", sys.argv[1], "--out", sys.argv[2]])
+except SystemExit as exc:
+    sys.exit(0 if exc.code == 2 else 1)
+"""
+
+#: the reference's start: every module of the package imported, as fluoronav 0.9.0 effectively did
+_IMPORT_EVERY_MODULE = """
+import importlib, pkgutil, fluoronav
+for module in pkgutil.walk_packages(fluoronav.__path__, "fluoronav."):
+    importlib.import_module(module.name)
+"""
+
+
+def navigate_startup(quick: bool = False) -> dict[str, float]:
+    """``navigate_startup_s``: seconds from a process's start until ``fluoronav navigate`` would start
+    its work, the median of 5 processes (1 with ``quick``); ``_reference`` the same with every module
+    of the package imported first; ``_speedup``."""
+    repeats = 1 if quick else 5
+    with tempfile.TemporaryDirectory() as tmp:
+        args = [f"{tmp}/no_case/navigation.json", f"{tmp}/out"]
+        if not quick:
+            _process_s(_IMPORT_EVERY_MODULE + _NAVIGATE_UNTIL_WORK, args)  # untimed: bytecode caches
+        own, reference = [], []
+        for _ in range(repeats):  # interleaved: a busy machine slows both alike
+            own.append(_process_s(_NAVIGATE_UNTIL_WORK, args))
+            reference.append(_process_s(_IMPORT_EVERY_MODULE + _NAVIGATE_UNTIL_WORK, args))
+    out = {
+        "navigate_startup_s": float(statistics.median(own)),
+        "navigate_startup_s_reference": float(statistics.median(reference)),
+    }
+    out["navigate_startup_s_speedup"] = out["navigate_startup_s_reference"] / out["navigate_startup_s"]
+    log.info(
+        "navigate_startup_s: %.2f s (reference %.2f s)",
+        out["navigate_startup_s"],
+        out["navigate_startup_s_reference"],
+    )
+    return out
+
+
+def _process_s(code: str, args: list[str]) -> float:
+    """Wall seconds of one ``python -c code *args`` process, which must end where the navigate
+    command refuses the missing case."""
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, encoding="utf-8")
+    seconds = time.perf_counter() - t0
+    if proc.returncode != 0 or "navigation case not found" not in proc.stderr:
+        raise RuntimeError(f"the navigate command did not reach its case: {proc.stderr.strip()[-400:]}")
+    return seconds

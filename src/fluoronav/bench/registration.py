@@ -3,9 +3,9 @@
 - :func:`run` (``fluoronav bench``): ``register_single_view_s`` and ``register_multi_view_s``, the
   median seconds of one registration from the default initialisation (truth perturbed 10°/10 mm,
   control points ±0.5°) on a fixed simulated scene (768² image = the 1536² CIOS detector binned 2×,
-  5,000 photons per pixel) with the default settings. ``_reference``, measured in the same run on
-  the same problem and seed: the settings of fluoronav 0.1.0 (CMA-ES at both levels, the similarity's
-  torch ops, every pixel of each CM link's box). ``_tip_mm``: the registered tip's distance from the
+  5,000 photons per pixel) with the default settings. ``_reference``, timed in the same run on the
+  same problem and seed: :data:`REFERENCE_CONFIG` (CMA-ES at both levels, the similarity's torch
+  ops, every pixel of each CM link's box). ``_tip_mm``: the registered tip's distance from the
   truth, so that a faster setting that got worse shows.
 - :func:`evaluate_cm_registration`: the accuracy study (tip, base, notch errors, seconds).
 """
@@ -68,8 +68,8 @@ def _time_registration(case: CMCase, config: CMRegistrationConfig, repeats: int)
 
 
 def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
-    """Median seconds per single-view and multi-view registration on ``device``, with the 0.1.0
-    reference (same device).
+    """Median seconds per single-view and multi-view registration on ``device``, with the
+    reference (:data:`REFERENCE_CONFIG`, same device).
 
     ``quick`` runs one repeat instead of three; the problems are the same (simulated on the CPU).
     """

@@ -1,21 +1,14 @@
 """Benchmark of the data set simulation (``fluoronav bench`` key ``simulate_samples_per_s``).
 
-Figures, all at the default settings (the 1 mm hip phantom, 512² stored images binned from the
-1536² detector, noise on), measured after a warm-up (phantom build, numba compilation):
-
-- ``simulate_samples_per_s_in_process``: :meth:`XraySimulator.simulate` in this process (numba and
-  torch use all cores);
-- ``simulate_samples_per_s_workers``: the ``simulate`` data set path (:func:`run_tasks` on a Dask
-  LocalCluster of 2 single-threaded workers, each sample written to an npz and the manifest), rate
-  from the first to the last completion after each worker's first (warm-up) sample;
-- ``simulate_samples_per_s``: the higher of the two (the headline);
-- ``simulate_samples_per_s_baseline``: the straightforward simulation in this process, the same
-  scenes: scatter convolved at full resolution and the spectrum in its native 1 keV bins (the
-  accuracy reference of those two speed-ups), in the same code otherwise;
-- ``simulate_samples_per_s_speedup``: headline / baseline;
-- ``simulate_cpu_s_per_sample`` (and ``_baseline``): CPU seconds of this process per in-process
-  sample, a load-independent cost: on an otherwise idle machine with C cores the data set path
-  can reach at most about C / that figure samples per second.
+At the default settings (the 1 mm hip phantom, 512² images binned from the 1536² detector, noise
+on), after a warm-up (phantom build, numba compilation): ``_in_process``
+(:meth:`XraySimulator.simulate` in this process), ``_workers`` (the ``simulate`` data set path,
+:func:`run_tasks` on a Dask LocalCluster of 2 single-threaded workers, the rate after each worker's
+first sample), the headline (the higher of the two), ``_baseline`` (the same scenes with scatter
+convolved at full resolution and the spectrum in 1 keV bins, the accuracy reference of those two
+speed-ups) and ``_speedup``. ``simulate_cpu_s_per_sample`` (and ``_baseline``) is the CPU time per
+in-process sample, a load-independent cost: with C idle cores the data set path reaches at most
+about C / it samples per second. Keys: docs/simulation.md ("Speed"); figures: docs/validation.md.
 """
 
 from __future__ import annotations

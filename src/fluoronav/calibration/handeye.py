@@ -1,24 +1,11 @@
 """Tracker-based hand-eye calibration baselines (OpenCV) and the paper's tip validation (eqs. 9, 10).
 
-Setting (paper Fig. 6): a marker body ``marker`` (the paper's O_s) is fixed to the end effector,
-the tracker is static relative to the robot base. Per pose i the data are ``rbase_from_ee_i``
-(robot forward kinematics) and ``tracker_from_marker_i`` (tracker reading). The unknowns are
-
-    X = ee_from_marker   (hand-eye matrix, constant)
-    Y = rbase_from_tracker (constant)
-
-linked by ``rbase_from_ee_i · X = Y · tracker_from_marker_i``.
-
-OpenCV adapters (its names are ``a2b`` = transform of a into b coordinates = our ``b_from_a``):
-
-* ``cv2.calibrateHandEye`` (eye-in-hand: base_from_gripper_i · gripper_from_cam · cam_from_target_i
-  = const). With cam := marker and target := tracker:
-  ``R/t_gripper2base = rbase_from_ee_i``, ``R/t_target2cam = marker_from_tracker_i =
-  inv(tracker_from_marker_i)``; the output ``cam2gripper`` is ``ee_from_marker`` = X.
-* ``cv2.calibrateRobotWorldHandEye`` (cam_from_world_i · world_from_base = cam_from_gripper ·
-  gripper_from_base_i). With cam := marker, world := tracker, gripper := ee, base := rbase:
-  ``world2cam = marker_from_tracker_i``, ``base2gripper = ee_from_rbase_i``; outputs
-  ``base2world = tracker_from_rbase`` = inv(Y) and ``gripper2cam = marker_from_ee`` = inv(X).
+Setting (paper Fig. 6): a marker body ``marker`` (the paper's O_s) is fixed to the end effector and
+the tracker is static relative to the robot base. Per pose i, ``rbase_from_ee_i · X = Y ·
+tracker_from_marker_i`` with the constant unknowns X = ``ee_from_marker`` (the hand-eye matrix) and
+Y = ``rbase_from_tracker``. OpenCV's names ``a2b`` mean our ``b_from_a``: the marker plays OpenCV's
+camera on the gripper and the tracker its static target (``calibrateHandEye``, AX = XB) or world
+(``calibrateRobotWorldHandEye``, AX = YB); the argument table is in docs/robot-and-calibration.md.
 """
 
 from __future__ import annotations

@@ -1,29 +1,15 @@
 """Image-based hand-eye calibration inside the multiple-CM registration (Gao et al. 2022, §II-D, eqs. 5–6).
 
-Data: M X-ray images of the CM, all taken by one static C-arm (one camera, world frame of the views'
-cameras), each at a robot pose ``rbase_from_ee_m`` (forward kinematics of the controller's model).
-Unknowns: ``world_from_rbase`` (the paper's T_ref^Carm, through a reference frame), the hand-eye
-matrix ``ee_from_cm`` (T_CM^ee) and the five control points (one shape for all images):
+Data: M X-ray images of the CM taken by one static C-arm (the world frame of the views' cameras),
+each at a robot pose ``rbase_from_ee_m`` (the controller's forward kinematics). Unknowns: the robot
+base ``world_from_rbase``, the hand-eye matrix ``ee_from_cm`` and one shape (five control points):
 
     world_from_cm_m = world_from_rbase · rbase_from_ee_m · ee_from_cm
 
-parameterised by :class:`~fluoronav.registration.parameterization.HandEye` (17 parameters: 6 of the
-reference frame, 6 of the hand-eye perturbation in the CM base frame, 5 control points). The cost is
-that of :mod:`fluoronav.registration.cm` (patch gradient NCC over the M ROIs, all candidates × all
-views in one :class:`~fluoronav.rendering.cm.CMRenderer` call per generation) plus the landmark
-prior of eq. 6 (σ 100 full-detector px) and the flat-bottomed prior of the control points around
-the FBG reading of our multi-view CM registration (free within ±1°, σ 0.25° walls beyond).
-
-Our choices (docs/robot-and-calibration.md; the measurements in docs/validation.md):
-
-- ``world_from_rbase`` is initialised in closed form: the initial hand-eye maps the model landmarks
-  A, B of every pose into the robot base frame, and a PnP (``cv2.solvePnP``, SQPnP) on the 2M
-  detected landmarks of the one camera gives ``camera_from_rbase``. No per-view registration needed.
-- The shape prior is flat-bottomed, not a Gaussian: the image cost's differences between nearby
-  shapes are small, a Gaussian (σ 1°) holds the shape at the FBG reading, and the hand-eye's tilt
-  then absorbs the reading's error (±0.5°).
-- Two stages: first the hand-eye is held (σ ≈ 0: the multiple-CM registration of §II-C with the
-  initial hand-eye), then all 17 parameters are free; then a local refinement at 2×.
+parameterised by :class:`~fluoronav.registration.parameterization.HandEye` (17 parameters). The cost
+is the CM registration's (:mod:`fluoronav.registration.cm`) plus the landmark prior of eq. 6 and a
+flat-bottomed prior of the shape around the FBG reading. ``world_from_rbase`` starts from a PnP of
+the detected landmarks; the stages and why: docs/robot-and-calibration.md.
 """
 
 from __future__ import annotations

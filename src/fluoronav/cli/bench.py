@@ -3,16 +3,32 @@
 from __future__ import annotations
 
 import json
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
 from fluoronav import __version__
-from fluoronav.bench import BENCH_STAGES, collect
 from fluoronav.errors import InputError
 
+if TYPE_CHECKING:
+    from fluoronav.bench import collect
+
 __all__ = ["collect", "register"]  # collect: re-exported for callers of the CLI module
+
+#: :data:`fluoronav.bench.BENCH_STAGES`, named here so that the CLI starts without importing the
+#: benchmarks (torch); tests/cli/test_startup.py holds the two equal
+BENCH_STAGES = ("rendering", "simulation", "detection", "registration", "navigation")
+
+
+def __getattr__(name: str) -> Any:
+    """``collect`` of :mod:`fluoronav.bench`, imported on its first use."""
+    if name == "collect":
+        from fluoronav.bench import collect  # lazy: torch and the benchmarks
+
+        return collect
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def register(app: typer.Typer) -> None:
@@ -31,6 +47,8 @@ def register(app: typer.Typer) -> None:
         unknown = sorted(set(only or ()) - set(BENCH_STAGES))
         if unknown:
             raise InputError("--only", f"unknown stage {unknown[0]!r}; use {', '.join(BENCH_STAGES)}")
+        from fluoronav.bench import collect  # lazy: torch and the benchmarks
+
         figures = collect(quick=quick, only=only or None, device=device)
         if json_out:
             typer.echo(json.dumps(figures))

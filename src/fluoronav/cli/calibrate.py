@@ -1,30 +1,13 @@
 """``fluoronav calibrate CASE --out DIR``: image-based hand-eye calibration of a case file.
 
-Case file (JSON; paths relative to its folder; documented in docs/robot-and-calibration.md):
-
-    {
-      "camera": "camera.json",                  # ONE static C-arm camera (camera file, or inline)
-      "robot": "UR10",                          # needed when poses are given as joint angles
-      "views": [                                # M >= 3 images, one per robot pose
-        {"image": "pose0.npz",                  # .npz (key 'image') / PNG / TIFF / DICOM
-         "rbase_from_ee": [[...4x4...]],        # or "joints_deg": [6 values]
-         "landmarks_px": [[uA, vA], [uB, vB]],  # optional (else the shipped detector)
-         "tracker_from_marker": [[...4x4...]],  # optional: shaft marker O_s (tracker baselines)
-         "tracker_from_tip_marker": [[4x4]],    # optional: tip-segment marker O_t (eq. 9)
-         "name": "pose0"}, ...],
-      "robot_poses": "poses.csv",               # optional instead of per-view poses: CSV rows of 16
-                                                #   values (row-major 4x4) or 6 joint angles (deg), or
-                                                #   a JSON list of 4x4 matrices / 6-vectors
-      "initial_ee_from_cm": [[...4x4...]],      # hand-eye guess (the mount design)
-      "initial_control_points_deg": [5 values], # FBG reading
-      "tip_in_tip_marker_mm": [x, y, z],        # optional: CM tip in O_t (eq. 9 vs eq. 10)
-      "binning": 2,                             # optional: full-detector pixels per image pixel
-      "ground_truth": {"ee_from_cm": 4x4, "control_points_deg": [5]}   # optional (simulated cases)
-    }
-
-Writes ``DIR/handeye.json`` (ee_from_cm, carm_from_rbase, control points, per-pose landmark residuals,
-tracker baselines when tracker poses are given, eq. 9 vs eq. 10 tip comparison when the tip marker is
-given, errors against a ground truth when given), ``DIR/trace.json`` and ``DIR/overlay_<view>.png``.
+The case file (JSON, paths relative to its folder; docs/robot-and-calibration.md) holds ONE static
+C-arm camera, M ≥ 3 views (an image each, its robot pose as ``rbase_from_ee`` or ``joints_deg``, or
+a ``robot_poses`` log for all; optional landmarks, tracker poses of the shaft marker O_s and the
+tip-segment marker O_t), the initial ``ee_from_cm`` and control points (the FBG reading), and
+optionally the tip in O_t, the binning and a ground truth. Writes ``DIR/handeye.json``
+(ee_from_cm, carm_from_rbase, control points, per-pose landmark residuals; the tracker baselines,
+the eq. 9 vs eq. 10 tip comparison and errors against a ground truth where their inputs are given),
+``DIR/trace.json`` and ``DIR/overlay_<view>.png``.
 """
 
 from __future__ import annotations
@@ -32,13 +15,16 @@ from __future__ import annotations
 import csv
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import typer
 
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
 from fluoronav.errors import InputError, read_json_object
+
+if TYPE_CHECKING:
+    from fluoronav.manipulator.kinematics import CMKinematics
 
 __all__ = ["CalibrationCase", "load_calibration_case", "run_calibration", "write_example_calibration_case"]
 
@@ -263,15 +249,7 @@ def run_calibration(
     """Calibrate a case and write ``handeye.json``, ``trace.json`` and overlays; returns handeye.json."""
     import torch  # heavy: torch
 
-    from fluoronav.calibration.handeye import (  # lazy: fast --help
-        AX_XB_METHODS,
-        AX_YB_METHODS,
-        calibrate_hand_eye,
-        calibrate_robot_world_hand_eye,
-        tip_rbase_image_chain,
-        tip_rbase_tracker_chain,
-        transform_error,
-    )
+    from fluoronav.calibration.handeye import tip_rbase_image_chain  # lazy: fast --help
     from fluoronav.calibration.image_handeye import (  # lazy: fast --help
         ImageHandEyeConfig,
         calibrate_hand_eye_from_images,
@@ -304,48 +282,82 @@ def run_calibration(
     tip10 = tip_rbase_image_chain(case.rbase_from_ee, res.ee_from_cm, carm_from_cm, tip_carm)
     d["tip_rbase_eq10_mm"] = tip10.tolist()
     if case.tracker_from_marker is not None:
-        baselines = {}
-        for method in (*AX_XB_METHODS, *AX_YB_METHODS):
-            solve = calibrate_hand_eye if method in AX_XB_METHODS else calibrate_robot_world_hand_eye
-            b = solve(case.rbase_from_ee, case.tracker_from_marker, method=method)
-            if isinstance(b, HandEyeFailure):
-                baselines[method] = {"ok": False, "reason": b.reason}
-                continue
-            entry: dict[str, Any] = {
-                "ok": True,
-                "formulation": b.formulation,
-                "ee_from_marker": b.ee_from_marker.tolist(),
-                "mean_residual_rotation_deg": b.mean_residual_rotation_deg,
-                "mean_residual_translation_mm": b.mean_residual_translation_mm,
-            }
-            if case.tracker_from_tip_marker is not None and case.tip_in_tip_marker_mm is not None:
-                tip9 = tip_rbase_tracker_chain(
-                    case.rbase_from_ee,
-                    b.ee_from_marker,
-                    case.tracker_from_marker,
-                    case.tracker_from_tip_marker,
-                    case.tip_in_tip_marker_mm,
-                )
-                dist = np.linalg.norm(tip9 - tip10, axis=1)
-                entry["eq9_vs_eq10_mm"] = {
-                    "mean": float(dist.mean()),
-                    "std": float(dist.std()),
-                    "per_pose": dist.tolist(),
-                }
-            baselines[method] = entry
-        d["tracker_baselines"] = baselines
+        d["tracker_baselines"] = _tracker_baselines(case, case.tracker_from_marker, tip10)
     if case.ground_truth is not None:
-        rot, trans = transform_error(res.ee_from_cm, case.ground_truth["ee_from_cm"])
-        d["errors"] = {"handeye_rotation_deg": rot, "handeye_translation_mm": trans}
-        if "control_points_deg" in case.ground_truth:
-            true_tip = case.rbase_from_ee @ case.ground_truth["ee_from_cm"]
-            tt = kin.tip_cm(torch.as_tensor(case.ground_truth["control_points_deg"])).numpy()
-            p = np.einsum("mij,j->mi", true_tip[:, :3, :3], tt) + true_tip[:, :3, 3]
-            d["errors"]["handeye_tip_mm"] = float(np.linalg.norm(p - tip10, axis=1).mean())
+        d["errors"] = _ground_truth_errors(case, case.ground_truth, res.ee_from_cm, kin, tip10)
     (out / "handeye.json").write_text(json.dumps(d, indent=1), encoding="utf-8")
     res.trace.to_json(out / "trace.json")
     _overlays(res, out)
     return d
+
+
+def _tracker_baselines(
+    case: CalibrationCase, tracker_from_marker: np.ndarray, tip10: np.ndarray
+) -> dict[str, dict[str, Any]]:
+    """Per tracker method (AX = XB and AX = YB) its hand-eye from the shaft marker's poses, and with
+    the tip marker its eq. 9 tip beside the images' eq. 10 tip ``tip10`` (M, 3) mm."""
+    from fluoronav.calibration.handeye import (  # lazy: fast --help
+        AX_XB_METHODS,
+        AX_YB_METHODS,
+        calibrate_hand_eye,
+        calibrate_robot_world_hand_eye,
+        tip_rbase_tracker_chain,
+    )
+    from fluoronav.calibration.results import HandEyeFailure  # lazy: fast --help
+
+    baselines = {}
+    for method in (*AX_XB_METHODS, *AX_YB_METHODS):
+        solve = calibrate_hand_eye if method in AX_XB_METHODS else calibrate_robot_world_hand_eye
+        b = solve(case.rbase_from_ee, tracker_from_marker, method=method)
+        if isinstance(b, HandEyeFailure):
+            baselines[method] = {"ok": False, "reason": b.reason}
+            continue
+        entry: dict[str, Any] = {
+            "ok": True,
+            "formulation": b.formulation,
+            "ee_from_marker": b.ee_from_marker.tolist(),
+            "mean_residual_rotation_deg": b.mean_residual_rotation_deg,
+            "mean_residual_translation_mm": b.mean_residual_translation_mm,
+        }
+        if case.tracker_from_tip_marker is not None and case.tip_in_tip_marker_mm is not None:
+            tip9 = tip_rbase_tracker_chain(
+                case.rbase_from_ee,
+                b.ee_from_marker,
+                tracker_from_marker,
+                case.tracker_from_tip_marker,
+                case.tip_in_tip_marker_mm,
+            )
+            dist = np.linalg.norm(tip9 - tip10, axis=1)
+            entry["eq9_vs_eq10_mm"] = {
+                "mean": float(dist.mean()),
+                "std": float(dist.std()),
+                "per_pose": dist.tolist(),
+            }
+        baselines[method] = entry
+    return baselines
+
+
+def _ground_truth_errors(
+    case: CalibrationCase,
+    truth: dict[str, np.ndarray],
+    ee_from_cm: np.ndarray,
+    kin: CMKinematics,
+    tip10: np.ndarray,
+) -> dict[str, float]:
+    """The calibration's errors against the case's ``truth``: hand-eye rotation (degrees) and
+    translation (mm), and with the true shape the mean tip error against ``tip10`` (M, 3) mm."""
+    import torch  # heavy: torch
+
+    from fluoronav.calibration.handeye import transform_error  # lazy: fast --help
+
+    rot, trans = transform_error(ee_from_cm, truth["ee_from_cm"])
+    errors = {"handeye_rotation_deg": rot, "handeye_translation_mm": trans}
+    if "control_points_deg" in truth:
+        true_tip = case.rbase_from_ee @ truth["ee_from_cm"]
+        tt = kin.tip_cm(torch.as_tensor(truth["control_points_deg"])).numpy()
+        p = np.einsum("mij,j->mi", true_tip[:, :3, :3], tt) + true_tip[:, :3, 3]
+        errors["handeye_tip_mm"] = float(np.linalg.norm(p - tip10, axis=1).mean())
+    return errors
 
 
 def _overlays(res: Any, out: Path) -> None:

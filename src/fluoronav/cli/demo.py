@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.table import Table
 
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
+from fluoronav.cli.config import SETTINGS_OPTION, navigation_config
 from fluoronav.cli.navigate import EXIT_REFUSED, IGTL_OPTION, stage_progress
 
 
@@ -28,21 +29,23 @@ def run(
     igtl: str | None = None,
     world: str = "ideal",
     verify_views: int = 2,
+    settings_file: Path | None = None,
 ) -> int:
     """Run the demo, print its table, write its files; returns the exit status (3: refused). With
-    ``igtl`` (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer)."""
+    ``igtl`` (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer);
+    with ``settings_file`` a site's settings override the navigation's defaults."""
     from fluoronav.device import resolve_device  # heavy: torch
     from fluoronav.navigation.outputs.igtl import IGTLinkStreamer, chain_stage_callbacks  # lazy: fast --help
     from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES  # lazy: fast --help
     from fluoronav.simulation.navigation.demo import (  # lazy: fast --help
         ERROR_ROWS,
         ordered_timings,
-        run_demo,
         write_demo_outputs,
     )
     from fluoronav.simulation.navigation.loop import (
         SIMULATION_STAGES,
         SimulatedNavigationConfig,
+        run_simulated_navigation,
     )  # lazy: fast --help
     from fluoronav.simulation.world import load_world  # lazy: fast --help
 
@@ -56,11 +59,16 @@ def run(
         world=load_world(world),
         verify_views=verify_views,
     )
+    # the site's settings (None: the loop's defaults, from the simulation's device and seed)
+    navigation = (
+        None if settings_file is None else navigation_config(settings_file, device=cfg.device, seed=seed)
+    )
     total = len(SIMULATION_STAGES) + len(STAGES) + len(VERIFY_STAGES)
     with stage_progress(total, "demo") as progress, link or nullcontext():
-        run_ = run_demo(
+        run_ = run_simulated_navigation(  # run_demo, with the site's settings
             cfg,
-            out=out,
+            case_dir=out / "case",
+            navigation=navigation,
             on_stage=chain_stage_callbacks(progress, link.on_stage if link is not None else None),
             on_event=link.on_event if link is not None else None,
         )
@@ -118,6 +126,7 @@ def register(app: typer.Typer) -> None:
             max=3,
             help="Verification images after the move (1, 2 or 3): by default the two orbits.",
         ),
+        settings_file: Path | None = SETTINGS_OPTION,
     ) -> None:
         """Simulated navigation on the built-in phantom: a simulated case written to files, then the
         navigate pipeline on them (detection → registration → robot command), the move, verification
@@ -132,5 +141,6 @@ def register(app: typer.Typer) -> None:
             igtl=igtl,
             world=world,
             verify_views=verify_views,
+            settings_file=settings_file,
         )
         raise typer.Exit(code)

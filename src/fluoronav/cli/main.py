@@ -31,6 +31,7 @@ COMMAND_MODULES = (
     "calibrate",
     "report",
     "bench",
+    "config",
 )
 
 app = typer.Typer(

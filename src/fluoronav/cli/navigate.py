@@ -18,6 +18,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
+from fluoronav.cli.config import SETTINGS_OPTION, navigation_config
 
 #: exit status of a navigation that refused to give a robot command
 EXIT_REFUSED = 3
@@ -84,9 +85,18 @@ def stage_progress(total: int, description: str) -> Iterator[Callable[[str, str]
         yield on_stage
 
 
-def run(case_path: Path, out: Path, *, seed: int, device: str, igtl: str | None = None) -> int:
+def run(
+    case_path: Path,
+    out: Path,
+    *,
+    seed: int,
+    device: str,
+    igtl: str | None = None,
+    settings_file: Path | None = None,
+) -> int:
     """Navigate on a case file and write the outputs; returns the exit status. With ``igtl``
-    (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer)."""
+    (``HOST:PORT``) the navigation is streamed live to that OpenIGTLink server (3D Slicer); with
+    ``settings_file`` a site's settings override the navigation's defaults."""
     from fluoronav.device import resolve_device  # heavy: torch
     from fluoronav.navigation.case.model import load_navigation_case  # lazy: fast --help
     from fluoronav.navigation.outputs.files import write_outputs  # lazy: fast --help
@@ -94,13 +104,12 @@ def run(case_path: Path, out: Path, *, seed: int, device: str, igtl: str | None 
     from fluoronav.navigation.pipeline import (  # lazy: fast --help
         STAGES,
         VERIFY_STAGES,
-        NavigationConfig,
         navigate,
     )
 
     link = IGTLinkStreamer(igtl) if igtl is not None else None  # a malformed address is bad input
+    cfg = navigation_config(settings_file, device=str(resolve_device(device)), seed=seed)
     case = load_navigation_case(case_path)
-    cfg = NavigationConfig(device=str(resolve_device(device)), seed=seed)
     total = len(STAGES) + (len(VERIFY_STAGES) if case.verification is not None else 0)
     with stage_progress(total, "navigate") as progress, link or nullcontext():
         result = navigate(
@@ -139,8 +148,9 @@ def register(app: typer.Typer) -> None:
         seed: int = SEED_OPTION,
         device: str = DEVICE_OPTION,
         igtl: str | None = IGTL_OPTION,
+        settings_file: Path | None = SETTINGS_OPTION,
     ) -> None:
         """Navigation on your own files: detection → pelvis → femur → CM → plan → robot command
         (and, with verification views, their registration and one corrective command). Exit status
         3 when it refuses to give a command."""
-        raise typer.Exit(run(case, out, seed=seed, device=device, igtl=igtl))
+        raise typer.Exit(run(case, out, seed=seed, device=device, igtl=igtl, settings_file=settings_file))

@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 import typer
 
-from fluoronav.anatomy.io import resolve_ct
 from fluoronav.anatomy.volume import MU_WATER_PER_MM, Volume, hu_to_mu
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
 from fluoronav.errors import FluoronavError, InputError
@@ -23,6 +22,8 @@ logger = logging.getLogger(__name__)
 
 def load_ct_spec(spec: str, seed: int) -> Volume:
     """The CT named on the command line: ``phantom`` or a path; raises InputError naming it."""
+    from fluoronav.anatomy.io import resolve_ct  # lazy: SimpleITK, scipy
+
     if spec != "phantom" and not Path(spec).exists():
         raise InputError(spec, "CT file or directory not found")
     try:

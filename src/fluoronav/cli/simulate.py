@@ -8,6 +8,41 @@ import typer
 
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
 
+_MAX_PROJECTED_AB_OPTION = typer.Option(
+    None,
+    "--max-projected-ab-mm",
+    min=0.1,
+    help="Keep only foreshortened views: landmarks A and B at most this far apart on the "
+    "detector (mm; a CM across the view projects ~60 mm). For training sets rich in hard views.",
+)
+
+_MAX_SHAFT_OPTION = typer.Option(
+    None,
+    "--max-shaft-mm",
+    min=0.1,
+    help="Keep only views whose mounting shaft projects at most this long on the detector "
+    "(mm; the 50 mm shaft across the view projects ~110 mm): the shaft seen nearly along its "
+    "axis, a short stub at the CM's base. For training sets rich in hard views.",
+)
+
+_MAX_SHAFT_ANGLE_OPTION = typer.Option(
+    None,
+    "--max-shaft-angle-deg",
+    min=0.1,
+    max=180.0,
+    help="Keep only views where the CM's chord A-B and its mounting shaft meet at A at most "
+    "this angle on the detector (degrees; ~180 where the shaft goes on behind the CM, 20-70 a "
+    "V, under 35 the CM over its shaft). For training sets rich in hard views.",
+)
+
+_SHAFT_LENGTH_OPTION = typer.Option(
+    50.0,
+    "--shaft-length-mm",
+    min=0.0,
+    help="Length of the rigid tube the CM is mounted on (0: the bare CM). The default tube "
+    "ends in the field; a robot's shaft that leaves the field is ~200 mm or more.",
+)
+
 
 def register(app: typer.Typer) -> None:
     @app.command("simulate")
@@ -29,37 +64,10 @@ def register(app: typer.Typer) -> None:
         phantoms: int = typer.Option(
             4, "--phantoms", min=1, help="Phantom anatomies (seeds) to cycle through."
         ),
-        max_projected_ab_mm: float = typer.Option(
-            None,
-            "--max-projected-ab-mm",
-            min=0.1,
-            help="Keep only foreshortened views: landmarks A and B at most this far apart on the "
-            "detector (mm; a CM across the view projects ~60 mm). For training sets rich in hard views.",
-        ),
-        max_projected_shaft_mm: float = typer.Option(
-            None,
-            "--max-shaft-mm",
-            min=0.1,
-            help="Keep only views whose mounting shaft projects at most this long on the detector "
-            "(mm; the 50 mm shaft across the view projects ~110 mm): the shaft seen nearly along its "
-            "axis, a short stub at the CM's base. For training sets rich in hard views.",
-        ),
-        max_shaft_angle_deg: float = typer.Option(
-            None,
-            "--max-shaft-angle-deg",
-            min=0.1,
-            max=180.0,
-            help="Keep only views where the CM's chord A-B and its mounting shaft meet at A at most "
-            "this angle on the detector (degrees; ~180 where the shaft goes on behind the CM, 20-70 a "
-            "V, under 35 the CM over its shaft). For training sets rich in hard views.",
-        ),
-        shaft_length_mm: float = typer.Option(
-            50.0,
-            "--shaft-length-mm",
-            min=0.0,
-            help="Length of the rigid tube the CM is mounted on (0: the bare CM). The default tube "
-            "ends in the field; a robot's shaft that leaves the field is ~200 mm or more.",
-        ),
+        max_projected_ab_mm: float = _MAX_PROJECTED_AB_OPTION,
+        max_projected_shaft_mm: float = _MAX_SHAFT_OPTION,
+        max_shaft_angle_deg: float = _MAX_SHAFT_ANGLE_OPTION,
+        shaft_length_mm: float = _SHAFT_LENGTH_OPTION,
         device: str = DEVICE_OPTION,
     ) -> None:
         """Simulate a data set of X-ray images with labels (manifest.jsonl + samples/*.npz).

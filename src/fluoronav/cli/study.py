@@ -1,90 +1,143 @@
-"""``fluoronav study WORKFLOW``: the paper's simulation study for one workflow."""
+"""``fluoronav study WORKFLOW``: the paper's simulation studies, one sub-command per workflow.
+
+``centerline``, ``single-view``, ``multi-view`` and ``multi-cm`` are the registration studies
+(:mod:`fluoronav.studies.pipeline`), ``hand-eye`` and ``navigation`` the robot's
+(:mod:`fluoronav.studies.handeye_study`), ``deepfluoro`` the pelvis on real images
+(:mod:`fluoronav.studies.deepfluoro`). Each takes only its own options; the options several share
+are defined once below.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 
 from fluoronav.cli.common import DEVICE_OPTION
+from fluoronav.cli.config import SETTINGS_OPTION, navigation_config
 from fluoronav.errors import InputError
 
+if TYPE_CHECKING:
+    from fluoronav.simulation.world import World
+
+# ----- options several studies take ---------------------------------------------------------------
+_TRIALS_OPTION = typer.Option(..., "--trials", min=1, help="Number of trials.")
+_SEED_OPTION = typer.Option(..., "--seed", help="Run seed; each trial's seed derives from it.")
+_OUT_OPTION = typer.Option(..., "--out", help="Output directory (rerun to resume).")
+_CT_OPTION = typer.Option("phantom", "--ct", help="CT file/DICOM dir, or 'phantom'.")
+_SCHEDULER_OPTION = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler.")
+_WORKERS_OPTION = typer.Option(
+    None, "--workers", min=0, help="Local worker processes (default: up to 2; 0 = in this process)."
+)
+_IMAGE_SIZE_OPTION = typer.Option(
+    768, "--image-size", min=128, help="Simulated image size (the 1536² detector is binned to it)."
+)
+_ORACLE_LANDMARKS_OPTION = typer.Option(
+    False,
+    "--oracle-landmarks",
+    help="Use the true landmarks + U(−3, 3) px noise (the authors' code) instead of the detector.",
+)
+_WORLD_OPTION = typer.Option(
+    "ideal",
+    "--world",
+    help="The simulated world's error sources: ideal, realistic, or a JSON file of magnitudes "
+    "(docs/simulation.md).",
+)
+
+# ----- the registration studies' own ----------------------------------------------------------------
+_PHANTOMS_OPTION = typer.Option(1, "--phantoms", min=1, help="Phantom anatomies to draw trials from.")
+_INIT_OPTION = typer.Option(
+    "centerline",
+    "--init",
+    help="CM start: centerline (the paper) or perturbed (truth + 10°/10 mm, as the authors' code).",
+)
+
+# ----- hand-eye's own -------------------------------------------------------------------------------
+_POSES_OPTION = typer.Option(
+    [4, 8, 15], "--poses", help="Numbers of robot poses M to calibrate with (repeatable)."
+)
+_CALIBRATION_BEND_OPTION = typer.Option(
+    2.5,
+    "--calibration-bend-deg",
+    min=0.0,
+    help="The CM's constant bend while calibrating, degrees per control point "
+    "(each ± 0.5°; 2.5 ≈ a 70° C-bend, 0 ≈ straight).",
+)
+
+# ----- navigation's own -----------------------------------------------------------------------------
+_CORRECTIONS_OPTION = typer.Option(
+    1,
+    "--corrections",
+    min=0,
+    max=1,
+    help="1: verification images after the move and one corrective move; 0: open loop.",
+)
+_VERIFY_VIEWS_OPTION = typer.Option(
+    None,
+    "--verify-views",
+    min=1,
+    max=3,
+    help="Verification images per case after the move (1, 2 or 3; default 3).",
+)
 _FAULT_OPTION = typer.Option(
     None,
     "--fault",
-    help="navigation: inject an input fault (mirror_one, mirror_all, focal_10pct, verify_joints_3deg, "
+    help="Inject an input fault (mirror_one, mirror_all, focal_10pct, verify_joints_3deg, "
     "handeye_10mm, verify_no_move, view_without_cm, labels_swapped, plan_inward_300, inverted, none).",
 )
 _HANDEYE_ERROR_MM_OPTION = typer.Option(
     None,
     "--handeye-error-mm",
     min=0.0,
-    help="navigation: the case's hand-eye matrix is the truth moved by this (mm; default 0.5, "
+    help="The case's hand-eye matrix is the truth moved by this (mm; default 0.5, "
     "10 with --fault handeye_10mm).",
 )
 _HANDEYE_ERROR_DEG_OPTION = typer.Option(
     None,
     "--handeye-error-deg",
     min=0.0,
-    help="navigation: the case's hand-eye matrix is the truth turned by this (degrees; default 0.4).",
+    help="The case's hand-eye matrix is the truth turned by this (degrees; default 0.4).",
 )
 
-
-#: the studies that simulate their trials in a world (hand-eye and deepfluoro do not)
-_WORLD_WORKFLOWS = ("navigation", "centerline", "single-view", "multi-view", "multi-cm")
-
-_WORLD_OPTION = typer.Option(
-    "ideal",
-    "--world",
-    help="navigation, centerline, single-view, multi-view, multi-cm: the simulated world's error "
-    "sources: ideal, realistic, or a JSON file of magnitudes (docs/simulation.md).",
+# ----- deepfluoro's own -----------------------------------------------------------------------------
+_DATA_OPTION = typer.Option(None, "--data", help="The DeepFluoro HDF5 file (yours).")
+_DEEPFLUORO_TRIALS_OPTION = typer.Option(
+    None, "--trials", min=1, help="Number of trials (default: one per image)."
+)
+_SPECIMEN_OPTION = typer.Option(None, "--specimen", help="One specimen (ID or 1–6).")
+_XREG_GT_CORRECTION_OPTION = typer.Option(
+    False, "--xreg-gt-correction", help="The truth −0.5 mm per CT axis, as xReg's samples."
 )
 
-
-_VERIFY_VIEWS_OPTION = typer.Option(
-    None,
-    "--verify-views",
-    min=1,
-    max=3,
-    help="navigation: verification images per case after the move (1, 2 or 3; default 3).",
+study_app = typer.Typer(
+    help="Run (or resume) one of the paper's studies; writes trials.csv, summary.json and figures/.",
+    no_args_is_help=True,
 )
 
+#: the registration studies (:data:`fluoronav.studies.pipeline.STUDY_WORKFLOWS`) and their help
+_REGISTRATION_STUDIES = {
+    "centerline": "The centreline initialisation alone (one view): depth and roll of the CM's start.",
+    "single-view": "Single-view registration: pelvis, femur and CM in one image.",
+    "multi-view": "Multi-view registration: pelvis per view, femur and CM in three images.",
+    "multi-cm": "Multiple-CM registration: the CM at four robot poses in one view.",
+}
 
-def _navigation_options(
-    workflow: str,
-    fault: str | None,
-    handeye_error_mm: float | None,
-    handeye_error_deg: float | None,
-    world: str,
-    verify_views: int | None = None,
-) -> dict[str, Any]:
-    """The navigation study's own options and the world of the studies that take one, checked (an
-    unknown fault or world, or one given to another study, is an :class:`InputError`)."""
-    out: dict[str, Any] = {}
-    if fault is not None or handeye_error_mm is not None or handeye_error_deg is not None:
-        if workflow != "navigation":
-            raise InputError("--fault", "--fault and --handeye-error-* are options of study navigation")
-        from fluoronav.simulation.navigation.faults import get_fault  # lazy: fast --help
 
-        get_fault(fault)
-        out.update(fault=fault, handeye_error_mm=handeye_error_mm, handeye_error_deg=handeye_error_deg)
-    if world != "ideal":
-        if workflow not in _WORLD_WORKFLOWS:
-            raise InputError(
-                "--world", f"study {workflow} takes no simulated world; {', '.join(_WORLD_WORKFLOWS)} do"
-            )
-        from fluoronav.simulation.world import load_world  # lazy: fast --help
+def register(app: typer.Typer) -> None:
+    app.add_typer(study_app, name="study")
 
-        out["world"] = load_world(world)
-    if verify_views is not None:
-        if workflow != "navigation":
-            raise InputError("--verify-views", "--verify-views is an option of study navigation")
-        out["verify_views"] = verify_views
-    return out
+
+def _load_world(world: str) -> World:
+    """The ``--world`` option's world (an unknown one is an :class:`InputError`)."""
+    from fluoronav.simulation.world import IDEAL, load_world  # lazy: fast --help
+
+    return IDEAL if world == "ideal" else load_world(world)
 
 
 def _echo_summary(workflow: str, summary: dict[str, Any]) -> None:
+    """The study's outcome in one line: trials done and failed, each metric's mean ± std."""
     m = summary.get("metrics", {})
     parts = [f"{k} {v['mean']:.3g}±{v['std']:.2g}" for k, v in m.items()]
     if summary.get("within_1deg") is not None:
@@ -95,137 +148,147 @@ def _echo_summary(workflow: str, summary: dict[str, Any]) -> None:
     )
 
 
-def register(app: typer.Typer) -> None:
-    @app.command("study")
-    def study(
-        workflow: str = typer.Argument(
-            ..., help="centerline, single-view, multi-view, multi-cm, hand-eye, navigation or deepfluoro."
-        ),
-        trials: int = typer.Option(
-            None, "--trials", min=1, help="Number of trials (deepfluoro: default one per image)."
-        ),
-        seed: int = typer.Option(..., "--seed", help="Run seed; each trial's seed derives from it."),
-        out: Path = typer.Option(..., "--out", help="Output directory (rerun to resume)."),
-        ct: str = typer.Option("phantom", "--ct", help="CT file/DICOM dir, or 'phantom'."),
-        scheduler: str = typer.Option(None, "--scheduler", help="Address of an existing Dask scheduler."),
-        workers: int = typer.Option(
-            None, "--workers", min=0, help="Local worker processes (default: up to 2; 0 = in this process)."
-        ),
-        oracle_landmarks: bool = typer.Option(
-            False,
-            "--oracle-landmarks",
-            help="Use the true landmarks + U(−3, 3) px noise (the authors' code) instead of the detector.",
-        ),
-        image_size: int = typer.Option(
-            768, "--image-size", min=128, help="Simulated image size (the 1536² detector is binned to it)."
-        ),
-        phantoms: int = typer.Option(1, "--phantoms", min=1, help="Phantom anatomies to draw trials from."),
-        init: str = typer.Option(
-            "centerline",
-            "--init",
-            help="CM start: centerline (the paper) or perturbed (truth + 10°/10 mm, as the authors' code).",
-        ),
-        poses: list[int] = typer.Option(
-            [4, 8, 15], "--poses", help="hand-eye: numbers of robot poses M to calibrate with (repeatable)."
-        ),
-        calibration_bend_deg: float = typer.Option(
-            2.5,
-            "--calibration-bend-deg",
-            min=0.0,
-            help="hand-eye: the CM's constant bend while calibrating, degrees per control point "
-            "(each ± 0.5°; 2.5 ≈ a 70° C-bend, 0 ≈ straight).",
-        ),
-        corrections: int = typer.Option(
-            1,
-            "--corrections",
-            min=0,
-            max=1,
-            help="navigation: 1: verification images after the move and one corrective move; 0: open loop.",
-        ),
-        fault: str = _FAULT_OPTION,
+def _registration_study(workflow: str) -> Callable[..., None]:
+    """The sub-command of the registration study ``workflow``."""
+
+    def command(
+        trials: int = _TRIALS_OPTION,
+        seed: int = _SEED_OPTION,
+        out: Path = _OUT_OPTION,
+        ct: str = _CT_OPTION,
+        scheduler: str | None = _SCHEDULER_OPTION,
+        workers: int | None = _WORKERS_OPTION,
+        oracle_landmarks: bool = _ORACLE_LANDMARKS_OPTION,
+        image_size: int = _IMAGE_SIZE_OPTION,
+        phantoms: int = _PHANTOMS_OPTION,
+        init: str = _INIT_OPTION,
         world: str = _WORLD_OPTION,
-        verify_views: int = _VERIFY_VIEWS_OPTION,
-        handeye_error_mm: float = _HANDEYE_ERROR_MM_OPTION,
-        handeye_error_deg: float = _HANDEYE_ERROR_DEG_OPTION,
-        data: Path = typer.Option(None, "--data", help="deepfluoro: the DeepFluoro HDF5 file (yours)."),
-        specimen: str = typer.Option(None, "--specimen", help="deepfluoro: one specimen (ID or 1–6)."),
-        xreg_gt_correction: bool = typer.Option(
-            False,
-            "--xreg-gt-correction",
-            help="deepfluoro: the truth −0.5 mm per CT axis, as xReg's samples.",
-        ),
         device: str = DEVICE_OPTION,
     ) -> None:
-        """Run (or resume) a study; writes trials.csv, summary.json and figures/."""
         from fluoronav.device import resolve_device  # heavy: torch
+        from fluoronav.studies.pipeline import StudyConfig, run_study  # lazy: fast --help
 
-        navigation = _navigation_options(
-            workflow, fault, handeye_error_mm, handeye_error_deg, world, verify_views
+        simulated_world = _load_world(world)
+        cfg = StudyConfig(
+            workflow=workflow,
+            trials=trials,
+            seed=seed,
+            ct=ct,
+            oracle_landmarks=oracle_landmarks,
+            image_size=image_size,
+            device=str(resolve_device(device)),
+            n_phantoms=phantoms,
+            init=init,
+            world=simulated_world,
         )
-        if workflow == "deepfluoro":
-            summary = _deepfluoro(
-                data, trials, seed, out, specimen, xreg_gt_correction, device, scheduler, workers
-            )
-        elif trials is None:
-            raise InputError("--trials", f"study {workflow} needs --trials N")
-        elif workflow in ("hand-eye", "navigation"):
-            from fluoronav.studies.handeye_study import run_handeye_or_navigation_study  # lazy: fast --help
+        _echo_summary(workflow, run_study(cfg, out, scheduler=scheduler, workers=workers))
 
-            summary = run_handeye_or_navigation_study(
-                workflow,
-                trials=trials,
-                seed=seed,
-                out=out,
-                ct=ct,
-                scheduler=scheduler,
-                workers=workers,
-                device=str(resolve_device(device)),
-                poses=tuple(poses),
-                image_size=image_size,
-                corrections=corrections,
-                # the hand-eye study has always used oracle landmarks; navigation the detector by default
-                oracle_landmarks=oracle_landmarks or workflow == "hand-eye",
-                calibration_bend_deg=calibration_bend_deg,
-                **navigation,
-            )
-        else:
-            from fluoronav.simulation.world import IDEAL
-            from fluoronav.studies.pipeline import (  # lazy: fast --help
-                STUDY_WORKFLOWS,
-                StudyConfig,
-                run_study,
-            )
-
-            if workflow not in STUDY_WORKFLOWS:
-                raise InputError("WORKFLOW", f"unknown workflow {workflow!r}")
-            cfg = StudyConfig(
-                workflow=workflow,
-                trials=trials,
-                seed=seed,
-                ct=ct,
-                oracle_landmarks=oracle_landmarks,
-                image_size=image_size,
-                device=str(resolve_device(device)),
-                n_phantoms=phantoms,
-                init=init,
-                world=navigation.get("world", IDEAL),  # the other options are refused above
-            )
-            summary = run_study(cfg, out, scheduler=scheduler, workers=workers)
-        _echo_summary(workflow, summary)
+    return command
 
 
-def _deepfluoro(
-    data: Path | None,
-    trials: int | None,
-    seed: int,
-    out: Path,
-    specimen: str | None,
-    xreg_gt_correction: bool,
-    device: str,
-    scheduler: str | None,
-    workers: int | None,
-) -> dict[str, Any]:
-    """``study deepfluoro`` (docs/real-data.md)."""
+for _workflow, _help in _REGISTRATION_STUDIES.items():
+    study_app.command(_workflow, help=_help)(_registration_study(_workflow))
+
+
+@study_app.command("hand-eye")
+def hand_eye(
+    trials: int = _TRIALS_OPTION,
+    seed: int = _SEED_OPTION,
+    out: Path = _OUT_OPTION,
+    ct: str = _CT_OPTION,
+    scheduler: str | None = _SCHEDULER_OPTION,
+    workers: int | None = _WORKERS_OPTION,
+    poses: list[int] = _POSES_OPTION,
+    calibration_bend_deg: float = _CALIBRATION_BEND_OPTION,
+    image_size: int = _IMAGE_SIZE_OPTION,
+    device: str = DEVICE_OPTION,
+) -> None:
+    """Image-based hand-eye calibration (oracle landmarks): its error against the number of poses."""
+    from fluoronav.device import resolve_device  # heavy: torch
+    from fluoronav.studies.handeye_study import run_handeye_or_navigation_study  # lazy: fast --help
+
+    summary = run_handeye_or_navigation_study(
+        "hand-eye",
+        trials=trials,
+        seed=seed,
+        out=out,
+        ct=ct,
+        scheduler=scheduler,
+        workers=workers,
+        device=str(resolve_device(device)),
+        poses=tuple(poses),
+        image_size=image_size,
+        oracle_landmarks=True,  # the hand-eye study has always used oracle landmarks
+        calibration_bend_deg=calibration_bend_deg,
+    )
+    _echo_summary("hand-eye", summary)
+
+
+@study_app.command("navigation")
+def navigation(
+    trials: int = _TRIALS_OPTION,
+    seed: int = _SEED_OPTION,
+    out: Path = _OUT_OPTION,
+    ct: str = _CT_OPTION,
+    scheduler: str | None = _SCHEDULER_OPTION,
+    workers: int | None = _WORKERS_OPTION,
+    oracle_landmarks: bool = _ORACLE_LANDMARKS_OPTION,
+    image_size: int = _IMAGE_SIZE_OPTION,
+    corrections: int = _CORRECTIONS_OPTION,
+    verify_views: int | None = _VERIFY_VIEWS_OPTION,
+    world: str = _WORLD_OPTION,
+    fault: str | None = _FAULT_OPTION,
+    handeye_error_mm: float | None = _HANDEYE_ERROR_MM_OPTION,
+    handeye_error_deg: float | None = _HANDEYE_ERROR_DEG_OPTION,
+    device: str = DEVICE_OPTION,
+    settings_file: Path | None = SETTINGS_OPTION,
+) -> None:
+    """The navigation loop per trial: register, move, verify, correct; the tip's error to the plan."""
+    from fluoronav.device import resolve_device  # heavy: torch
+    from fluoronav.simulation.navigation.faults import get_fault  # lazy: fast --help
+    from fluoronav.studies.handeye_study import run_handeye_or_navigation_study  # lazy: fast --help
+
+    get_fault(fault)  # an unknown fault is an InputError before anything runs
+    simulated_world = _load_world(world)
+    # without --verify-views the study's own default
+    views: dict[str, Any] = {} if verify_views is None else {"verify_views": verify_views}
+    # a site's settings file: the navigation's settings (each trial sets its own device and seed)
+    site: dict[str, Any] = {} if settings_file is None else {"navigation": navigation_config(settings_file)}
+    summary = run_handeye_or_navigation_study(
+        "navigation",
+        trials=trials,
+        seed=seed,
+        out=out,
+        ct=ct,
+        scheduler=scheduler,
+        workers=workers,
+        device=str(resolve_device(device)),
+        image_size=image_size,
+        corrections=corrections,
+        oracle_landmarks=oracle_landmarks,
+        fault=fault,
+        handeye_error_mm=handeye_error_mm,
+        handeye_error_deg=handeye_error_deg,
+        world=simulated_world,
+        **views,
+        **site,
+    )
+    _echo_summary("navigation", summary)
+
+
+@study_app.command("deepfluoro")
+def deepfluoro(
+    data: Path | None = _DATA_OPTION,
+    trials: int | None = _DEEPFLUORO_TRIALS_OPTION,
+    seed: int = _SEED_OPTION,
+    out: Path = _OUT_OPTION,
+    specimen: str | None = _SPECIMEN_OPTION,
+    xreg_gt_correction: bool = _XREG_GT_CORRECTION_OPTION,
+    scheduler: str | None = _SCHEDULER_OPTION,
+    workers: int | None = _WORKERS_OPTION,
+    device: str = DEVICE_OPTION,
+) -> None:
+    """The pelvis registration on the DeepFluoro cadaver images (docs/real-data.md)."""
     from fluoronav.device import resolve_device  # heavy: torch
     from fluoronav.studies.deepfluoro import DeepFluoroStudyConfig, run_deepfluoro_study  # lazy: fast --help
 
@@ -239,4 +302,4 @@ def _deepfluoro(
         device=str(resolve_device(device)),
         xreg_texture_correction=xreg_gt_correction,
     )
-    return run_deepfluoro_study(cfg, out, scheduler=scheduler, workers=workers)
+    _echo_summary("deepfluoro", run_deepfluoro_study(cfg, out, scheduler=scheduler, workers=workers))

@@ -98,8 +98,18 @@ def extract_centerline(
     if dilation_px > 0:
         k = 2 * dilation_px + 1
         sub = cv2.dilate(sub, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    path_uv, radius_px = _grid_path(sub, a, b, u0, v0, path_grid_px, cost_power)
+    path_uv = _centred_path(m[v0:v1, u0:u1], path_uv, a, b, u0, v0, radius_px, smooth_px)
+    return resample_polyline(path_uv, n_points)
+
+
+def _grid_path(
+    sub: np.ndarray, a: np.ndarray, b: np.ndarray, u0: int, v0: int, path_grid_px: int, cost_power: float
+) -> tuple[np.ndarray, float]:
+    """The cheapest path from A to B through the cropped (dilated) mask ``sub`` whose corner is pixel
+    (u0, v0): ``(path (N, 2) (u, v) input pixels from A to B, tube radius + dilation in input pixels)``."""
     # the path only has to lie inside the tube: search it on a grid of at most ~path_grid_px per
-    # side (max-pooled region); the centring below works on the full-resolution mask
+    # side (max-pooled region); the centring works on the full-resolution mask
     f = max(1, int(np.ceil(max(sub.shape) / path_grid_px)))
     if f > 1:
         h, w = sub.shape
@@ -122,6 +132,21 @@ def extract_centerline(
         (np.asarray(path, dtype=np.float64)[:, ::-1] + 0.5) * f - 0.5 + np.array([u0, v0], dtype=np.float64)
     )
     path_uv = np.concatenate([a[None], path_uv[1:-1], b[None]]) if len(path_uv) > 2 else np.stack([a, b])
+    return path_uv, radius_px
+
+
+def _centred_path(
+    sub_m: np.ndarray,
+    path_uv: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    u0: int,
+    v0: int,
+    radius_px: float,
+    smooth_px: float,
+) -> np.ndarray:
+    """The grid path (N, 2) from A to B smoothed and centred in the cropped mask ``sub_m`` (corner at
+    pixel (u0, v0)), input pixels; unchanged where it is too short to smooth."""
     # smooth the staircase of the pixel path, then move each point to the middle of the mask's
     # cross-section normal to the path: the grid path is ambiguous by ~1 px (equal-cost staircases,
     # flat distance map near the end caps), the cross-section midpoint is not
@@ -132,7 +157,7 @@ def extract_centerline(
         if smooth_px > 0:
             dense = _smooth_keep_ends(dense, smooth_px / spacing)
         half = 1.5 * radius_px + 2.0
-        sub_mask = m[v0:v1, u0:u1].astype(np.float32)
+        sub_mask = sub_m.astype(np.float32)
         centred = dense - [u0, v0]
         for _ in range(2):  # the second pass uses the normals of the centred path
             centred = _cross_section_midpoints(sub_mask, centred, half, tangent_sigma=radius_px / spacing)
@@ -147,7 +172,7 @@ def extract_centerline(
             )
         path_uv = centred
         path_uv[0], path_uv[-1] = a, b
-    return resample_polyline(path_uv, n_points)
+    return path_uv
 
 
 def _smooth_keep_ends(points: np.ndarray, sigma: float) -> np.ndarray:

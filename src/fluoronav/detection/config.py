@@ -1,24 +1,13 @@
 """The detector's declared configuration: the stages a model runs, in order, and each stage's settings.
 
-A model lists its stages in ``stages`` (a subsequence of :data:`STAGE_ORDER`; ``coarse`` and
-``fine`` always) and holds one frozen, validated config object per listed stage, grouped as the
-stage's network, its sampler (the views or patches it sees) and its decoder (the rules that turn its
-outputs into landmarks and masks):
-
-- ``coarse``: the whole image at a working resolution; finds the CM and places the region of interest.
-- ``fine``: square regions of interest around the CM; the landmarks and the mask, with the
-  hypotheses it weighs (other parts of the coarse mask, wider views).
-- ``refine``: the landmarks on tube-aligned patches (:mod:`fluoronav.detection.patches`).
-- ``tube``: the mask redrawn on tube-aligned patches along the centreline.
-- ``ends``: the mask's two ends redrawn on tube-aligned patches at the landmarks.
-- ``free_end``: landmark A read again where it sits on the free end of a tube.
-- ``shaft``: landmark A read again where a patch network trained on the mounting shaft puts the CM's
-  start beyond it.
-- ``edge``: a detection needs an image edge along its mask's boundary.
-
-``accept`` holds the rules a detection must pass after the fine stage (landmark confidences, mask
-area). Model files of format 1 held one flat dictionary of settings instead; fluoronav reads them
-no longer (``tools/convert_flat_detector.py`` converts one).
+A model lists its stages in ``stages`` (a subsequence of :data:`STAGE_ORDER`; ``coarse`` and ``fine``
+always) and holds one frozen, validated config object per listed stage, grouped as its network, its
+sampler (the views or patches it sees) and its decoder (the rules that turn its outputs into
+landmarks and masks): ``coarse`` (the whole image; places the region of interest), ``fine`` (the
+landmarks and the mask in ROIs around the CM), ``refine``, ``tube`` and ``ends`` (tube-aligned
+patches: the landmarks, the mask, its ends), ``free_end`` and ``shaft`` (landmark A read again),
+``edge`` (an image edge along the mask's boundary). ``accept`` holds the rules a detection must pass
+after the fine stage. docs/detector.md ("From image to detection") describes each stage.
 """
 
 from __future__ import annotations

@@ -2,21 +2,13 @@
 
 ``Detector.load()`` reads the shipped weights (``fluoronav/data/detector.pt``) or a model file written
 by ``fluoronav train``; ``Detector.detect(image)`` runs the model's stages in the order of
-:data:`~fluoronav.detection.config.STAGE_ORDER`:
-
-1. ``coarse`` on the whole image (:class:`~fluoronav.detection.localize.CoarseStage`);
-2. ``fine`` on regions of interest around the coarse detection, weighing its other hypotheses
-   (:class:`~fluoronav.detection.localize.FineStage`); the result must pass the ``accept`` rules;
-3. the last steps from the fine landmarks (:meth:`Detector.finish`): ``refine`` (the landmarks on
-   tube-aligned patches), the centreline of the fine mask between the landmarks
-   (:func:`~fluoronav.detection.centerline.extract_centerline`), ``tube`` and ``ends`` (the mask
-   redrawn along the centreline and at its ends; :mod:`fluoronav.detection.patch_stages`);
-4. the checks of landmark A, ``free_end`` and ``shaft`` (each may read A again and run the last
-   steps once more), and ``edge``, the check of the mask's boundary
-   (:mod:`fluoronav.detection.checks`).
-
-Input images are detector images after the log transform, bone and metal bright (as ``simulate``
-writes them); :func:`~fluoronav.detection.image_io.load_image` converts other files to that form.
+:data:`~fluoronav.detection.config.STAGE_ORDER`: ``coarse`` on the whole image, ``fine`` on regions
+of interest around it (:mod:`fluoronav.detection.localize`; the result must pass the ``accept``
+rules), the last steps from the fine landmarks (:meth:`Detector.finish`: ``refine``, the centreline,
+``tube`` and ``ends``), then the checks ``free_end``, ``shaft`` and ``edge``
+(:mod:`fluoronav.detection.checks`). Input images are detector images after the log transform, bone
+and metal bright; :func:`~fluoronav.detection.image_io.load_image` converts other files to that form.
+docs/detector.md ("From image to detection") describes each step.
 """
 
 from __future__ import annotations

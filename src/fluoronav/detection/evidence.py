@@ -1,16 +1,13 @@
 """Image evidence for a detection: whether the image has an edge where the mask has its boundary.
 
 The CM is a metal tube: its projection is bounded by a step in intensity far stronger than the
-gradients of the anatomy around it, and the fine stage's mask follows that step to about a pixel. A
-false alarm on CM-free images (a bone's rim or the hip joint, seen with low landmark confidence) is
-a blob whose boundary lies on no such edge. :func:`mask_edge_ratio` measures this: the mean image
-gradient on the mask's boundary over the median gradient in a ring around the mask, both at one
-smoothing scale, so the ratio does not depend on the image's scaling, dose or pixel size.
-
-:func:`end_continuation` asks another question of one end of a detection: does a tube go on beyond
-it? Landmark A, where the notches begin, sits where the CM meets its mounting shaft, so the tube
-continues there; the free end of a tube (the CM's tip, or the far end of a short shaft stub that the
-fine stage can take for A) has only background around it.
+gradients of the anatomy around it, which the fine stage's mask follows to about a pixel; a false
+alarm (a bone's rim, the hip joint) is a blob whose boundary lies on no such edge.
+:func:`mask_edge_ratio` measures this: the mean image gradient on the mask's boundary over the
+median gradient in a ring around it, at one smoothing scale, so it depends neither on the image's
+scaling, dose nor pixel size. :func:`end_continuation` asks whether a tube goes on beyond one end of
+a detection: it does at landmark A, where the CM meets its mounting shaft, and not at a free end
+(the CM's tip, or the far end of a short shaft stub that the fine stage can take for A).
 """
 
 from __future__ import annotations

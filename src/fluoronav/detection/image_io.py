@@ -1,16 +1,14 @@
-"""Image files as the detector reads them.
+"""Image files as the detector reads them (docs/data-formats.md, "X-ray images").
 
 The detector's input is a detector image after the log transform, bone and metal bright (as
 ``simulate`` writes them). :func:`load_image` converts other files to that form:
 
-- ``.npz`` (key ``image``) and ``.npy``: taken as-is.
+- ``.npz`` (key ``image``), ``.npy`` and float TIFF: taken as-is.
 - 8/16-bit PNG/TIFF/JPEG: raw intensities where dark = attenuating; converted with
-  ``−ln((I + 1) / (I_max + 1))``, I_max the type's full scale (255 or 65535). Colour is averaged to
-  grey. The constant offset of that rule does not matter: the detector normalises each image.
-- float TIFF: taken as-is (already a log image).
-- DICOM (read with SimpleITK): values after the modality rescale; MONOCHROME2 is taken as-is (bright =
-  attenuating, as radiographs are presented), MONOCHROME1 is inverted (max − value). The pixel spacing
-  is Imager Pixel Spacing (0018,1164), else Pixel Spacing (0028,0030), when present.
+  ``−ln((I + 1) / (I_max + 1))``, I_max the type's full scale; colour is averaged to grey.
+- DICOM (SimpleITK): values after the modality rescale; MONOCHROME2 as-is, MONOCHROME1 inverted
+  (max − value). The pixel spacing is Imager Pixel Spacing (0018,1164), else Pixel Spacing
+  (0028,0030), when present.
 """
 
 from __future__ import annotations

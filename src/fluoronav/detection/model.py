@@ -1,16 +1,14 @@
 """The detector's networks and its model files.
 
-Every network stage is a 2-D MONAI ``UNet``: the coarse and the fine stage each output 3 channels
-(a segmentation logit of the CM's notched region and two landmark heatmaps, A = CM base origin,
-B = distal end of the last notch, trained jointly as in Gao et al., IEEE TBME 69(1), 2022); the
-refinement stage 2 (heatmap logits of A and B on tube-aligned patches); the tube-mask, mask-end and
-shaft stages 1 (a mask logit on tube-aligned patches). :class:`DetectorNet` holds the networks of a
-:class:`~fluoronav.detection.config.DetectorConfig`'s stages; for inference each float32 network
-gets its batch norms folded into its convolutions (:func:`fold_batch_norm`) and, on a CPU, each
-convolution and its activation packed into one oneDNN call (:func:`pack_for_cpu`).
-
-A model file (``torch.save`` of a dict) holds ``format_version``, ``config`` (the declared
-configuration), ``normalization``, ``parameters``, the training record and ``state_dict``; a JSON
+Every network stage is a 2-D MONAI ``UNet``: the coarse and fine stages output 3 channels (a
+segmentation logit of the CM's notched region and the heatmaps of A = CM base origin and B = distal
+end of the last notch, as in Gao et al., IEEE TBME 69(1), 2022), the refinement stage 2 (heatmaps
+of A and B on tube-aligned patches), the tube-mask, mask-end and shaft stages 1 (a mask logit).
+:class:`DetectorNet` holds the networks of a :class:`~fluoronav.detection.config.DetectorConfig`'s
+stages; for inference each float32 network gets its batch norms folded into its convolutions
+(:func:`fold_batch_norm`) and, on a CPU, each convolution and its activation packed into one oneDNN
+call (:func:`pack_for_cpu`). A model file (``torch.save`` of a dict) holds ``format_version``,
+``config``, ``normalization``, ``parameters``, the training record and ``state_dict``; its JSON
 sidecar holds the same without the weights.
 """
 
@@ -119,8 +117,8 @@ def fold_batch_norm(module: nn.Module) -> nn.Module:
     returns ``module``. For inference only: ``module`` must be in eval mode (running statistics).
 
     The folded network computes the same function to float32 rounding (logits within ~1e-5 of
-    the unfolded ones) without a separate pass over the activations per batch norm (a detection
-    ~4 % faster on this CPU). Its ``state_dict`` has no batch-norm entries, so it cannot be
+    the unfolded ones) without a separate pass over the activations per batch norm (the gain:
+    docs/validation.md, "Speed"). Its ``state_dict`` has no batch-norm entries, so it cannot be
     trained on or saved as a model file.
     """
     if module.training:
@@ -142,7 +140,7 @@ class PackedConvolution(nn.Module):
     convolution, then a one-slope PReLU or nothing) as one oneDNN call on weights reordered once.
 
     For CPU inference in float32: eager PyTorch hands oneDNN plain weights on every call and runs
-    the activation as a separate pass; here neither (a detection ~4 % faster on this CPU). The
+    the activation as a separate pass; here neither (docs/validation.md, "Speed"). The
     result is bit-identical to the eager block for batches of two or more (to float32 rounding for
     one). Under autograd, autocast, another device or dtype the block runs eagerly, with the same
     function. The reordered weights are made on the first call and again when the weights change.

@@ -1,18 +1,15 @@
 """The patch stages: landmark refinement, the tube mask and the mask's ends, on tube-aligned patches.
 
-- Refinement (:class:`RefineStage`): the fine stage sees the whole CM in a 128² ROI, about one
-  stored pixel per ROI pixel, so where the notch pattern starts (A) and ends (B) along the tube is
-  set to about a pixel, most of the error along the tube. This stage reads each landmark again from
-  a patch around it at twice the training images' sampling (a spatial-softmax heatmap), with a
-  Gaussian prior around the fine landmark (the patch alone can take the tube's end beyond B, or the
-  base before A, for the landmark; the fine stage's view of the whole CM rules those out), from
+- Refinement (:class:`RefineStage`): the fine stage sets where the notch pattern starts (A) and ends
+  (B) along the tube to about a stored pixel; this stage reads each landmark again on patches at
+  twice the training images' sampling (a spatial-softmax heatmap), with a Gaussian prior around the
+  fine landmark (a patch alone can take the tube's end beyond B, or the base before A, for it), from
   several patches moved along the tube, and takes the mean.
 - Tube mask (:class:`TubeStage`): patches every ``spacing_px`` along the centreline; each decides
   the mask in a band around its centre.
-- Mask ends (:class:`EndsStage`): the label mask is the projection of the CM's envelope between
-  the planes of A and B, so each of its ends is half the ellipse that the tube's cross-section
-  there projects to, bulging beyond the landmark by up to the tube's radius. A patch at each refined
-  landmark redraws the mask from ``inner_px`` inside the landmark outwards.
+- Mask ends (:class:`EndsStage`): each end of the label mask is half the ellipse the tube's
+  cross-section projects to there, bulging beyond the landmark; a patch at each refined landmark
+  redraws the mask from ``inner_px`` inside the landmark outwards.
 """
 
 from __future__ import annotations

@@ -1,19 +1,15 @@
 """Tube-aligned patches: the sampler of the refinement, tube-mask, mask-end and shaft stages.
 
-The fine stage sees the whole CM in one square view; the patch stages look closer, on small patches
-aligned with the tube and at a fixed scale at the detector (``step_mm`` per patch pixel).
-
-Patch geometry (``rows × cols`` patch pixels, ``s`` input pixels per patch pixel, unit tangent ``t``
-along the tube, normal ``n = (−t_v, t_u)``): patch pixel (col k, row j) samples the input at
+Patches are small, aligned with the tube and at a fixed scale at the detector (``step_mm`` per patch
+pixel). With ``rows × cols`` patch pixels, ``s`` input pixels per patch pixel, unit tangent ``t``
+along the tube and normal ``n = (−t_v, t_u)``, patch pixel (col k, row j) samples the input at
 
     c + s·((k − (cols − 1)/2)·t + (j − (rows − 1)/2)·n)
 
-so the patch's centre ``c`` is the point of interest (a landmark, or a point of the centreline) and
-flipping the rows mirrors the patch exactly about the tube's axis (the mirror test-time
-augmentation). At a landmark the tangent points into the CM: the direction from the landmark to the
-mean of the CM mask's pixels in a ring around it (:func:`landmark_direction`), the same estimate
-from the true mask in training and from the detected mask at inference. Along a centreline it
-points from A towards B (:func:`tube_frames`).
+so the patch's centre ``c`` is the point of interest and flipping the rows mirrors the patch exactly
+about the tube's axis (the mirror test-time augmentation). At a landmark ``t`` points into the CM,
+towards the mean of the mask's pixels in a ring around it (:func:`landmark_direction`); along a
+centreline from A towards B (:func:`tube_frames`).
 """
 
 from __future__ import annotations
@@ -141,7 +137,7 @@ def patch_grid_px(frame: RefinePatch) -> np.ndarray:
 
 def bilinear(values: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Bilinear values of a 2-D array at (u = column, v = row) coordinates of any 2-D shape, edges
-    repeated. ``cv2.remap``: ten times faster than ``ndimage.map_coordinates`` here, its weights
+    repeated. ``cv2.remap`` (faster than ``ndimage.map_coordinates`` here), its weights
     fixed-point in 1/32 pixel."""
     return cv2.remap(
         np.asarray(values, dtype=np.float32),

@@ -98,8 +98,8 @@ class Networks:
         net: the networks as trained; they stay as they are (the detector runs a copy).
         device: ``cpu``, ``cuda`` or ``auto``.
         precision: a name of :data:`PRECISIONS` (:func:`resolve_precision`): ``bfloat16`` runs the
-            configuration's ``bf16_stages`` under bfloat16 autocast (logits ~0.05 off, faster on a
-            CPU with native bfloat16), ``float32`` every network in float32.
+            configuration's ``bf16_stages`` under bfloat16 autocast (faster on a CPU with native
+            bfloat16, its logits a little off: docs/validation.md), ``float32`` every network in float32.
     """
 
     def __init__(

@@ -1,27 +1,15 @@
 """Cross-section profile of a tube (the CM's shaft) in an X-ray image: its scale and the image's response.
 
-Across a tube of outer radius ``R`` and inner radius ``Rᵢ`` (mm) the line integral is ``μ·c(x)`` with
-the annulus chord
-
-    c(x) = 2·(√(R² − x²)₊ − √(Rᵢ² − x²)₊)          (x: distance from the axis, mm at the tube)
-
-A real −log image is not linear in it: scatter and veiling glare add intensity that the tube does not
-attenuate, and beam hardening lowers the effective μ of thick metal. Both are captured by a veil
-``f``, the fraction of the flat field that passes unattenuated:
-
-    y(x) = b(x) − ln((1 − f)·exp(−μ·c(x)) + f)
-
-(blurred by a Gaussian, on a quadratic background ``b``). The fit of this model to the median of
-profiles sampled normal to the tube's projected axis gives
-
-- the tube's scale, pixels per mm at the tube (``px_per_mm``; ``focal_px / px_per_mm`` is its
-  distance from the source, the depth cue of the centreline initialisation), when it is not given;
-- the image's response ``(μ, f)``, which the CM registration applies to its DRR (a linear DRR against
-  a compressed image biased single-view depth by 1–3 mm towards the source; docs/registration.md).
-
-Profiles are re-centred on the fitted model and refitted (a projected axis 1–2 px off the tube's
-axis blurs their median and widens it). The shaft is used, not the notched CM: notches cut one side
-of the tube at a time and change the profile's shape with the viewing angle.
+Across a tube of outer radius ``R`` and inner radius ``Rᵢ`` (mm) the line integral is ``μ·c(x)``
+with the annulus chord ``c(x) = 2·(√(R² − x²)₊ − √(Rᵢ² − x²)₊)`` (x: distance from the axis, mm at
+the tube). The fitted image model, blurred by a Gaussian on a quadratic background ``b``, is
+``y(x) = b(x) − ln((1 − f)·exp(−μ·c(x)) + f)``: the veil ``f`` (the fraction of the flat field that
+passes unattenuated) captures scatter, glare and beam hardening (docs/registration.md, "The
+image's response to the CM"). Fitted to the median of profiles normal to the tube's projected axis
+(re-centred on the model and refitted), it gives the tube's scale (``px_per_mm`` at the tube; its
+depth is ``focal_px / px_per_mm``) when it is not given, and the response ``(μ, f)`` the CM
+registration applies to its DRR. The shaft is used, not the notched CM: notches cut one side of the
+tube at a time and change the profile's shape with the viewing angle.
 """
 
 from __future__ import annotations
@@ -196,6 +184,37 @@ def fit_tube_profile(
         raise ValueError(f"the scale must be positive, got {s_lo}..{s_hi}")
     R, Ri = float(outer_radius_mm), float(inner_radius_mm)
 
+    sampled = _sample_profiles(img, ax, n_profiles, trim_fraction, 2.5 * R * s_hi, step_px)
+    if sampled is None:
+        return None
+    prof, x, n_kept = sampled
+    aligned = _aligned_fit(prof, x, R, Ri, (s_lo, s_hi), fixed, step_px, align_iterations)
+    if aligned is None:
+        return None
+    fit, prof = aligned
+    s, mu, f, blur = (float(v) for v in fit.x[:4])
+    rms = float(np.sqrt(np.mean(fit.fun**2)))
+    peak = float(-np.log((1.0 - f) * np.exp(-mu * annulus_chord(np.array([Ri]), R, Ri)[0]) + f))
+    on_bound = not fixed and (s <= s_lo * 1.001 or s >= s_hi * 0.999)
+    # spread of the single profiles about their median (robust): a tube stands out of it, noise
+    # re-centred on a fitted template does not
+    spread = 1.4826 * float(np.median(np.abs(prof - np.median(prof, axis=0, keepdims=True))))
+    if on_bound or mu <= 0.0 or rms >= 0.5 * peak or peak < 3.0 * spread:
+        logger.debug(
+            "tube profile rejected: scale %.3g in [%.3g, %.3g], peak %.3g, rms %.3g, spread %.3g",
+            s, s_lo, s_hi, peak, rms, spread,
+        )  # fmt: skip
+        return None
+    return TubeProfileFit(
+        px_per_mm=s, mu_per_mm=mu, veil=f, blur_mm=blur, rms_residual=rms, n_profiles=n_kept
+    )
+
+
+def _sample_profiles(
+    img: np.ndarray, ax: np.ndarray, n_profiles: int, trim_fraction: float, half_px: float, step_px: float
+) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """Profiles normal to the axis, ``half_px`` either side of it: ``(profiles (N, X), offsets (X,)
+    pixels, N)``; None where the axis has a repeated point or fewer than 3 profiles lie in the image."""
     pts = resample_polyline(ax, n_profiles + 2)
     tangent = np.gradient(pts, axis=0)
     norm = np.linalg.norm(tangent, axis=1, keepdims=True)
@@ -204,8 +223,7 @@ def fit_tube_profile(
     normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1) / norm
     k = max(1, round(trim_fraction * len(pts)))
     pts, normal = pts[k:-k], normal[k:-k]
-    half = 2.5 * R * s_hi
-    x = np.arange(-half, half + 0.5 * step_px, step_px)
+    x = np.arange(-half_px, half_px + 0.5 * step_px, step_px)
     q = pts[:, None, :] + x[None, :, None] * normal[:, None, :]  # (N, X, 2)
     h, w = img.shape
     keep = ((q[..., 0] >= 0) & (q[..., 0] <= w - 1) & (q[..., 1] >= 0) & (q[..., 1] <= h - 1)).all(axis=1)
@@ -213,7 +231,22 @@ def fit_tube_profile(
         return None
     q = q[keep]
     prof = ndimage.map_coordinates(img, [q[..., 1].ravel(), q[..., 0].ravel()], order=1).reshape(q.shape[:2])
+    return prof, x, int(keep.sum())
 
+
+def _aligned_fit(
+    prof: np.ndarray,
+    x: np.ndarray,
+    R: float,
+    Ri: float,
+    scale_range: tuple[float, float],
+    fixed: bool,
+    step_px: float,
+    align_iterations: int,
+) -> tuple[optimize.OptimizeResult, np.ndarray] | None:
+    """The model fitted to the profiles' median, each profile re-centred on the fitted model and the
+    fit repeated ``align_iterations`` times: ``(fit, re-centred profiles (N, X))``; None where a fit fails."""
+    s_lo, s_hi = scale_range
     fit = _fit(np.median(prof, axis=0), x, R, Ri, (s_lo, s_hi), fixed, None)
     max_shift = round(R * s_hi / step_px)
     shifts = np.arange(-max_shift, max_shift + 1)
@@ -230,19 +263,4 @@ def fit_tube_profile(
         fit = _fit(np.median(prof, axis=0), x, R, Ri, (s_lo, s_hi), fixed, np.r_[fit.x[:4], 0.0, fit.x[5:]])
     if fit is None:
         return None
-    s, mu, f, blur = (float(v) for v in fit.x[:4])
-    rms = float(np.sqrt(np.mean(fit.fun**2)))
-    peak = float(-np.log((1.0 - f) * np.exp(-mu * annulus_chord(np.array([Ri]), R, Ri)[0]) + f))
-    on_bound = not fixed and (s <= s_lo * 1.001 or s >= s_hi * 0.999)
-    # spread of the single profiles about their median (robust): a tube stands out of it, noise
-    # re-centred on a fitted template does not
-    spread = 1.4826 * float(np.median(np.abs(prof - np.median(prof, axis=0, keepdims=True))))
-    if on_bound or mu <= 0.0 or rms >= 0.5 * peak or peak < 3.0 * spread:
-        logger.debug(
-            "tube profile rejected: scale %.3g in [%.3g, %.3g], peak %.3g, rms %.3g, spread %.3g",
-            s, s_lo, s_hi, peak, rms, spread,
-        )  # fmt: skip
-        return None
-    return TubeProfileFit(
-        px_per_mm=s, mu_per_mm=mu, veil=f, blur_mm=blur, rms_residual=rms, n_profiles=int(keep.sum())
-    )
+    return fit, prof

@@ -1,16 +1,15 @@
-"""C-arm poses from clinical angles.
+"""C-arm poses from clinical angles (docs/conventions.md, "C-arm angles").
 
-World frame: patient LPS (+x left, +y posterior, +z superior), as ITK reads a CT. Patient supine.
+World frame: patient LPS (+x left, +y posterior, +z superior), as ITK reads a CT; patient supine.
 The source sits on a sphere of radius ``source_to_isocenter_mm`` about the isocentre, at direction
 
     s(α, β) = (sin β · sin α,  sin β · cos α,  cos β)         (unit vector, isocentre → source)
 
-with α = LAO/RAO angle (rotation about the patient's long axis, 0 = source posterior) and
-β = CRAN/CAUD polar angle from the superior axis (90° = perpendicular to the long axis). So
-α = 0°, β = 90° is the AP view with the source under the table. The camera +z axis points from the
-source towards the isocentre (−s); +y (image rows) is the patient's inferior direction projected on
-the image plane, so the head is at the top of the image; +x = y × z completes a right-handed frame.
-This matches the sampling ranges of the paper's data set (LAO/RAO 0–360°, CRAN/CAUD 75–105°).
+with α = LAO/RAO angle (about the patient's long axis, 0 = source posterior) and β = CRAN/CAUD polar
+angle from the superior axis (90° = perpendicular to the long axis): α = 0°, β = 90° is AP with the
+source under the table. The camera +z points from the source towards the isocentre (−s); +y (image
+rows) is the patient's inferior direction projected on the image plane, so the head is at the top of
+the image; +x = y × z completes a right-handed frame.
 """
 
 from __future__ import annotations

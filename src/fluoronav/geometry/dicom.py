@@ -1,21 +1,15 @@
 """C-arm cameras from the geometry tags of X-ray DICOM files (e.g. Siemens CIOS Fusion).
 
-Tags used (all optional except the image size; missing ones fall back to the CIOS Fusion preset):
-
-| tag | name | use |
-|---|---|---|
-| (0018,1164) | Imager Pixel Spacing | detector pixel pitch, mm (else (0028,0030) Pixel Spacing) |
-| (0018,1110) | Distance Source to Detector | source-to-detector distance, mm |
-| (0018,1111) | Distance Source to Patient | source-to-isocentre distance, mm (else 450/1020 of the SDD) |
-| (0018,1510) | Positioner Primary Angle | LAO (+) / RAO (−), degrees |
-| (0018,1511) | Positioner Secondary Angle | CRA (+) / CAU (−), degrees |
+Tags (all optional except the image size; missing ones fall back to the CIOS Fusion preset; see
+docs/data-formats.md, "X-ray images"): Imager Pixel Spacing (0018,1164) else Pixel Spacing
+(0028,0030), Distance Source to Detector (0018,1110), Distance Source to Patient (0018,1111; else
+450/1020 of the SDD), Positioner Primary (0018,1510) and Secondary (0018,1511) Angle.
 
 World frame of the returned camera: the C-arm's isocentre frame, patient LPS axes for a supine
 patient (the frame of :func:`~fluoronav.geometry.carm.carm_camera`). The DICOM angles give the
-detector's position (LAO: detector towards the patient's left, so the source to the right; CRA:
-detector towards the head), hence ``lao_rao_deg = −primary`` and ``cran_caud_deg = 90 + secondary``
-in that function's convention. The principal point is the image centre; a calibrated K (and pose)
-in a camera file is always preferable where it exists.
+detector's position (LAO: detector towards the patient's left; CRA: towards the head), hence
+``lao_rao_deg = −primary`` and ``cran_caud_deg = 90 + secondary``. The principal point is the image
+centre; a calibrated camera file is more accurate where it exists.
 """
 
 from __future__ import annotations

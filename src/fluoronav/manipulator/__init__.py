@@ -1,4 +1,4 @@
-"""The continuum manipulator (CM) and the serial robot carrying it.
+"""The continuum manipulator (CM) and the serial robot carrying it (frames: docs/conventions.md).
 
 - :mod:`~fluoronav.manipulator.config`: the CM's dimensions (:class:`CMConfig`, the paper's CM by
   default) and its mounting shaft;
@@ -9,8 +9,6 @@
 - :mod:`~fluoronav.manipulator.mesh`: triangle surface meshes and STL files;
 - :mod:`~fluoronav.manipulator.robot`: DH serial robots (the UR-10 preset), inverse kinematics and
   the kinematic error model of a physical robot.
-
-Frames and the CM base frame are in docs/conventions.md.
 """
 
 from typing import TYPE_CHECKING

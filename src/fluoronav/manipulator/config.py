@@ -1,24 +1,14 @@
 """Parametric description of a notched continuum manipulator (CM).
 
-Defaults are the paper's CM (Gao et al. 2022): a nitinol tube, 6 mm outer and 4 mm inner
-diameter, 35 mm long, 27 notches cut alternately on two opposite sides, bending in one plane, with
-joint angles interpolated by a cubic spline through 5 control points.
+Defaults are the paper's CM (Gao et al. 2022): a nitinol tube, 6 mm outer and 4 mm inner diameter,
+35 mm long, 27 notches cut alternately on two opposite sides, bending in one plane, with joint
+angles interpolated by a cubic spline through 5 control points. The dimensions the paper does not
+give (notch pitch, width and depth, base length) and why they were chosen: docs/conventions.md.
 
-Dimensions the paper does not give, and why we chose them:
-
-- ``notch_pitch_mm = 1.0``: 27 notches over 27 mm leaves 8 mm of solid tube for the base and the top,
-  consistent with the 35 mm total length and the photos of the CM (the notched part dominates).
-- ``notch_width_mm = 0.7`` (along the axis): wide enough that a notch closes only at
-  atan(0.7 / 4.5) = 8.8°, beyond the paper's control-point range of ±7.9°; at 0.194 mm detector pixels
-  and ~2× magnification a 0.7 mm gap spans ~7 pixels, so every notch is visible.
-- ``notch_depth_mm = 4.5`` from the outer surface: leaves a 1.5 mm spine, a quarter of the diameter,
-  typical of bidirectional notched nitinol CMs (the cut passes through the lumen).
-- ``base_length_mm = 4.0`` of plain tube below landmark A (the origin), the rest above the last notch.
-
-Frame (docs/conventions.md): origin A between the base and the first notch, on the axis; +z along the axis
-towards the tip; bending in the y-z plane, joints rotate about x. Notch ``j`` (0-based) is centred at
-``z_j = first_notch_offset_mm + j · notch_pitch_mm`` and opens towards +y for even ``j``, −y for odd.
-A positive joint angle rotates the distal part about +x (bending the tip towards −y).
+Frame (docs/conventions.md): origin A between the base and the first notch, on the axis; +z along
+the axis towards the tip; bending in the y-z plane, joints rotate about x. Notch ``j`` (0-based) is
+centred at ``z_j = first_notch_offset_mm + j · notch_pitch_mm`` and opens towards +y for even ``j``,
+−y for odd. A positive joint angle rotates the distal part about +x (bending the tip towards −y).
 """
 
 from __future__ import annotations

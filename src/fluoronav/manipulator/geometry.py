@@ -5,12 +5,10 @@ the annulus ``r_in ≤ r ≤ r_out``, ``−base_length ≤ z ≤ tip_z``, minus,
 slab ``|z − z_j| ≤ width/2`` intersected with the half-space ``side_j · y > notch_cut_level``.
 Link ``k`` owns the material with ``z`` in ``link_z_ranges_mm()[k]`` and moves rigidly with
 ``cm_from_link[k]``, so the bent solid is the union of the transformed link pieces.
-
 ``region="notched"`` restricts everything to the straight-frame slab ``0 ≤ z ≤ distal_notch_plane``
-(between landmarks A and B), which is what the 2D segmentation labels mark.
-
-An as-built instrument (:class:`NotchGeometry`: each notch where it was really cut, with its own width
-and depth) is voxelised by :func:`voxelize_cm_links` from explicit link transforms.
+(between landmarks A and B), which is what the 2D segmentation labels mark. An as-built instrument
+(:class:`NotchGeometry`: each notch where it was really cut, with its own width and depth) is
+voxelised by :func:`voxelize_cm_links` from explicit link transforms.
 """
 
 from __future__ import annotations

@@ -2,19 +2,13 @@
 
 The joint angle of notch ``j`` is a natural cubic spline through the control points placed at the
 knots of :meth:`CMConfig.knot_positions` and evaluated at ``j = 0 … N−1`` (extrapolated with the end
-pieces outside the knots). The spline is linear in the control points, so it is a fixed
-(N, n) weight matrix and batching is one matrix product.
-
-Each joint rotates everything distal to it about the x axis through the notch centre on the tube
-axis. There are ``N + 1`` rigid links: link 0 is the base (up to notch 0's centre), link ``k`` lies
-between notch ``k−1`` and ``k``, and link ``N`` is the top. ``cm_from_link[k]`` maps a point given
-in straight-configuration CM coordinates on link ``k`` to its bent position in the CM base frame.
-
-As in the authors' model, joints rotate about the tube axis at the notch centre. A real notched
-tube bends about its spine, so at a bent joint the spines of two neighbouring links overlap (or
-gap) by about |y|·tan φ: for typical shapes ~3 % of the CM's volume. The analytic renderer sums
-the overlapping material while the voxeliser used by the simulator counts it once, a small model
-mismatch between the registration's renderer and the simulated images.
+pieces outside the knots); it is linear in the control points, a fixed (N, n) weight matrix, so
+batching is one matrix product. Each joint rotates everything distal to it about the x axis through
+the notch centre on the tube axis, as in the authors' model (how a real tube differs:
+docs/conventions.md). There are ``N + 1`` rigid links: link 0 is the base (up to notch 0's centre),
+link ``k`` lies between notch ``k−1`` and ``k``, and link ``N`` is the top. ``cm_from_link[k]`` maps
+a point given in straight-configuration CM coordinates on link ``k`` to its bent position in the CM
+base frame.
 """
 
 from __future__ import annotations

@@ -1,16 +1,14 @@
 """Serial robot model from standard DH parameters, with the UR-10 preset, analytic IK and errors.
 
 Frames: ``rbase`` is the robot base frame (DH frame 0), ``ee`` the end-effector (tool flange) frame
-(DH frame 6). Joint values ``q`` are in degrees at the interface; DH lengths in mm.
+(DH frame 6). Joint values ``q`` are in degrees at the interface; DH lengths in mm. Standard
+(distal) DH: the transform from frame ``i`` to frame ``i−1`` is ``Rz(θ_i) · Tz(d_i) · Tx(a_i) ·
+Rx(α_i)`` with ``θ_i = q_i + theta_offset_i``.
 
-Standard (distal) DH: the transform from frame ``i`` to frame ``i−1`` is
-``Rz(θ_i) · Tz(d_i) · Tx(a_i) · Rx(α_i)`` with ``θ_i = q_i + theta_offset_i``.
-
-Inverse kinematics for UR-type arms (α = 90°, 0, 0, 90°, −90°, 0; a1 = a4 = a5 = a6 = 0;
-d2 = d3 = 0) uses the closed form (Hawkins 2013, re-derived in docs/robot-and-calibration.md): up to 8
-branches (shoulder ± × wrist ± × elbow ±). Each branch is then refined by damped least squares on
-this robot's exact forward kinematics, which also makes the IK exact for a robot whose DH
-parameters carry calibration errors (where the closed form is only approximate).
+Inverse kinematics for UR-type arms uses the closed form (Hawkins 2013, re-derived in
+docs/robot-and-calibration.md): up to 8 branches (shoulder ± × wrist ± × elbow ±), each refined by
+damped least squares on this robot's exact forward kinematics, which also makes the IK exact for a
+robot whose DH parameters carry calibration errors (where the closed form is only approximate).
 """
 
 from __future__ import annotations

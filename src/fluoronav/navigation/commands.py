@@ -1,17 +1,13 @@
 """The robot's commands measured and bounded: joint motion, the CM tip's swept path, the move's size.
 
-Every command the navigation gives (the first move, the correction) is measured before it is given:
-how far each joint turns, the path the CM tip sweeps while the joints move linearly (its length and
-its largest deviation from the straight segment), and how far the CM tip travels and the CM turns
-between its registered pose and the target. The measurements go into the stage's diagnostics
-(``navigation.json``, the report); a command beyond a bound of
-:class:`~fluoronav.navigation.checks.safety.SafetyConfig` is refused (:class:`NavigationRefused`) with a
-reason that names the plan, the measured value and the bound.
-
-The verification is judged here too: the joints read with its images against the first move's
-command (:func:`check_joint_readings`), and the CM its images show against where the robot's
-kinematics put it (:func:`judge_kinematics`: they agree, the images overrule the kinematics with a
-warning, or the navigation is refused; :mod:`fluoronav.navigation.checks.safety`).
+Every command (the first move, the correction) is measured before it is given: each joint's turn,
+the path the CM tip sweeps while the joints move linearly (its length and its largest deviation
+from the straight segment), and how far the CM tip travels and the CM turns from its registered
+pose to the target. The measurements go into the stage's diagnostics; a command beyond a bound of
+:class:`~fluoronav.navigation.checks.safety.SafetyConfig` is refused (:class:`NavigationRefused`)
+naming the plan, the measured value and the bound. The verification is judged here too: its joint
+readings against the command (:func:`check_joint_readings`) and the CM its images show against
+where the kinematics put it (:func:`judge_kinematics`: agree, overrule with a warning, or refuse).
 """
 
 from __future__ import annotations

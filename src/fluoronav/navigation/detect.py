@@ -12,7 +12,7 @@ import numpy as np
 
 from fluoronav.detection.centerline import extract_centerline
 from fluoronav.navigation.case.view import CaseView
-from fluoronav.navigation.result import NavigationConfig
+from fluoronav.navigation.config import NavigationConfig
 from fluoronav.registration.view_set import ViewDetection
 
 __all__ = ["band_mask", "detect_views", "shipped_detector"]

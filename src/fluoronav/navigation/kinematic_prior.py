@@ -1,17 +1,12 @@
-"""How well the robot's kinematics say where a move took the CM: the stated uncertainties of the
-robot, the hand-eye matrix and the first registration (:class:`KinematicUncertainty`), propagated
-to the CM after a move (:func:`prediction_sigma_mm`).
+"""How well the robot's kinematics say where a move took the CM (:class:`KinematicUncertainty`).
 
 The prediction is the first registration of the CM (relative to the femur) carried by the robot's
 relative motion, ``femur_from_cm_2 = femur_from_cm_1 · cm_1_from_cm_2`` with
-``cm_1_from_cm_2 = (ee_from_cm)⁻¹ · ee_1_from_ee_2 · ee_from_cm``. Its error, to first order and
-independent terms:
-
-- the first registration's error of the CM relative to the femur, carried along;
-- the robot's positioning error over the move (joint offsets, link lengths);
-- a hand-eye rotation error δ turns the motion's translation ``t``: ``|t| · δ``;
-- a hand-eye translation error ``e`` moves the CM by ``(R − I) e`` for a motion rotation ``R`` of
-  angle θ: ``2 sin(θ/2) |e|``.
+``cm_1_from_cm_2 = (ee_from_cm)⁻¹ · ee_1_from_ee_2 · ee_from_cm``. Its error
+(:func:`prediction_sigma_mm`), to first order with independent terms: the first registration's
+error, carried along; the robot's positioning error over the move; a hand-eye rotation error δ
+turning the motion's translation ``t`` (``|t| · δ``); a hand-eye translation error ``e`` moving the
+CM by ``(R − I) e`` for a motion rotation ``R`` of angle θ (``2 sin(θ/2) |e|``).
 
 Frames: ``femur`` (the CT frame moved with the femur), ``rbase``, ``ee``, ``cm``; mm and degrees.
 """

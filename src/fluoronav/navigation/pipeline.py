@@ -1,61 +1,22 @@
 """The navigation pipeline: from a navigation case to a robot command (``fluoronav navigate``).
 
-Stages, each timed and recorded with its diagnostics (:class:`StageRecord`):
-
-1. ``detect``: per view, the CM mask, landmarks A and B and centreline: the shipped detector, or the
-   landmarks (and mask) the case gives for that view.
-2. ``pelvis``: the pelvis registered to each view alone; each view's ``camera_from_ct`` follows, and
-   with it the views' relative geometry (§II-C). The CM and its shaft are left out of the bone
-   similarity.
-3. ``femur``: the femur registered to all views (rotation about the femoral head) →
-   ``ct_from_femur``, the femur's pose relative to where the CT shows it.
-4. ``cm``: the landmarks triangulated over the views, a scan of the roll about them scored by the
-   centrelines (multi-view centreline initialisation), then multi-view CM registration (pose and
-   shape) in the CT frame from the best one or two roll minima.
-5. ``plan``: the planned CM pose in the femur frame, with the CM's registered shape where the plan
-   gives none. Where the plan leaves the CM's roll free, the roll whose command turns the joints
-   least (:func:`~fluoronav.navigation.targeting.least_motion_target`).
-6. ``robot``: eqs. 7–8 and inverse kinematics near the joints read while imaging →
-   ``rbase_from_ee_target``, ``joints_target_deg``; the command measured and bounded
-   (:mod:`fluoronav.navigation.commands`).
-
-With verification views (the images after the move, one to three): ``verify_joints`` (the joints
-read with them against the command), ``verify_detect``, ``verify_pelvis``, ``verify_femur``,
-``verify_cm`` and ``correct``. Where the case says which first view's C-arm position each view was
-taken from and how the C-arm moved since (``CaseView.moved_from``), each camera starts from that
-view's registered camera moved by it and the bones need only their local levels; where no C-arm
-moved and the bones' images agree with the first ones, the first registration's bones are kept
-(:mod:`~fluoronav.registration.view_set.unmoved`). The CM is registered from the robot's kinematic
-prediction, the views' checks judging it (with one view only where its landmarks agree with the
-prediction), else from the images' own starts; its tip is then fused with the prediction, each
-weighted by its stated uncertainty (:mod:`~fluoronav.navigation.kinematic_prior`,
-:mod:`~fluoronav.registration.view_set.fusion`), where the two are consistent. ``correct``: the
-registered CM compared with the robot's kinematics (a disagreement is refused or, where the images
-are unambiguous, overruled with a warning: :mod:`~fluoronav.navigation.checks.safety`), then one
-corrective command from the verification joints that slides the registered CM so that its tip
-meets the plan (:func:`~fluoronav.navigation.targeting.tip_correction_target`), measured and
-bounded as the first move is.
-
-Stages 2–4 are :func:`~fluoronav.registration.view_set.register_view_set`, for the verification
-with the first registration and the robot's kinematics as its prior
-(:class:`~fluoronav.registration.view_set.ViewSetPrior`).
-
-A stage that cannot go on (fewer than two views with a CM, the target out of the robot's reach, a
-command beyond a bound of :class:`~fluoronav.navigation.checks.safety.SafetyConfig`) ends the run with
-status ``"refused"`` and a reason naming the stage, the view and the check; no robot command is
-given then.
-
-Frames: ``ct`` (LPS, mm) throughout; ``femur`` is the CT frame moved with the femur
-(``ct_from_femur``), the frame the plan is drawn in; ``carm_k`` is view k's C-arm camera frame.
+Stages, each timed and recorded with its diagnostics (:class:`StageRecord`): ``detect`` (per view:
+the CM's mask, landmarks and centreline), ``pelvis``, ``femur`` and ``cm``
+(:func:`~fluoronav.registration.view_set.register_view_set`), ``plan`` (the planned CM pose in the
+femur frame; a free roll is the one whose command turns the joints least) and ``robot`` (eqs. 7–8,
+inverse kinematics, the command measured and bounded: :mod:`fluoronav.navigation.commands`). With
+verification views (:func:`verify`): the same on the images after the move, with the first
+registration and the robot's kinematics as the prior, then ``correct`` (one corrective command).
+A stage that cannot go on ends the run with status ``"refused"`` and a reason naming the stage, the
+view and the check; no robot command is given then. docs/navigation.md ("Stages") describes each.
+Frames: ``ct`` (LPS, mm); ``femur`` is the CT frame moved with the femur (``ct_from_femur``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -71,11 +32,11 @@ from fluoronav.navigation.commands import (
     judge_kinematics,
     measure_command,
 )
+from fluoronav.navigation.config import NavigationConfig
 from fluoronav.navigation.detect import detect_views
 from fluoronav.navigation.kinematic_prior import prediction_sigma_mm
 from fluoronav.navigation.planning import Plan, planned_femur_from_cm
 from fluoronav.navigation.result import (
-    NavigationConfig,
     NavigationRefused,
     NavigationResult,
     StageRecord,
@@ -93,7 +54,7 @@ from fluoronav.navigation.targeting import (
     tip_correction_target,
 )
 from fluoronav.navigation.verification import moved_cameras, register_verification
-from fluoronav.registration.stages import StageRecorder
+from fluoronav.registration.stages import StageTimer
 from fluoronav.registration.view_set import (
     FluoroView,
     ViewSetPrior,
@@ -129,9 +90,9 @@ VERIFY_STAGES = ("verify_joints", "verify_detect", "verify_pelvis", "verify_femu
 EventCallback = Callable[[str, dict[str, Any]], None]
 
 
-class _Stages:
-    """Times stages into ``result.stages`` and reports them to callbacks (progress displays and
-    listeners); a listener that fails is logged and never stops the navigation."""
+class _Stages(StageTimer):
+    """Times stages into ``result.stages`` (:class:`StageTimer`, telling ``on_stage``) and tells
+    listeners what the pipeline learns; a listener that fails is logged and never stops the navigation."""
 
     def __init__(
         self,
@@ -139,7 +100,8 @@ class _Stages:
         on_stage: Callable[[str, str], None] | None,
         on_event: EventCallback | None = None,
     ) -> None:
-        self.result, self.on_stage, self.on_event = result, on_stage, on_event
+        super().__init__(result.stages, on_stage)
+        self.result, self.on_event = result, on_event
 
     def emit(self, kind: str, **data: Any) -> None:
         if self.on_event is None:
@@ -148,23 +110,6 @@ class _Stages:
             self.on_event(kind, data)
         except Exception:  # a listener must not cost the navigation its result
             log.exception("navigation listener failed on %r", kind)
-
-    @contextmanager
-    def __call__(self, name: str) -> Iterator[StageRecord]:
-        rec = self.result.stages.setdefault(name, StageRecord())
-        if self.on_stage is not None:
-            self.on_stage(name, "start")
-        t0 = time.perf_counter()
-        try:
-            yield rec
-        finally:
-            rec.seconds = time.perf_counter() - t0
-            if self.on_stage is not None:
-                self.on_stage(name, "done")
-
-    def within(self, prefix: str) -> StageRecorder:
-        """The recorder of a registration's stages, named ``prefix + stage``."""
-        return lambda name: self(prefix + name)
 
 
 def _detect(
@@ -270,6 +215,14 @@ def _preflight(case: NavigationCase, config: NavigationConfig, stage: _Stages) -
         raise NavigationRefused("preflight", plan[0].check, plan[0].reason + more)
 
 
+def _refused(res: NavigationResult, stage: _Stages, exc: NavigationRefused, what: str) -> NavigationResult:
+    """``res`` refused by ``exc`` (logged as ``what``), its listeners told."""
+    log.warning("%s refused: %s", what, exc)
+    res.refuse(exc)
+    stage.emit("status", status=res.status, reason=res.reason)
+    return res
+
+
 def navigate(
     case: NavigationCase,
     config: NavigationConfig | None = None,
@@ -295,76 +248,93 @@ def navigate(
     try:
         _preflight(case, cfg, stage)
     except NavigationRefused as exc:
-        log.warning("navigation refused: %s", exc)
-        res.refuse(exc)
-        stage.emit("status", status=res.status, reason=res.reason)
-        return res
+        return _refused(res, stage, exc, "navigation")
     torch.manual_seed(abs(int(cfg.seed)) % 2**63)
     kin = CMKinematics(case.cm_config)
+    try:
+        res.first = _register_first(case, cfg, stage)
+        plan = _plan(case, res, kin, stage)
+        _first_move(case, res, plan, kin, stage)
+    except NavigationRefused as exc:
+        return _refused(res, stage, exc, "navigation")
+    if case.verification is not None:
+        return verify(case, res, on_stage=on_stage, on_event=on_event)
+    stage.emit("status", status=res.status, reason=res.reason)
+    return res
+
+
+def _register_first(case: NavigationCase, cfg: NavigationConfig, stage: _Stages) -> ViewSetRegistration:
+    """Stages ``detect`` to ``cm``: the first images registered, the CM from the FBG reading's shape."""
     cp0 = (
         np.zeros(case.cm_config.n_control_points)
         if case.fbg_control_points_deg is None
         else np.asarray(case.fbg_control_points_deg, np.float64)
     )
-    try:
-        views = _detect(stage, case.views, cfg, prefix="", need=cfg.min_views)
-        with navigation_refusals(""):
-            first = register_view_set(
-                views,
-                case.volume,
-                side=case.side,
-                cm_config=case.cm_config,
-                initial_control_points_deg=cp0,
-                settings=cfg.view_set_settings(verification=False, fbg_sigma_deg=case.fbg_sigma_deg),
-                seed=_stage_seed(cfg.seed, 0),
-                recorder=stage.within(""),
-            )
-        stage.emit("registration", prefix="", registration=first)
-        res.first = first
-        with stage("plan") as rec:
-            plan = case.plan
-            if plan.control_points_deg is None:  # the CM keeps the shape it has now
-                plan = dataclasses.replace(plan, control_points_deg=np.asarray(first.cm.control_points_deg))
-            res.plan = plan
-            rec.diagnostics["tip_target_ct_mm"] = plan.tip_target_world_mm.tolist()
-            rec.diagnostics["roll_free"] = plan.roll_free
-            if plan.roll_free:
-                chosen = _least_motion_roll(case, first, plan, kin, cfg)
-                res.femur_from_cm_target = chosen.femur_from_cm_target
-                rec.diagnostics["roll_deg"] = chosen.roll_deg
-            else:
-                res.femur_from_cm_target = planned_femur_from_cm(plan, kinematics=kin)
-        stage.emit(
-            "plan",
-            plan=plan,
-            ct_from_femur=first.ct_from_femur,
-            femur_from_cm_target=res.femur_from_cm_target,
+    views = _detect(stage, case.views, cfg, prefix="", need=cfg.min_views)
+    with navigation_refusals(""):
+        first = register_view_set(
+            views,
+            case.volume,
+            side=case.side,
+            cm_config=case.cm_config,
+            initial_control_points_deg=cp0,
+            settings=cfg.view_set_settings(verification=False, fbg_sigma_deg=case.fbg_sigma_deg),
+            seed=_stage_seed(cfg.seed, 0),
+            recorder=stage.within(""),
         )
-        with stage("robot") as rec:
-            target, q = _command(case, first, case.joints_deg, res.femur_from_cm_target, cfg, "robot")
-            res.rbase_from_ee_target, res.joints_target_deg = target, q
-            assert plan.control_points_deg is not None
-            motion = measure_command(
-                case.robot,
-                case.joints_deg,
-                q,
-                ee_from_cm=case.ee_from_cm,
-                tip_cm_mm=_tip_cm(kin, first.cm.control_points_deg),
-                femur_from_cm_from=femur_from_cm_registered(first.ct_from_femur, first.ct_from_cm),
-                femur_from_cm_to=res.femur_from_cm_target,
-                tip_to_cm_mm=_tip_cm(kin, plan.control_points_deg),
-            )
-            rec.diagnostics.update(motion.diagnostics())
-            check_first_move(motion, cfg.safety, plan_name=plan.target_name)
-    except NavigationRefused as exc:
-        log.warning("navigation refused: %s", exc)
-        res.refuse(exc)
-        stage.emit("status", status=res.status, reason=res.reason)
-        return res
-    if case.verification is not None:
-        return verify(case, res, on_stage=on_stage, on_event=on_event)
-    stage.emit("status", status=res.status, reason=res.reason)
-    return res
+    stage.emit("registration", prefix="", registration=first)
+    return first
+
+
+def _plan(case: NavigationCase, res: NavigationResult, kin: CMKinematics, stage: _Stages) -> Plan:
+    """Stage ``plan``: the plan as used (``res.plan``) and the CM's target in the femur frame
+    (``res.femur_from_cm_target``; a free roll's turning the joints least)."""
+    first = res.first
+    assert first is not None
+    with stage("plan") as rec:
+        plan = case.plan
+        if plan.control_points_deg is None:  # the CM keeps the shape it has now
+            plan = dataclasses.replace(plan, control_points_deg=np.asarray(first.cm.control_points_deg))
+        res.plan = plan
+        rec.diagnostics["tip_target_ct_mm"] = plan.tip_target_world_mm.tolist()
+        rec.diagnostics["roll_free"] = plan.roll_free
+        if plan.roll_free:
+            chosen = _least_motion_roll(case, first, plan, kin, res.config)
+            res.femur_from_cm_target = chosen.femur_from_cm_target
+            rec.diagnostics["roll_deg"] = chosen.roll_deg
+        else:
+            res.femur_from_cm_target = planned_femur_from_cm(plan, kinematics=kin)
+    stage.emit(
+        "plan",
+        plan=plan,
+        ct_from_femur=first.ct_from_femur,
+        femur_from_cm_target=res.femur_from_cm_target,
+    )
+    return plan
+
+
+def _first_move(
+    case: NavigationCase, res: NavigationResult, plan: Plan, kin: CMKinematics, stage: _Stages
+) -> None:
+    """Stage ``robot``: the first move's command (eqs. 7–8, IK), measured and bounded."""
+    first, target_cm = res.first, res.femur_from_cm_target
+    assert first is not None and target_cm is not None
+    with stage("robot") as rec:
+        target, q = _command(case, first, case.joints_deg, target_cm, res.config, "robot")
+        res.rbase_from_ee_target, res.joints_target_deg = target, q
+        assert plan.control_points_deg is not None
+        motion = measure_command(
+            case.robot,
+            case.joints_deg,
+            q,
+            ee_from_cm=case.ee_from_cm,
+            tip_cm_mm=_tip_cm(kin, first.cm.control_points_deg),
+            femur_from_cm_from=femur_from_cm_registered(first.ct_from_femur, first.ct_from_cm),
+            femur_from_cm_to=target_cm,
+            tip_to_cm_mm=_tip_cm(kin, plan.control_points_deg),
+        )
+        rec.diagnostics.update(motion.diagnostics())
+        check_first_move(motion, res.config.safety, plan_name=plan.target_name)
 
 
 def verify(
@@ -388,13 +358,26 @@ def verify(
         raise ValueError("verify needs a case with verification views and a first registration")
     if result.status != "ok":
         return result
-    cfg = result.config
     stage = _Stages(result, on_stage, on_event)
-    plan = result.plan
-    assert plan is not None
-    target = result.femur_from_cm_target
-    first = result.first
-    # where the robot's kinematics say the CM went: one start among the images' own, then compared
+    predicted, prior = _verification_prior(case, result)
+    kin = CMKinematics(case.cm_config)
+    try:
+        _check_joint_readings(case, result, stage)
+        ver = _register_verification(case, result, prior, stage)
+        _correct(case, result, ver, predicted, kin, stage)
+    except NavigationRefused as exc:
+        log.warning("verification refused: %s", exc)
+        result.refuse(exc)
+    stage.emit("status", status=result.status, reason=result.reason)
+    return result
+
+
+def _verification_prior(case: NavigationCase, result: NavigationResult) -> tuple[np.ndarray, ViewSetPrior]:
+    """Where the robot's kinematics say the CM went (femur frame; one start among the images' own,
+    then compared), and the verification's prior with it (and its uncertainty where fused)."""
+    assert case.verification is not None and result.first is not None
+    assert result.femur_from_cm_target is not None
+    cfg, first = result.config, result.first
     predicted = predicted_femur_from_cm(
         case.robot,
         case.joints_deg,
@@ -402,74 +385,98 @@ def verify(
         ee_from_cm=case.ee_from_cm,
         femur_from_cm=femur_from_cm_registered(first.ct_from_femur, first.ct_from_cm),
     )
-    vcfg = cfg.verification
     sigma = None
-    if vcfg.fuse_kinematics:
+    if cfg.verification.fuse_kinematics:
         sigma = prediction_sigma_mm(
             case.robot,
             case.joints_deg,
             case.verification.joints_deg,
             ee_from_cm=case.ee_from_cm,
-            uncertainty=vcfg.uncertainty,
+            uncertainty=cfg.verification.uncertainty,
         )
-    prior = ViewSetPrior(first.ct_from_femur, target, predicted, cfg.safety.max_motion_tip_mm, sigma)
-    kin = CMKinematics(case.cm_config)
-    try:
-        with stage("verify_joints") as rec:
-            if result.joints_target_deg is not None:
-                dq = joint_motion_deg(result.joints_target_deg, case.verification.joints_deg)
-                rec.diagnostics["reading_minus_command_deg"] = [float(x) for x in dq]
-                check_joint_readings(dq, cfg.safety)
-        views = _detect(stage, case.verification.views, cfg, prefix="verify_", need=1)
-        views, local = moved_cameras(views, case.verification.views, first)
-        ver = register_verification(
-            views,
-            case,
-            result,
-            prior,
-            local=local and vcfg.local_bones,
-            seed=_stage_seed(cfg.seed, 1),
-            recorder=stage.within("verify_"),
+    target = result.femur_from_cm_target
+    return predicted, ViewSetPrior(
+        first.ct_from_femur, target, predicted, cfg.safety.max_motion_tip_mm, sigma
+    )
+
+
+def _check_joint_readings(case: NavigationCase, result: NavigationResult, stage: _Stages) -> None:
+    """Stage ``verify_joints``: the joints read with the verification images against the command."""
+    assert case.verification is not None
+    with stage("verify_joints") as rec:
+        if result.joints_target_deg is not None:
+            dq = joint_motion_deg(result.joints_target_deg, case.verification.joints_deg)
+            rec.diagnostics["reading_minus_command_deg"] = [float(x) for x in dq]
+            check_joint_readings(dq, result.config.safety)
+
+
+def _register_verification(
+    case: NavigationCase, result: NavigationResult, prior: ViewSetPrior, stage: _Stages
+) -> ViewSetRegistration:
+    """Stages ``verify_detect`` to ``verify_cm``: the verification images registered
+    (:func:`~fluoronav.navigation.verification.register_verification`)."""
+    assert case.verification is not None and result.first is not None
+    cfg = result.config
+    views = _detect(stage, case.verification.views, cfg, prefix="verify_", need=1)
+    views, local = moved_cameras(views, case.verification.views, result.first)
+    ver = register_verification(
+        views,
+        case,
+        result,
+        prior,
+        local=local and cfg.verification.local_bones,
+        seed=_stage_seed(cfg.seed, 1),
+        recorder=stage.within("verify_"),
+    )
+    stage.emit("registration", prefix="verify_", registration=ver)
+    result.verification = ver
+    return ver
+
+
+def _correct(
+    case: NavigationCase,
+    result: NavigationResult,
+    ver: ViewSetRegistration,
+    predicted: np.ndarray,
+    kin: CMKinematics,
+    stage: _Stages,
+) -> None:
+    """Stage ``correct``: the verification judged against the kinematics, then the corrective
+    command from the verification joints, measured and bounded."""
+    assert case.verification is not None and result.first is not None and result.plan is not None
+    safety, plan, first = result.config.safety, result.plan, result.first
+    with stage("correct") as rec:
+        cm_diag = result.stages["verify_cm"].diagnostics
+        rec.diagnostics["kinematics_disagreement_mm"] = float(cm_diag["motion_tip_mm"])
+        verdict = judge_kinematics(cm_diag, ver.left_out, safety)
+        if verdict.images_overrule:
+            result.warnings.append(verdict.warning)
+            rec.diagnostics["images_overrule"] = True
+        tip_cm = _tip_cm(kin, ver.cm.control_points_deg)
+        femur_from_cm_ver = femur_from_cm_registered(ver.ct_from_femur, ver.ct_from_cm)
+        corr = tip_correction_target(femur_from_cm_ver, tip_cm, plan.tip_target_world_mm)
+        result.correction_femur_from_cm_target = corr
+        q_now = np.asarray(case.verification.joints_deg, np.float64)
+        T, q = _command(case, ver, q_now, corr, result.config, "correct")
+        result.rbase_from_ee_correction, result.joints_correction_deg = T, q
+        motion = measure_command(
+            case.robot,
+            q_now,
+            q,
+            ee_from_cm=case.ee_from_cm,
+            tip_cm_mm=tip_cm,
+            femur_from_cm_from=femur_from_cm_ver,
+            femur_from_cm_to=corr,
         )
-        stage.emit("registration", prefix="verify_", registration=ver)
-        result.verification = ver
-        with stage("correct") as rec:
-            cm_diag = result.stages["verify_cm"].diagnostics
-            rec.diagnostics["kinematics_disagreement_mm"] = float(cm_diag["motion_tip_mm"])
-            verdict = judge_kinematics(cm_diag, ver.left_out, cfg.safety)
-            if verdict.images_overrule:
-                result.warnings.append(verdict.warning)
-                rec.diagnostics["images_overrule"] = True
-            tip_cm = _tip_cm(kin, ver.cm.control_points_deg)
-            femur_from_cm_ver = femur_from_cm_registered(ver.ct_from_femur, ver.ct_from_cm)
-            corr = tip_correction_target(femur_from_cm_ver, tip_cm, plan.tip_target_world_mm)
-            result.correction_femur_from_cm_target = corr
-            q_now = np.asarray(case.verification.joints_deg, np.float64)
-            T, q = _command(case, ver, q_now, corr, cfg, "correct")
-            result.rbase_from_ee_correction, result.joints_correction_deg = T, q
-            motion = measure_command(
-                case.robot,
-                q_now,
-                q,
-                ee_from_cm=case.ee_from_cm,
-                tip_cm_mm=tip_cm,
-                femur_from_cm_from=femur_from_cm_ver,
-                femur_from_cm_to=corr,
-            )
-            # how far the kinematics say the move left the tip from the plan (first registration's shape)
-            predicted_tip = predicted[:3, :3] @ _tip_cm(kin, first.cm.control_points_deg) + predicted[:3, 3]
-            predicted_error = float(np.linalg.norm(plan.tip_target_world_mm - predicted_tip))
-            rec.diagnostics.update(motion.diagnostics())
-            rec.diagnostics["predicted_tip_error_mm"] = predicted_error
-            check_correction(
-                motion,
-                cfg.safety,
-                plan_name=plan.target_name,
-                predicted_tip_error_mm=predicted_error,
-                images_overrule=verdict.images_overrule,
-            )
-    except NavigationRefused as exc:
-        log.warning("verification refused: %s", exc)
-        result.refuse(exc)
-    stage.emit("status", status=result.status, reason=result.reason)
-    return result
+        # how far the kinematics say the move left the tip from the plan (first registration's shape)
+        predicted_tip = predicted[:3, :3] @ _tip_cm(kin, first.cm.control_points_deg) + predicted[:3, 3]
+        predicted_error = float(np.linalg.norm(plan.tip_target_world_mm - predicted_tip))
+        rec.diagnostics.update(motion.diagnostics())
+        rec.diagnostics["predicted_tip_error_mm"] = predicted_error
+        check_correction(
+            motion,
+            safety,
+            plan_name=plan.target_name,
+            predicted_tip_error_mm=predicted_error,
+            images_overrule=verdict.images_overrule,
+        )

@@ -1,34 +1,15 @@
 """Surgical plans: where the CM should go relative to the femur, and the planned CM pose.
 
-Plan file (JSON), coordinates in the CT's world frame (LPS, mm, as SimpleITK reads it)::
-
-    {
-      "target_name": "entry_left",
-      "entry_point_mm": [12.0, -30.5, 80.0],
-      "direction": [0.0, 0.6, -0.8],
-      "insertion_depth_mm": 5.0,              (optional, ≥ 0, default 0)
-      "bending_direction": [1.0, 0.0, 0.0],   (optional, default: see below)
-      "control_points_deg": [0, 0, 0, 0, 0],  (optional, CM shape at the target, default straight)
-      "coordinate_system": "LPS"              (optional, "LPS" or "RAS", default "LPS")
-    }
-
-``direction`` is the insertion direction (normalised on reading). The planned CM base frame has
-+z along ``direction`` and its +y (the bending direction) along the component of
-``bending_direction`` orthogonal to it. Without ``bending_direction`` the CM's **roll** about the
-insertion axis is free: the navigation chooses it (the roll whose robot command moves the joints
-least, :func:`fluoronav.navigation.targeting.least_motion_target`); roll 0 of that family has +y
-along the world axis least parallel to ``direction``. The CM **tip** (the distal end point of the
-model, the point the paper's tip and relative errors use) is placed at
-``entry_point + insertion_depth · direction``.
-
-A 3D Slicer markups file (``.mrk.json``, see :mod:`fluoronav.anatomy.markups`) is also a plan, read
-by :func:`plan_from_markups`: either one **Line** markup (first control point = entry point, second
-= a point further along the insertion direction) or one **point list** with points labelled
-``entry`` and ``target`` (direction entry → target). ``target_name`` is the markup's name and the
-insertion depth is 0 (the CM tip on the entry point).
-
-Femur frame: the CT world frame in which the plan is drawn; the femur registration estimates
-``carm_from_femur`` for this same frame. A different femur frame can be passed as ``femur_from_world``.
+A plan file (JSON, CT world frame: LPS mm, or RAS with ``"coordinate_system": "RAS"``) holds
+``target_name``, ``entry_point_mm``, ``direction`` (the insertion direction, normalised on reading),
+optional ``insertion_depth_mm`` (default 0), ``bending_direction`` and ``control_points_deg``
+(docs/robot-and-calibration.md, "Plan file"). The planned CM base frame has +z along ``direction``
+and +y along the part of ``bending_direction`` orthogonal to it; without it the CM's roll is free
+and the navigation chooses it (:func:`fluoronav.navigation.targeting.least_motion_target`). The CM
+**tip** is placed at ``entry_point + insertion_depth · direction``. A 3D Slicer markups file is a
+plan too (:func:`plan_from_markups`: a Line, or points labelled ``entry`` and ``target``).
+Femur frame: the CT world frame the plan is drawn in (the femur registration estimates
+``carm_from_femur`` for it); another can be passed as ``femur_from_world``.
 """
 
 from __future__ import annotations

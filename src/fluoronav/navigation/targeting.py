@@ -1,21 +1,15 @@
 """Targeting: registered poses → CM pose relative to the femur (eq. 7) → robot target (eq. 8).
 
 Frames: ``carm`` (C-arm camera), ``femur``, ``cm`` (CM base frame), ``ee`` (robot end effector),
-``rbase`` (robot base). The femur and the robot base do not move relative to each other between
-registration and navigation.
+``rbase`` (robot base); the femur and the robot base do not move relative to each other between
+registration and navigation. In our naming (docs/robot-and-calibration.md, "Navigation")::
 
-Eq. 7 (our naming): ``femur_from_cm_regi = inv(carm_from_femur_regi) · carm_from_cm_regi``.
-
-Eq. 8 (our naming), from ``rbase_from_femur = rbase_from_ee_regi · ee_from_cm · cm_from_femur_regi``
-being the same before and after the move, and ``rbase_from_ee_tar · ee_from_cm · cm_from_femur_tar``
-= ``rbase_from_femur``::
-
+    femur_from_cm_regi = inv(carm_from_femur_regi) · carm_from_cm_regi                   (eq. 7)
     rbase_from_ee_tar = rbase_from_ee_regi · ee_from_cm · inv(femur_from_cm_regi)
-                        · femur_from_cm_tar · inv(ee_from_cm)
+                        · femur_from_cm_tar · inv(ee_from_cm)                            (eq. 8)
 
-The paper prints these with T_A^B; they chain as printed when T_A^B is read as ``a_from_b`` (then
-T_Femur^CM = femur_from_cm, T_ee^Rbase = ee_from_rbase, T_CM^ee = cm_from_ee) and eq. 8 above is
-exactly the inverse of the paper's eq. 8 (see docs/robot-and-calibration.md and the tests).
+The paper prints these with T_A^B, which chain when read as ``a_from_b``; eq. 8 above is then
+exactly the inverse of the paper's printed eq. 8 (docs/robot-and-calibration.md and the tests).
 """
 
 from __future__ import annotations

@@ -23,8 +23,8 @@ import numpy as np
 from fluoronav.navigation.case.model import CaseView, NavigationCase
 from fluoronav.navigation.checks.safety import SafetyConfig
 from fluoronav.navigation.commands import name_kinematics_disagreement
+from fluoronav.navigation.config import NavigationConfig
 from fluoronav.navigation.result import (
-    NavigationConfig,
     NavigationRefused,
     NavigationResult,
     StageRecord,

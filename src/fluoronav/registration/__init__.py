@@ -1,20 +1,14 @@
 """2D/3D registration: the bones and the CM from C-arm images (Gao et al., IEEE TBME 69(1), 2022, II-B, II-C).
 
-The methods are packages, each assembled from the machinery beside them:
-
-- :mod:`~fluoronav.registration.bone`: the pelvis per view (the fiducial relating the views) and the
-  femur about its head, intensity-based;
-- :mod:`~fluoronav.registration.centerline`: the CM's start from its detected landmarks and 2D
-  centreline, one view or several;
-- :mod:`~fluoronav.registration.cm`: the CM's pose and shape (single-view, multi-view, multiple-CM)
-  and the checks of how far a CM registration can be trusted;
-- :mod:`~fluoronav.registration.view_set`: one set of views registered, bones then CM, as the
-  navigation and its verification do (:func:`register_view_set`).
-
-The machinery (one job each): the engine that runs levels of an ask/tell optimiser over a
-parameterisation, a renderer, a similarity and priors (``engine``, ``optimizer``, ``linearized``,
-``levels``, ``parameterization``, ``similarity``, ``priors``, ``roi``, ``trace``), the error metrics
-against a ground truth (``metrics``) and the stage records of a view set (``stages``).
+The methods are packages: :mod:`~fluoronav.registration.bone` (the pelvis per view, the fiducial
+relating the views, and the femur about its head), :mod:`~fluoronav.registration.centerline` (the
+CM's start from its landmarks and 2D centreline), :mod:`~fluoronav.registration.cm` (the CM's pose
+and shape, single-view, multi-view and multiple-CM, and its checks) and
+:mod:`~fluoronav.registration.view_set` (one set of views registered, bones then CM, as the
+navigation does). The machinery beside them, one job each: ``engine`` (levels of an ask/tell
+optimiser over a parameterisation), ``optimizer``, ``linearized``, ``levels``, ``parameterization``,
+``similarity``, ``priors``, ``roi``, ``trace``, the error metrics (``metrics``) and the stage records
+of a view set (``stages``); docs/architecture.md ("Registration").
 """
 
 from typing import TYPE_CHECKING

@@ -1,22 +1,15 @@
 """Multi-level intensity-based 2D/3D registration engine (renderer independent).
 
-The engine minimises, level by level,
+Level by level it minimises ``cost(x) = Σ_views S_level(fixed_level, render(x, level)) + Σ_priors
+prior(x)`` with the optimiser the level names (CMA-ES by default), each level warm-started from the
+previous one's best parameters. The workflow supplies the parts:
 
-    cost(x) = Σ_views S_level(fixed_level, render(x, level)) + Σ_priors prior(x)
-
-with the optimiser the level names (CMA-ES by default), warm-starting every level from the previous
-level's best parameters. The parts are supplied by the workflow:
-
-- ``render(params (P, D) float64, level) -> (P, V, h, w)``: the whole population in one call, at the
-  level's working resolution (a parameterisation and a renderer composed by the workflow).
+- ``render(params (P, D) float64, level) -> (P, V, h, w)``: the whole population in one call;
 - ``fixed``: (V, H, W) full-resolution images, binned per level by area averaging, or a callable
-  ``level -> (V, h, w)`` when the workflow prepares them itself (e.g. an ROI).
-- ``similarity``: factory ``(fixed_level (V, h, w), level, mask_level) -> module`` whose call maps
-  (P, V, h, w) to (P, V) or (P,) costs; default :class:`PatchGradNCC` with the level's patch radius,
-  stride and smoothing. It is built once per level, so everything about the fixed image is
-  precomputed once.
-- ``priors``: callables ``params (P, D) -> (P,)`` (e.g. :class:`LandmarkPrior` at full resolution,
-  which makes it the same at every level, see :mod:`fluoronav.registration.priors`).
+  ``level -> (V, h, w)`` when the workflow prepares them itself (e.g. an ROI);
+- ``similarity``: factory ``(fixed_level (V, h, w), level, mask_level) -> module`` mapping
+  (P, V, h, w) to (P, V) or (P,) costs, built once per level (default :class:`PatchGradNCC`);
+- ``priors``: callables ``params (P, D) -> (P,)`` (e.g. :class:`LandmarkPrior` at full resolution).
 """
 
 from __future__ import annotations

@@ -1,19 +1,15 @@
 """Local refinement on the linearised DRR (a Gauss–Newton-type level behind the optimiser interface).
 
 Near the optimum a few image Jacobians replace hundreds of CMA-ES samples. Each outer iteration
-renders, in one batch, the current parameters ``x`` and ``x + h_k e_k`` for every parameter ``k``
-(forward differences, ``h_k = fd_step_sigma · σ_k``), giving the moving images ``I(x)`` and their
-Jacobian ``J_k ≈ (I(x + h_k e_k) − I(x)) / h_k``. The step ``δ`` lowers the cost of the linear model,
-``S(I(x) + Σ_k δ_k J_k) + priors(x + δ)``: a quadratic fit of that model's cost, damped Newton
-directions and a line search along each, all from batched similarity evaluations of the model (no
-render), within a trust region of ``trust_sigma · σ`` per parameter. The next batch renders
-``x + δ`` with its own Jacobian: the step is accepted when the true cost went down, else the trust
-region halves and the step is solved again from the same model. The refinement stops when a step
-gains less than ``tolfun``, after ``max_iters`` accepted steps, or when the model sees no better
-point even in a trust region of ``tolx / 0.1``.
-
-One outer iteration costs ``D + 1`` renders (7 for a rigid pose) against a CMA-ES generation's
-12–16; from a start within σ a pelvis level takes 3–8 (docs/registration.md).
+renders, in one batch, ``x`` and ``x + h_k e_k`` for every parameter ``k`` (``h_k = fd_step_sigma ·
+σ_k``): the moving images ``I(x)`` and their forward-difference Jacobian ``J_k``. The step ``δ``
+lowers the cost of the linear model ``S(I(x) + Σ_k δ_k J_k) + priors(x + δ)`` (a quadratic fit of
+its cost, damped Newton directions and a line search, all from batched similarity evaluations, no
+render) within a trust region of ``trust_sigma · σ`` per parameter. ``x + δ`` is rendered: the step
+is kept when the true cost went down, else the region halves and the step is solved again. It stops
+when a step gains less than ``tolfun``, after ``max_iters`` accepted steps, or when the model sees
+no better point even in a region of ``tolx / 0.1``. One outer iteration costs ``D + 1`` renders
+(docs/registration.md, "Bones: CMA-ES to find the basin, the linearised DRR to finish").
 """
 
 from __future__ import annotations

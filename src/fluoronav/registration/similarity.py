@@ -1,34 +1,14 @@
 """Image similarity costs for intensity-based 2D/3D registration (torch, batched).
 
-Every function here returns a *cost* (lower is better), ``1 − NCC`` in [0, 2].
-
-The main cost is the patch-based gradient NCC of the authors' xReg fork: both images are smoothed
-with a Gaussian, differentiated with 3×3 Sobel kernels in x (columns) and y (rows), and NCC is
-computed per square patch on each gradient image. Per patch the two directions are averaged and the
-cost is ``1 − NCC``; patches are combined by a weighted mean.
-
-Conventions (fixed here, tested against an explicit-loop reference in the tests):
-
-- Filtering uses replicate ("nearest") padding, so gradients are defined on the whole image. The
-  Gaussian kernel has radius ``int(3·σ + 0.5)`` (scipy's ``truncate=3``); ``sigma_px=0`` skips it.
-- Patches have side ``2r + 1`` and centres on the grid ``r, r + stride, …`` in rows and columns, so
-  every patch lies fully inside the image (border pixels closer than ``r`` to the edge are only
-  covered by patches whose centres are further in; none is padded).
-- Patch sums are direct sums over strided windows (``unfold``: rows first, then columns on the
-  ``stride``-times smaller result), accumulated in ``accum_dtype``. Direct sums of a few hundred
-  values keep float32 accurate to ~1e-6 of the patch energy (integral images would lose that to the
-  running sums); float32 is ~10× faster than float64 on CPU. Because of that limit a *moving* patch
-  whose centred variance is below ``flat_rel`` × its energy (1e-5 in float32, 1e-12 in float64) is
-  treated as flat: its NCC would be rounding noise.
-  On the CPU :class:`PatchGradNCC` runs a fused numba kernel instead (sliding float64 window sums,
-  the same thresholds; equal to the torch ops within ~1e-7, tested).
-- Weights: a (patch, direction) term has weight = number of unmasked pixels in the patch, and weight
-  0 where the *fixed* gradient is flat in that patch (variance ≤ ``eps_rel`` × the largest patch
-  variance of that fixed gradient image, or fewer than 2 pixels) — such a patch carries no
-  information. A flat *moving* patch against a structured fixed patch gets NCC = 0 (cost 1): a
-  candidate that moved its structure away must be penalised, not ignored. With no informative patch
-  at all the cost is 1. No NaN is produced for finite inputs; a moving image with a non-finite pixel
-  gets a NaN cost (a failed render is reported, not hidden).
+Every function here returns a *cost* (lower is better), ``1 − NCC`` in [0, 2]. The main cost is the
+patch-based gradient NCC of the authors' xReg fork: both images smoothed with a Gaussian,
+differentiated with 3×3 Sobel kernels in x (columns) and y (rows), NCC computed per square patch of
+each gradient image, the two directions averaged and the patches combined by a weighted mean (a
+patch weighs its unmasked pixels, and nothing where the *fixed* gradient is flat). A flat *moving*
+patch against a structured fixed one costs 1; a moving image with a non-finite pixel costs NaN. On
+the CPU :class:`PatchGradNCC` runs a fused numba kernel with the same thresholds. The conventions
+(padding, patch grid, sums, flatness), tested against an explicit-loop reference:
+docs/registration.md ("The similarity: patch gradient NCC").
 """
 
 from __future__ import annotations
@@ -200,7 +180,7 @@ class PatchGradNCC(torch.nn.Module):
             (NCC 0); None: 1e-5 for float32, 1e-12 for float64 sums (their rounding level).
         backend: ``"auto"``: on the CPU, for moving images that need no gradient, the fused numba
             kernel (:mod:`~fluoronav.registration._similarity_numba`: the same cost with float64 patch
-            sums, ~4× faster on two cores), else torch; ``"torch"``: always torch (autograd, CUDA).
+            sums, faster), else torch; ``"torch"``: always torch (autograd, CUDA).
 
     ``forward(moving (B, V, H, W) or (B, H, W)) -> (B, V) or (B,)`` cost, dtype of ``moving``.
     """

@@ -1,5 +1,6 @@
 """Stage records: what each stage of a registration chain took, whether it passed, and its
-diagnostics (JSON-ready), kept by a recorder the caller gives (:data:`StageRecorder`)."""
+diagnostics (JSON-ready), kept by a recorder the caller gives (:data:`StageRecorder`), and the one
+timer of named stages (:class:`StageTimer`) that the navigation pipeline and its simulation use."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["StageRecord", "StageRecorder", "timed_stages", "unrecorded"]
+__all__ = ["StageRecord", "StageRecorder", "StageTimer", "timed_stages", "unrecorded"]
 
 
 @dataclass
@@ -30,19 +31,39 @@ class StageRecord:
 StageRecorder = Callable[[str], AbstractContextManager[StageRecord]]
 
 
-def timed_stages(records: dict[str, StageRecord]) -> StageRecorder:
-    """A :data:`StageRecorder` that times each stage into ``records[name]``."""
+class StageTimer:
+    """Times each named stage into ``records[name]`` (a :class:`StageRecord`) and tells
+    ``on_stage(name, "start" | "done")`` (a progress display); calling it is a :data:`StageRecorder`."""
+
+    def __init__(
+        self,
+        records: dict[str, StageRecord] | None = None,
+        on_stage: Callable[[str, str], None] | None = None,
+    ) -> None:
+        self.records = {} if records is None else records
+        self.on_stage = on_stage
 
     @contextmanager
-    def stage(name: str) -> Iterator[StageRecord]:
-        rec = records.setdefault(name, StageRecord())
+    def __call__(self, name: str) -> Iterator[StageRecord]:
+        rec = self.records.setdefault(name, StageRecord())
+        if self.on_stage is not None:
+            self.on_stage(name, "start")
         t0 = time.perf_counter()
         try:
             yield rec
         finally:
             rec.seconds = time.perf_counter() - t0
+            if self.on_stage is not None:
+                self.on_stage(name, "done")
 
-    return stage
+    def within(self, prefix: str) -> StageRecorder:
+        """The recorder of a chain's stages (a view set's), each named ``prefix + stage`` here."""
+        return lambda name: self(prefix + name)
+
+
+def timed_stages(records: dict[str, StageRecord]) -> StageRecorder:
+    """A :data:`StageRecorder` that times each stage into ``records[name]`` (no callback)."""
+    return StageTimer(records)
 
 
 @contextmanager

@@ -1,18 +1,14 @@
 """Numba CPU kernel of the CT ray marcher (private; see :mod:`fluoronav.rendering.ct`).
 
-Each ray is marched in the volume's *index* space: the source and the per-pixel direction are
-transformed once per ray, so a sample costs three multiply-adds for its position plus the
-trilinear gather. Rays are clipped to the support of the trilinear interpolant with zero outside
-the grid, the open box ``(-1, n)`` along each index axis, and sampled with the midpoint rule.
-Samples whose eight corners all lie inside the grid (the bulk) take a branch-free path on the
-flattened volume; only the few samples near the faces check each corner.
-
-Empty-space skipping: with ``skip`` (the chessboard distance in voxels from each voxel to the nearest
-non-zero one, :func:`empty_space_distance`), an interior sample at a voxel of distance ``D ≥ 3`` is
-zero, and so are the next ``floor((D − 2) / h∞)`` samples (``h∞`` the step's largest index-axis
-component): their trilinear corners stay within distance ``D − 1`` of that voxel. Those samples are
-skipped, not approximated, so the sum is the same; a bone's excess-attenuation volume, ~90 % empty
-inside its bounding box, renders several times faster.
+Each ray is marched in the volume's *index* space (source and direction transformed once per ray),
+clipped to the support of the trilinear interpolant, the open box ``(-1, n)`` along each axis, and
+sampled with the midpoint rule; samples whose eight corners lie inside the grid take a branch-free
+path on the flattened volume, only those near the faces check each corner. Empty-space skipping:
+with ``skip`` (the chessboard distance in voxels from each voxel to the nearest non-zero one,
+:func:`empty_space_distance`), an interior sample at a voxel of distance ``D ≥ 3`` is zero, and so
+are the next ``floor((D − 2) / h∞)`` samples (``h∞`` the step's largest index-axis component),
+whose trilinear corners stay within distance ``D − 1`` of that voxel. Those samples are skipped,
+not approximated, so the sum is the same.
 """
 
 from __future__ import annotations

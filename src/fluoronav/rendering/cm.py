@@ -1,16 +1,14 @@
 """Analytic DRR of the notched CM: exact line integrals ``μ · chord length`` through the solid.
 
-Per link, in the link's straight frame, a ray ``o + t·d`` meets the annulus
-``{r_in ≤ r ≤ r_out}`` in the outer cylinder's interval minus the inner one's (both from the
-cylinder quadratic), clipped to the link's axial slab; each half-notch removes the same annulus
-clipped to the notch slab and the half-space ``side · y > cut``. All pieces are convex, so the
-chord is a sum of closed-form interval overlaps. Only pixels inside a link's projected bounding box
-(the 8 projected corners of its straight box) are evaluated, so cost scales with the CM's image
-area, not the image size.
-
-Backends: ``"numba"`` (CPU, one parallel kernel over candidates × views, links and ROI pixels) and
-``"torch"`` (vectorised over candidates × views × links × tile pixels, for CUDA); ``"auto"`` picks
-numba on CPU and torch elsewhere. The link poses and boxes are computed in torch float64 either way.
+Per link, in the link's straight frame, a ray ``o + t·d`` meets the annulus ``{r_in ≤ r ≤ r_out}``
+in the outer cylinder's interval minus the inner one's, clipped to the link's axial slab; each
+half-notch removes the same annulus clipped to the notch slab and the half-space ``side · y > cut``.
+All pieces are convex, so the chord is a sum of closed-form interval overlaps. Only pixels inside a
+link's projected bounding box are evaluated, so the cost scales with the CM's image area, not the
+image size. Backends: ``"numba"`` (CPU, one parallel kernel over candidates × views, links and ROI
+pixels) and ``"torch"`` (vectorised over candidates × views × links × tile pixels, for CUDA);
+``"auto"`` picks numba on CPU and torch elsewhere. The link poses and boxes are computed in torch
+float64 either way.
 """
 
 from __future__ import annotations
@@ -133,8 +131,8 @@ class CMRenderer:
             GPUs and agrees to ~2e-3 mm near grazing rays).
         max_tile_elements: memory bound of the torch backend (groups × tile pixels per chunk).
         row_spans: numba backend: in each row of a link's box, only the columns across the box's
-            projected footprint (the hull of its 8 projected corners; the same images, ~1.4×
-            faster for an oblique CM); False: every pixel of the box (the benchmark's reference).
+            projected footprint (the hull of its 8 projected corners; the same images, faster for
+            an oblique CM); False: every pixel of the box (the benchmark's reference).
     """
 
     def __init__(

@@ -1,25 +1,15 @@
 """Digitally reconstructed radiographs (DRRs) of a CT: line integrals ∫ μ dl through a voxel volume.
 
-Model: the volume holds μ (1/mm) at voxel centres and is interpolated trilinearly, with every value
-outside the grid equal to 0, so that the interpolant is supported on the open index box ``(-1, n)``
-along each axis. A ray from the X-ray source (camera origin, OpenCV pinhole) through a pixel centre
-is clipped to that box (slab test in index space, ``t ≥ 0``) and integrated with the midpoint rule
-at an even step no longer than ``step_mm``; samples are weighted by the step in mm, so the result
-is the dimensionless ∫ μ dl. The axis-aligned integral of this interpolant equals the sum of the
-voxel values times the spacing, so a well partial-volumed object integrates exactly up to the
-discretisation of the object itself.
-
-Two backends compute the same rays and samples:
-
-- ``"numba"``: a parallel CPU kernel over rays (:mod:`fluoronav.rendering._ct_numba`).
-- ``"torch"``: a batched :func:`torch.nn.functional.grid_sample` march over chunks of rays and samples;
-  used on CUDA, and the baseline for the benchmark.
-
-Anti-aliasing (``mipmap=True``): when a camera's pixel footprint at the nearest point of the volume
-(depth / focal length) is at least two voxels along an axis, the volume box-downsampled 2× along
-that axis is rendered instead (one level; the box average preserves every line integral along the
-grid axes). This removes the aliasing of sampling a fine volume with coarse pixels and, as a side
-effect, makes coarse renders cheaper. Pass ``mipmap=False`` to always use the full-resolution grid.
+The volume holds μ (1/mm) at voxel centres, interpolated trilinearly with 0 outside the grid (the
+interpolant's support is the open index box ``(-1, n)`` per axis). A ray from the X-ray source
+(camera origin, OpenCV pinhole) through a pixel centre is clipped to that box and integrated with
+the midpoint rule at an even step no longer than ``step_mm``, weighted in mm: the result is the
+dimensionless ∫ μ dl, and an axis-aligned integral equals the voxel sum times the spacing.
+Backends: ``"numba"`` (a parallel CPU kernel, :mod:`fluoronav.rendering._ct_numba`) and
+``"torch"`` (a batched :func:`torch.nn.functional.grid_sample` march, used on CUDA). With
+``mipmap=True`` a camera whose pixel footprint at the volume's nearest point is at least two voxels
+along an axis renders the volume box-downsampled 2× along it (the box average keeps every line
+integral along the grid axes), which removes the aliasing of coarse pixels on a fine volume.
 """
 
 from __future__ import annotations

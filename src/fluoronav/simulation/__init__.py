@@ -5,8 +5,7 @@ the detector and quantum noise (docs/simulation.md), so that no test commits an 
 
 - :mod:`~fluoronav.simulation.xray`: :class:`XraySimulator`, one C-arm image of a CT and a CM;
 - :mod:`~fluoronav.simulation.articulated`: pelvis and a moving femur, the navigation's images;
-- :mod:`~fluoronav.simulation.physics`, :mod:`~fluoronav.simulation.materials`,
-  :mod:`~fluoronav.simulation.spectrum`, :mod:`~fluoronav.simulation.noise`: the physics;
+- ``physics``, ``materials``, ``spectrum``, ``noise``: the physics;
 - :mod:`~fluoronav.simulation.scene`, :mod:`~fluoronav.simulation.protocol`,
   :mod:`~fluoronav.simulation.robot_scene`, :mod:`~fluoronav.simulation.cm_case`: ground truths
   sampled as the paper's studies, the hand-eye study and the CM registration cases sample them;

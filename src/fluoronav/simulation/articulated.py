@@ -1,22 +1,15 @@
 """Physics X-ray simulation of an articulated hip: the patient and one femur move independently.
 
-The CT is split once, by its labels, into two rigid bodies:
-
-- ``rest``: the whole CT with the chosen femur's voxels (its label dilated by one voxel, minus other
-  bones' labels, so that the femur's partial-volume rim goes with it) replaced by soft tissue
-  (:data:`FILLER_HU`), so that the femur can turn inside tissue;
-- ``femur``: the femur's own per-material partial densities *minus* the filler's on the same voxels,
-  cropped to their bounding box. With identity motions ``rest + femur`` is exactly the CT's material
-  decomposition; after a motion the femur leaves soft tissue where it was.
-
-Each body is decomposed into materials once (:func:`~fluoronav.simulation.materials.decompose_hu`)
-and rendered at its own rigid pose: ``world_from_patient`` moves both bodies (the patient on the
-table), ``world_from_femur`` is the femur's total motion (``world_from_patient`` composed with its
-rotation about the femoral head, say). Per-material areal densities are summed over the bodies and
-clamped at 0. The drilled path, the voxelised CM, the CM labels and the detector physics are those
-of :class:`~fluoronav.simulation.xray.XraySimulator`, reused through a subclass that skips its
-whole-CT renderers (its drilling samples the CT in one frame; here it runs once per body, each in
-its own frame, and the three removals are summed like the bodies themselves).
+The CT is split once, by its labels, into two rigid bodies: ``rest``, the CT with the chosen femur's
+voxels (its label dilated by one voxel, minus other bones') replaced by soft tissue
+(:data:`FILLER_HU`), so that the femur can turn inside tissue; and ``femur``, the femur's
+per-material partial densities *minus* the filler's on the same voxels, cropped to their bounding
+box (with identity motions ``rest + femur`` is exactly the CT's material decomposition). Each body
+is rendered at its own pose (``world_from_patient`` moves both; ``world_from_femur`` is the femur's
+total motion) and the per-material areal densities are summed and clamped at 0. The drilled path,
+the voxelised CM, the labels and the detector physics are those of
+:class:`~fluoronav.simulation.xray.XraySimulator`, reused through a subclass that drills once per
+body, each in its own frame.
 """
 
 from __future__ import annotations

@@ -1,23 +1,15 @@
 """The case's CT as a clinical scan of a finer patient volume (:class:`~fluoronav.simulation.world.CTWorld`).
 
-Steps, each off when its magnitude is zero (or None), in this order:
-
-1. Partial volume: the patient is box-averaged onto a coarser CT grid of ``ct_spacing_mm`` whose
-   outer corner is offset by a random fraction of a CT voxel from the patient's (the exact overlap
-   of each CT voxel with the patient voxels, separable per axis), so HU × volume is kept. Labels are
-   the patient's label at each CT voxel centre (nearest neighbour).
-2. Scale: HU × (1 ± ``hu_scale_error``).
-3. Noise: Gaussian white noise smoothed by a Gaussian of 0.7 voxel (a little correlated, as a
-   reconstruction kernel makes it), rescaled to SD ``hu_noise_sd``.
-4. Label boundaries: each bone's boundary moves along its normal by a smooth random field of SD
-   ``label_boundary_voxels`` CT voxels (positive dilates, negative erodes); a voxel claimed by two
-   bones goes to the nearer one, so labels stay disjoint, and the field fades to zero around the
-   landmarks, so the label at each landmark is the CT grid's.
-
-The geometry (direction, LPS world frame) is the patient's; landmarks are world points and are
-kept. Memory: the partial volume works on slabs of the patient, so beyond the patient it holds the
-CT-sized result and one slab's temporaries; the label step works on each bone's bounding box. A
-0.5 mm phantom is 688 × 480 × 480 voxels (605 MiB of float32 HU and 151 MiB of labels).
+Steps, each off when its magnitude is zero (or None), in this order: (1) partial volume, the patient
+box-averaged onto a coarser grid of ``ct_spacing_mm`` offset by a random fraction of a CT voxel
+(exact overlaps, separable per axis: HU × volume is kept; labels by nearest neighbour); (2) scale,
+HU × (1 ± ``hu_scale_error``); (3) noise, Gaussian white noise smoothed by a 0.7-voxel Gaussian (as
+a reconstruction kernel correlates it) and rescaled to SD ``hu_noise_sd``; (4) label boundaries,
+each bone's boundary moved along its normal by a smooth random field of SD
+``label_boundary_voxels`` (a voxel claimed by two bones goes to the nearer one; the field fades to
+zero around the landmarks). The geometry (direction, LPS world frame) and the landmarks (world
+points) are the patient's. Memory: the partial volume works on slabs of the patient, the label
+step on each bone's bounding box.
 """
 
 from __future__ import annotations

@@ -1,17 +1,13 @@
 """Physics-simulated CM registration cases: images, cameras, landmarks and the truth.
 
-The cases follow the authors' simulation protocol (Gao et al., IEEE TBME 69(1), 2022, sec. III-B,
-and the authors' code) with AP-ish views (:class:`CMCaseProtocol`): LAO/RAO U(−10°, 10°),
-CRAN/CAUD U(80°, 100°), source-to-isocentre 450 mm, control points U(−5°, 5°), the CM in the femur
-towards the femoral head. The images come from :class:`~fluoronav.simulation.xray.XraySimulator`
-(voxelised nitinol CM over the CT, polychromatic physics), never from the analytic CM renderer used
-by the registration. The initial pose is the truth perturbed in the CM base frame (rotation
-U(−r, r) about a random axis, translation U(−t, t) per axis; authors: 10°/10 mm), initial control
-points truth + U(−0.5°, 0.5°), landmarks truth + U(−3, 3) full-detector pixels.
-
-:func:`simulate_cm_case` gives a :class:`SimulatedCMCase` of plain arrays and cameras; the
-registration's own case type is assembled from it by
-:func:`cm_case_from_simulation`.
+The cases follow the authors' protocol (Gao et al. 2022, sec. III-B, and their code) with AP-ish
+views (:class:`CMCaseProtocol`): LAO/RAO U(−10°, 10°), CRAN/CAUD U(80°, 100°), source-to-isocentre
+450 mm, control points U(−5°, 5°), the CM in the femur towards the femoral head. The images come
+from :class:`~fluoronav.simulation.xray.XraySimulator`, never from the registration's analytic CM
+renderer. The start is the truth perturbed in the CM base frame (rotation U(−r, r) about a random
+axis, translation U(−t, t) per axis; authors: 10°/10 mm), control points truth + U(−0.5°, 0.5°),
+landmarks truth + U(−3, 3) full-detector pixels. :func:`simulate_cm_case` gives a
+:class:`SimulatedCMCase`; :func:`cm_case_from_simulation` assembles the registration's case from it.
 """
 
 from __future__ import annotations

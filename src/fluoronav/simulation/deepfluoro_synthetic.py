@@ -1,21 +1,14 @@
 """A small synthetic file in the DeepFluoro layout, simulated from the phantom (tests, trying the study).
 
-It follows ``hdf5_layouts/Readme.md`` of ``rg2/DeepFluoroLabeling-IPCAI2020`` and xReg's HDF5 code
-(row-major (z, y, x) voxels, (3, 1) origins and spacings, 2-D matrices for points, one dataset per
-scalar, label names as strings): the names and shapes of the real file, with the phantom's CT
-(coarse voxels, its own HU), physics-simulated images (never the registration's renderer), 14
-landmarks under the data set's names placed on the phantom's pelvis, and known poses.
-
-The geometry is written from the layout's description alone (it shares no code with the reader):
-DeepFluoro's projective frame has x along the stored columns, y along the rows and z towards the
-source, so a stored image is the simulated one mirrored left-right (the detector seen from behind),
-the frame is the simulated camera's turned by ``diag(−1, 1, −1)``, and the intrinsics have negative
-focal lengths with the principal point mirrored. A ``rot-180-for-up`` view is simulated with the
-C-arm rolled by 180° about its axis (the patient upside down in the stored image).
-
-Stored intensities are ``I0 · exp(−line integral)`` (bone dark, as the real file's) with a dark
-collimator border of the real file's 50 px of 1536, scaled. Matrices and points are float64 by
-default (the real file, written by xReg, most likely holds float32: ``matrix_dtype``).
+It has the names and shapes of the real file (docs/real-data.md): the phantom's CT (coarse voxels,
+its own HU), physics-simulated images (never the registration's renderer), 14 landmarks under the
+data set's names placed on the phantom's pelvis, and known poses. The geometry is written from the
+layout's description alone (no code shared with the reader): a stored image is the simulated one
+mirrored left-right, the frame is the simulated camera's turned by ``diag(−1, 1, −1)`` and the
+intrinsics have negative focal lengths with the principal point mirrored; a ``rot-180-for-up`` view
+is simulated with the C-arm rolled by 180° about its axis. Stored intensities are
+``I0 · exp(−line integral)`` (bone dark) with a dark collimator border; matrices and points are
+float64 by default (``matrix_dtype``).
 """
 
 from __future__ import annotations

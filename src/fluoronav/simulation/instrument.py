@@ -1,21 +1,15 @@
 """The instrument as built: a CM that deviates from the model the registration fits, for the images.
 
-The registration models the CM (:class:`~fluoronav.manipulator.config.CMConfig`,
-:class:`~fluoronav.manipulator.kinematics.CMKinematics`) as a perfect tube whose 27 notch angles lie
-on a cubic spline through 5 control points. A real one does not:
-
-- each notch is cut where the machine put it, as wide and as deep as it cut it (manufacturing
-  tolerances of wire-EDM or laser-cut nitinol);
-- each notch bends by its own amount for the same actuation: its stiffness varies with its spine
-  thickness and width and with the alloy's local properties, so the joint angles are the spline's
-  times ``1 + ε_j`` plus a small offset ``δ_j`` (a residual set at zero bend);
-- the tube's outer and inner diameters are those of the drawn tube, within the supplier's tolerance.
-
-:func:`build_instrument` draws one such instrument (:class:`BuiltCM`) from an :class:`InstrumentWorld`;
-the simulator draws it in the images (``ArticulatedSimulator.simulate(..., built_cm=)``) and the
-functions here give the truth to measure errors against: its joint angles, link poses, tip and
-landmarks for a commanded set of control points. :func:`spline_fit_control_points_deg` is the best
-the model can do: the control points whose spline is nearest (least squares) to the built angles.
+The registration models the CM as a perfect tube whose notch angles lie on a cubic spline through
+the control points. A real one does not: each notch is cut where the machine put it, as wide and
+deep as it cut it; each bends by its own amount for the same actuation (the spline's angle times
+``1 + ε_j`` plus an offset ``δ_j``); the tube's diameters are the drawn tube's, within tolerance
+(magnitudes: docs/simulation.md, "Simulated worlds"). :func:`build_instrument` draws one
+(:class:`BuiltCM`) from an :class:`InstrumentWorld`; the simulator draws it in the images
+(``ArticulatedSimulator.simulate(..., built_cm=)``) and the functions here give the truth to
+measure errors against (joint angles, link poses, tip, landmarks for commanded control points).
+:func:`spline_fit_control_points_deg` is the best the model can do: the control points whose
+spline is nearest (least squares) to the built angles.
 """
 
 from __future__ import annotations

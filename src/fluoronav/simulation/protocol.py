@@ -1,36 +1,13 @@
 """The paper's simulation protocol (Gao et al., IEEE TBME 69(1), 2022, §III-B, and the authors' code).
 
 One :class:`Trial` holds the ground truth of one simulated experiment and the initialisation noise
-of the authors' code. Sampling, in this order (all from the one ``rng``):
-
-1. Pelvis (whole patient): translation of length U(0, 10) mm in a uniformly random direction and a
-   rotation of U(−10, 10)° about a uniformly random unit axis through the pelvis volume centre
-   (landmark ``pelvis_center``, else the CT centre): ``world_from_patient``.
-2. Femur: U(−15, 15)° about a random axis through the femoral head centre, on top of the pelvis
-   motion: ``world_from_femur = world_from_patient @ rotation_about(head)``.
-3. Control points: U(−5, 5)° each (our choice; the paper gives none for this study), constant
-   across the images of a trial.
-4. C-arm: ≈ AP, isocentre at the (moved) femoral head + U(−15, 15) mm per axis, source-to-isocentre
-   U(400, 500) mm, LAO/RAO U(−5, 5)°, CRAN/CAUD 90 + U(−5, 5)°, CIOS Fusion detector. Multi-view
-   adds two views rotated about the C-arm orbit (patient long axis through the isocentre) by
-   N(+20, 3)° and N(−15, 3)° (:func:`~fluoronav.geometry.carm.orbit_camera`).
-5. CM "above the femoral head" (the patient is supine: anterior of it): nominal base origin A at
-   the moved head centre + U(20, 40) mm anterior − U(15, 35) mm along the nominal axis, which is the
-   femoral neck direction (entry → head) in the patient's coronal plane (so that the AP view sees
-   the CM side-on and its tip over the head), random roll of the bending plane; then perturbed in
-   the CM base frame by a translation
-   U(−30, 30) mm per axis and a rotation U(−30, 30)° about a random axis. Samples whose landmarks
-   A, B or tip project closer than ``margin_px`` to a detector edge (in any view) are redrawn, so the
-   CM is always in the field of view.
-6. Multiple-CM / hand-eye: 4 CM poses in the AP view, each the base pose of 5 composed with a
-   translation U(−10, 10) mm per axis and a rotation U(−30, 30)° about a random axis in the CM frame.
-7. Initialisation noise (authors' code): initial ``world_from_patient`` = truth perturbed by a 3°
-   rotation about a random axis through the pelvis centre and a 10 mm translation in a random
-   direction; initial CM bases by 10° / 10 mm likewise (about A); FBG control points = truth +
-   U(−0.5, 0.5)°; oracle 2D landmarks = truth + U(−3, 3) full-resolution pixels per coordinate.
-
-Workflows: ``centerline``, ``single-view`` and ``navigation`` have one image; ``multi-view`` three
-(one CM pose, three cameras); ``multi-cm`` and ``hand-eye`` four (one camera, four CM poses).
+of the authors' code, all drawn from the one ``rng`` in a fixed order: the pelvis (the whole
+patient), the femur about its head, the control points, the C-arm (≈ AP; multi-view adds two
+orbits), the CM "above the femoral head" (redrawn until it projects inside every view), the
+multiple-CM poses, then the initialisation noise. The distributions: docs/simulation.md ("The
+studies' protocol"). Workflows: ``centerline``, ``single-view`` and ``navigation`` have one image;
+``multi-view`` three (one CM pose, three cameras); ``multi-cm`` and ``hand-eye`` four (one camera,
+four CM poses).
 """
 
 from __future__ import annotations

@@ -1,23 +1,15 @@
-"""A robot holding the CM over the hip phantom, in simulation: the scene of the navigation and
-hand-eye workflows.
+"""A robot holding the CM over the hip phantom: the simulated scene of the navigation and hand-eye studies.
 
-Setting (world = the CT frame of the phantom before the patient moved, LPS mm):
-
-- Robot: a UR-10 whose physical kinematics differ from the controller's nominal model by
-  :class:`~fluoronav.manipulator.robot.RobotErrorModel` defaults (seeded per scene), with encoder
-  noise per reading. The controller sees the *nominal* forward kinematics of the commanded joints;
-  the truth is the true robot at the actual joints (:meth:`HandEyeScenario.execute`).
-- Mount: true ``ee_from_cm``: the CM base origin 150–250 mm along the flange's tool axis, ±5 mm
-  laterally, rotated by U(0, 10)° about a random axis (a plausible hand-made mount).
-- C-arm and CM: a C-arm (CIOS Fusion) and a working CM pose as the paper's protocol
-  (:func:`~fluoronav.simulation.protocol.sample_trial`, "navigation": the CM above the femoral head,
-  side-on to the AP view). The robot base is placed so that a working joint configuration (UR-10
-  "home" ± 10° per joint) holds the CM at that pose.
-- Hand-eye poses: M CM poses, each the working pose moved by a rotation of U(−r, r)° about a random
-  axis and U(−t, t) mm per axis (CM frame), reached through the nominal IK; poses whose landmarks or
-  tip leave the image are redrawn.
-- Images: :class:`~fluoronav.simulation.articulated.ArticulatedSimulator` (physics, never the
-  registration's renderer).
+World = the CT frame of the phantom before the patient moved (LPS, mm). The robot is a UR-10 whose
+physical kinematics differ from the controller's nominal model by
+:class:`~fluoronav.manipulator.robot.RobotErrorModel` defaults (seeded per scene), with encoder
+noise per reading: the controller sees the *nominal* forward kinematics of the commanded joints,
+the truth is the true robot at the actual joints (:meth:`HandEyeScenario.execute`). The mount
+``ee_from_cm`` is a plausible hand-made one; the C-arm and the working CM pose follow the paper's
+protocol (:func:`~fluoronav.simulation.protocol.sample_trial`, "navigation"), the robot base placed
+so that a working joint configuration holds the CM there. Hand-eye poses move the working pose
+(CM frame), reached through the nominal IK and kept in the image. Images:
+:class:`~fluoronav.simulation.articulated.ArticulatedSimulator`; magnitudes: docs/robot-and-calibration.md.
 """
 
 from __future__ import annotations
@@ -147,6 +139,22 @@ def working_view_centre(trial: Any) -> np.ndarray:
     return 0.5 * (np.asarray(trial.femoral_head_world, np.float64) + cm_centre(trial.world_from_cm[0]))
 
 
+def _place_robot(
+    rng: np.random.Generator, world_from_cm_work: np.ndarray
+) -> tuple[RobotErrorModel, SerialRobot, np.ndarray, np.ndarray, np.ndarray]:
+    """The robot's error model and true robot, the mount ``ee_from_cm``, the working joints (deg) and
+    the base ``world_from_rbase`` that holds the CM at ``world_from_cm_work`` with them."""
+    model = RobotErrorModel(seed=int(rng.integers(2**31)))
+    true_robot = model.true_robot(UR10)
+    # mount: CM base ~150-250 mm along the tool axis, small lateral offset and rotation
+    ee_from_cm = se3.make(
+        random_rotation(rng, 10.0), [rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(150.0, 250.0)]
+    )
+    q_work = HOME_DEG + rng.uniform(-10.0, 10.0, 6)
+    world_from_rbase = world_from_cm_work @ np.linalg.inv(true_robot.rbase_from_ee(q_work) @ ee_from_cm)
+    return model, true_robot, ee_from_cm, q_work, world_from_rbase
+
+
 def sample_handeye_scenario(
     volume: Any,
     rng: np.random.Generator,
@@ -177,15 +185,8 @@ def sample_handeye_scenario(
     cpt = torch.as_tensor(cp, dtype=torch.float64)
     pts_cm = np.concatenate([kin.landmarks_cm(cpt).numpy(), kin.tip_cm(cpt).numpy()[None]])
     camera = trial.cameras[0]
-    model = RobotErrorModel(seed=int(rng.integers(2**31)))
-    true_robot = model.true_robot(UR10)
-    # mount: CM base ~150-250 mm along the tool axis, small lateral offset and rotation
-    ee_from_cm = se3.make(
-        random_rotation(rng, 10.0), [rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(150.0, 250.0)]
-    )
-    q_work = HOME_DEG + rng.uniform(-10.0, 10.0, 6)
     world_cm_work = trial.world_from_cm[0]
-    world_from_rbase = world_cm_work @ np.linalg.inv(true_robot.rbase_from_ee(q_work) @ ee_from_cm)
+    model, true_robot, ee_from_cm, q_work, world_from_rbase = _place_robot(rng, world_cm_work)
     rbase_from_world = np.linalg.inv(world_from_rbase)
     q: list[np.ndarray] = []
     q_act: list[np.ndarray] = []

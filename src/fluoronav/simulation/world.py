@@ -1,27 +1,15 @@
 """The simulated world of a navigation study: how far the inputs the method is given are from the truth.
 
-In the ideal world (:data:`IDEAL`, the studies' behaviour so far) the X-ray images are rendered
-from the very CT the registration uses, the case's cameras are the imaging cameras, the FBG reading
-is almost exact and the patient keeps still. :data:`REALISTIC` switches on one source of error per
-input, each a sub-config that is off when its magnitudes are zero (or None):
-
-- :class:`CTWorld`: the case's CT is a clinical scan of a finer "patient" (partial volume on a
-  coarser, offset grid, HU noise and scale error, automatic-segmentation label boundaries);
-  the functions are in :mod:`fluoronav.simulation.clinical_ct`;
-- :class:`CArmWorld`: the case's intrinsics carry a calibration error (:func:`case_camera`) and each
-  image is taken with the detector flexed away from the nominal geometry (:func:`flexed_camera`);
-- :class:`FBGWorld`: the FBG reading of the control points has noise and a bias (:func:`fbg_reading`);
-- :class:`MotionWorld`: the patient moves between image sets and between views
-  (:func:`patient_motion`).
-
-Every function takes a ``np.random.Generator`` and returns its input unchanged (the same object, or
-the identity) when its source is off, so the ideal world draws nothing and changes nothing.
-
-Notes:
-    Magnitudes cite what was verified; the others say "assumed" and why. The FBG magnitudes are
-    sized so that the CM tip error they imply (through :class:`~fluoronav.manipulator.kinematics.
-    CMKinematics`) lies in the range the FBG literature reports for this CM; the test
-    ``tests/simulation/test_world.py`` measures it.
+In the ideal world (:data:`IDEAL`, the default) the X-ray images are rendered from the very CT the
+registration uses, the case's cameras are the imaging cameras, the FBG reading is almost exact and
+the patient keeps still. :data:`REALISTIC` switches on one source of error per input, each a
+sub-config that is off when its magnitudes are zero (or None): :class:`CTWorld` (a clinical CT of a
+finer patient, :mod:`fluoronav.simulation.clinical_ct`), :class:`CArmWorld` (calibration error,
+:func:`case_camera`, and detector flex, :func:`flexed_camera`), :class:`FBGWorld` (noise and bias,
+:func:`fbg_reading`) and :class:`MotionWorld` (:func:`patient_motion`). Every function takes a
+``np.random.Generator`` and returns its input unchanged when its source is off, so the ideal world
+draws nothing and changes nothing. The magnitudes and where they come from: docs/simulation.md
+("Simulated worlds").
 """
 
 from __future__ import annotations

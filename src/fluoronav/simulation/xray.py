@@ -1,25 +1,15 @@
 """Realistic X-ray images of a scene: CT material decomposition + voxelised CM + physics.
 
-For each scene the simulator
-
-1. integrates the CT's per-material partial densities (:func:`~fluoronav.simulation.materials.
-   decompose_hu`) along every detector ray with the CT renderer (g/cm³·mm → g/cm²);
-2. removes the CT inside the CM's envelope (the drilled path: a solid cylinder of the CM's outer
-   radius along its bent axis): the CT sampled on a ``drill_voxel_mm`` grid of the envelope is
-   integrated over the pixels of its projected box and subtracted;
-3. voxelises the bent CM at high resolution (``cm_voxel_mm``, partial volumes) as nitinol (or as
-   the authors' 2000 HU material) and integrates it at ``cm_oversample``× the stored resolution
-   inside the CM's projected box, then area-bins it (the detector integrates over its pixels);
-4. forms the detector image with :class:`~fluoronav.simulation.physics.XrayPhysics` (polychromatic
-   spectrum, scatter, Poisson noise, blur, electronic noise, log transform).
-
-The analytic CM renderer used by the registration is *not* used for the image (no inverse crime);
-it only provides the label mask, whose definition is geometric: the projection of the CM envelope
-between landmarks A and B (the notched region).
-
-A scene with an instrument as built (``Scene.built_cm``, :mod:`fluoronav.simulation.instrument`) is
-drawn, drilled and labelled with that instrument's notches, joint angles and diameters; its mask is
-the same projection of its envelope, computed from its link poses (analytic cylinder chords).
+For each scene the simulator (docs/simulation.md, "Image assembly") integrates the CT's
+per-material partial densities along every detector ray (g/cm³·mm → g/cm²); removes the CT inside
+the CM's envelope (the drilled path: a solid cylinder of the CM's outer radius along its bent axis,
+sampled on a ``drill_voxel_mm`` grid); voxelises the bent CM at ``cm_voxel_mm`` (partial volumes)
+as nitinol (or the authors' 2000 HU material), integrates it at ``cm_oversample``× the stored
+resolution inside its projected box and area-bins it; and forms the detector image with
+:class:`~fluoronav.simulation.physics.XrayPhysics`. The registration's analytic CM renderer is *not*
+used for the image (no inverse crime); it only gives the label mask, the projection of the CM
+envelope between landmarks A and B. A scene with an instrument as built (``Scene.built_cm``) is
+drawn, drilled and labelled with that instrument's notches, joint angles and diameters.
 """
 
 from __future__ import annotations

@@ -1,26 +1,15 @@
 """``fluoronav study deepfluoro``: the pelvis registration on the DeepFluoro cadaver images.
 
 Per trial one real image of the user's DeepFluoro file (:mod:`fluoronav.anatomy.deepfluoro`; trial
-``i`` takes image ``i mod n`` of the selected specimens, so ``--trials`` beyond the number of images
-gives each image more starts): its collimator border cropped, log-transformed, registered with the
-navigation's pelvis preset (:data:`~fluoronav.registration.bone.PELVIS_LINEARIZED_PRESET`) from the
-ground truth perturbed as in Gao et al. (IEEE TBME 69(1), 2022; the authors' code, and fluoronav's
-simulation studies): a 3° rotation about a random axis through the pelvis centre and a 10 mm
-translation in a random direction.
-
+``i`` takes image ``i mod n`` of the selected specimens): its collimator border cropped,
+log-transformed, registered with the navigation's pelvis preset
+(:data:`~fluoronav.registration.bone.PELVIS_LINEARIZED_PRESET`) from the ground truth perturbed as
+in Gao et al. 2022 (3° about a random axis through the pelvis centre, 10 mm in a random direction).
 Frames: the world is the specimen's CT (LPS), the camera the ground-truth one, so the truth is
-``world_from_patient`` = identity and the estimate is the pelvis's error motion. Metrics
-(:func:`pelvis_errors`): the rotation angle (°), the displacement of the pelvis centre (the
-femoral heads' midpoint, mm), the mean 3D error of the 14 landmarks (mTRE, mm, as xvr computes it)
-and the mean 2D error of their projections at the detector (mm; xvr's "mPE"). The check
-(:func:`pelvis_edge_ncc`): the gradient NCC of the image and the registered pelvis DRR on its
-outline, passed at :attr:`DeepFluoroStudyConfig.min_edge_ncc`. ``gt_landmark_residual_px`` checks
-the frames on the user's file: the 3D landmarks projected by the ground-truth camera against the
-file's 2D landmarks (the data set made the latter so).
-
-Anchors on the same data (:data:`ANCHORS`): Grupp et al. (IJCARS 2020; xReg) registered the pelvis
-within 1° in 86 % of the images at 7 s on average, from landmarks a network found (an intensity-only
-approach without manual initialisation: 18 %); their start is not this study's.
+``world_from_patient`` = identity. The metrics (:func:`pelvis_errors`), the check
+(:func:`pelvis_edge_ncc`, passed at :attr:`DeepFluoroStudyConfig.min_edge_ncc`), the frames' check
+``gt_landmark_residual_px`` and the published figures on the same data (:data:`ANCHORS`):
+docs/real-data.md.
 """
 
 from __future__ import annotations

@@ -1,17 +1,14 @@
-"""``fluoronav deepfluoro``: one DeepFluoro image registered (pelvis, then both femurs; no CM), with
-files to see the result on the real image: ``registration.json``, ``overlay.png`` and ``slicer/``.
+"""``fluoronav deepfluoro``: one DeepFluoro image registered (pelvis, then both femurs), with its files.
 
 The pelvis starts as in ``study deepfluoro`` (:mod:`fluoronav.studies.deepfluoro`); each femur with
-a valid ground truth (the data set's ``*-femur-good-fov``) is registered after it from the pelvis's
-estimate (:func:`~fluoronav.registration.bone.register_femur`, one-view preset).
-
-Frames: the registration runs with the ground-truth camera and estimates the pelvis's motion
-``world_from_patient`` (world = the CT). In ``slicer/`` the CT stays where it is (LPS) and the X-ray
-is placed by the registration: ``ct_from_camera = inv(camera_from_ct · world_from_patient)``; the
-image lies on the detector plane at the source-to-detector distance as a one-slice volume, so that,
-seen from the source (``source.mrk.json``), the pelvis model covers the pelvis in the image. Femurs
-are placed by ``ct_from_femur = inv(world_from_patient) · world_from_femur``. The ground truth comes
-along as ``ct_from_camera_truth.h5`` and ``source_truth``.
+a valid ground truth (``*-femur-good-fov``) is registered after it from the pelvis's estimate
+(:func:`~fluoronav.registration.bone.register_femur`, one-view preset). Writes
+``registration.json``, ``overlay.png`` and ``slicer/``. Frames: the registration runs with the
+ground-truth camera and estimates ``world_from_patient`` (world = the CT). In ``slicer/`` the CT
+stays where it is (LPS) and the X-ray is placed by the registration, ``ct_from_camera =
+inv(camera_from_ct · world_from_patient)``, on the detector plane at the source-to-detector
+distance as a one-slice volume; femurs by ``ct_from_femur = inv(world_from_patient) ·
+world_from_femur``. The ground truth comes along (``ct_from_camera_truth.h5``, ``source_truth``).
 """
 
 from __future__ import annotations

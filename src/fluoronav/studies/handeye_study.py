@@ -20,7 +20,9 @@ import numpy as np
 from fluoronav import __version__
 from fluoronav.anatomy.io import resolve_ct
 from fluoronav.errors import InputError
+from fluoronav.navigation.config import NavigationConfig
 from fluoronav.runner import CsvLog, run_tasks
+from fluoronav.settings import settings_dict
 from fluoronav.simulation.navigation.faults import get_fault
 from fluoronav.simulation.world import IDEAL, World
 from fluoronav.studies.figures import column, study_figures
@@ -239,12 +241,15 @@ def run_handeye_study(
         get_fault(cfg.fault)
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "config.json"
-    cfg_dict = {**dataclasses.asdict(cfg), "version": __version__}
+    cfg_dict = {**dataclasses.asdict(dataclasses.replace(cfg, navigation=None)), "version": __version__}
     cfg_dict["poses"] = list(cfg.poses)
     cfg_dict["world"] = cfg.world.to_dict()
+    del cfg_dict["navigation"]  # recorded only where a site's settings file gave it
+    if cfg.navigation is not None:
+        cfg_dict["navigation"] = _site_settings(cfg.navigation)
     if cfg_path.exists():
         old = json.loads(cfg_path.read_text(encoding="utf-8"))
-        keep = [k for k in cfg_dict if k not in ("trials", "device", "version")]
+        keep = {*cfg_dict, "navigation"} - {"trials", "device", "version"}
         if any(old.get(k) != cfg_dict.get(k) for k in keep):
             raise InputError(cfg_path, "this directory holds a study with other settings; use another --out")
     if cfg.ct != "phantom":
@@ -297,6 +302,12 @@ def run_handeye_study(
     return summary
 
 
+def _site_settings(navigation: NavigationConfig) -> dict[str, Any]:
+    """A site's navigation settings as ``config.json`` records them (each trial sets its own device
+    and seed)."""
+    return {k: v for k, v in settings_dict(navigation).items() if k not in ("device", "seed")}
+
+
 def run_handeye_or_navigation_study(
     workflow: str,
     *,
@@ -317,11 +328,13 @@ def run_handeye_or_navigation_study(
     handeye_error_deg: float | None = None,
     world: World = IDEAL,
     verify_views: int = 3,
+    navigation: NavigationConfig | None = None,
 ) -> dict[str, Any]:
     """Entry point of ``fluoronav study hand-eye|navigation`` → the summary dict.
 
     ``world``: the navigation's simulated world (:mod:`fluoronav.simulation.world`);
-    ``verify_views``: the navigation's verification images per case (1, 2 or 3).
+    ``verify_views``: the navigation's verification images per case (1, 2 or 3); ``navigation``: its
+    pipeline's settings (a site's settings file; None: the defaults).
 
     ``fault``: an input fault (:data:`fluoronav.simulation.navigation.faults.FAULTS`) for navigation;
     ``handeye_error_mm`` / ``handeye_error_deg``: the navigation's hand-eye error (None: the fault's,
@@ -350,5 +363,6 @@ def run_handeye_or_navigation_study(
         else handeye_error_deg,
         world=world,
         verify_views=verify_views,
+        navigation=navigation,
     )
     return run_handeye_study(cfg, Path(out), scheduler=scheduler, workers=workers)

@@ -1,27 +1,15 @@
 """Trials of the ``hand-eye`` and ``navigation`` studies: config, metrics, one trial each.
 
-
-Both work in the simulated robot scene of :mod:`fluoronav.simulation.robot_scene` (a UR-10 with
-joint and calibration errors holding the CM over the hip phantom; physics-simulated images).
-
-Hand-eye trial: M CM poses about the working pose, one shape for all (the paper keeps the curvature
-constant during calibration): bent in one plane, control points ±(``calibration_bend_deg`` +
-U(−0.5, 0.5))° (default 2.5°: a ~70° C-bend, tip ~18 mm off the base axis), because the roll of the
-hand-eye about the CM axis is seen only through the bend. The image-based calibration
-(:func:`~fluoronav.calibration.image_handeye.calibrate_hand_eye_from_images`) runs for each M of
-``poses`` (nested: the first M images; errors vs M), initial hand-eye = truth perturbed by the
-authors' 10° / 10 mm, FBG = truth + U(−0.5, 0.5)°. The tracker baseline (AX = XB, Tsai, on the
-simulated shaft marker O_s) and its eq. 9 tip error run on the same poses. Landmarks: the truth +
-U(−3, 3) full-detector px (oracle, as the authors' code) unless the detector is asked for.
-
-Navigation trial: the simulated navigation loop of :mod:`fluoronav.simulation.navigation.loop`, the same
-pipeline as ``fluoronav navigate`` and the demo: three views, detection (or oracle landmarks),
-pelvis per view, femur, multi-view CM registration, plan (the CM tip on the femur entry point, its
-axis along the neck), eqs. 7–8 and IK with the nominal model and a hand-eye of documented error
-(``handeye_error_deg`` / ``handeye_error_mm``), the *true* robot's move; with ``corrections`` (1),
-verification images at the reached pose, their registration and one corrective move.
-``reposition_open_loop_mm`` is the first move's tip error against the plan, ``reposition_tip_mm``
-the final one, ``reposition_registered_mm`` what the verification images say.
+Both work in the simulated robot scene of :mod:`fluoronav.simulation.robot_scene`. Hand-eye trial:
+M CM poses about the working pose with one shape for all, bent in one plane by
+``calibration_bend_deg`` (the roll of the hand-eye about the CM axis shows only through the bend);
+the image-based calibration (:func:`~fluoronav.calibration.image_handeye.calibrate_hand_eye_from_images`)
+for each M of ``poses`` (nested), and the tracker baseline (AX = XB, Tsai) with its eq. 9 tip on the
+same poses. Navigation trial: the simulated navigation loop
+(:mod:`fluoronav.simulation.navigation.loop`) with a hand-eye of documented error; rows
+``reposition_open_loop_mm`` (the first move's tip error against the plan), ``reposition_tip_mm``
+(the final one) and ``reposition_registered_mm`` (what the verification images say). The trials'
+settings and rows: docs/robot-and-calibration.md ("Hand-eye and navigation studies").
 """
 
 from __future__ import annotations
@@ -31,7 +19,7 @@ import logging
 import math
 import re
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -43,12 +31,17 @@ from fluoronav.calibration.handeye import (
     tip_rbase_tracker_chain,
     transform_error,
 )
-from fluoronav.calibration.image_handeye import ImageHandEyeConfig, calibrate_hand_eye_from_images
+from fluoronav.calibration.image_handeye import (
+    ImageHandEyeConfig,
+    ImageHandEyeResult,
+    calibrate_hand_eye_from_images,
+)
 from fluoronav.calibration.results import HandEyeFailure
 from fluoronav.calibration.tracker import DEFAULT_BODY, OpticalTracker
 from fluoronav.errors import FluoronavError
 from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.navigation.config import NavigationConfig
 from fluoronav.registration.cm import CMView
 from fluoronav.registration.metrics import cm_errors
 from fluoronav.runner import finish_row, mark_failed, new_row
@@ -166,6 +159,8 @@ class HandEyeStudyConfig:
         fault: navigation: an input fault of :data:`fluoronav.simulation.navigation.faults.FAULTS` injected
             into every trial's case (None: none); rows then carry ``fault``, ``fault_outcome`` and
             ``fault_handled``.
+        navigation: navigation: the pipeline's settings (a site's settings file), each trial's
+            with the study's device and the trial's seed; None: the defaults.
     """
 
     workflow: str
@@ -188,6 +183,7 @@ class HandEyeStudyConfig:
     fault: str | None = None
     world: World = IDEAL
     verify_views: int = 3
+    navigation: NavigationConfig | None = None
 
 
 # ----- per-process caches -------------------------------------------------------------------------
@@ -286,6 +282,45 @@ def _tracker_baseline(
     }
 
 
+def _record_largest_m(
+    row: dict[str, Any],
+    res: ImageHandEyeResult,
+    sc: HandEyeScenario,
+    m: int,
+    tip_mm: float,
+    rot: float,
+    trans: float,
+) -> None:
+    """Into ``row``, the figures of the calibration from the largest number of poses ``m`` (the
+    trial's metrics): its errors (``tip_mm``, ``rot`` degrees, ``trans`` mm), convergence, axis and
+    roll, estimates and the CM's errors in the C-arm frame."""
+    row.update(
+        handeye_tip_mm=tip_mm,
+        handeye_rotation_deg=rot,
+        handeye_translation_mm=trans,
+        n_poses=m,
+        seconds_registration=res.seconds,
+        converged=res.converged,
+        mean_residual_px=float(np.nanmean(res.residuals_px)),
+    )
+    row.update(axis_and_roll_deg(res.ee_from_cm, sc.ee_from_cm))
+    row["est_ee_from_cm"] = np.round(res.ee_from_cm, 5).tolist()
+    row["est_control_points_deg"] = np.round(res.control_points_deg, 4).tolist()
+    cam = sc.camera.camera_from_world
+    row.update(
+        {
+            k: v
+            for k, v in cm_errors(
+                carm_from_cm_est=cam @ res.world_from_cm[0],
+                carm_from_cm_true=cam @ sc.world_from_cm[0],
+                control_points_est_deg=res.control_points_deg,
+                control_points_true_deg=sc.control_points_deg,
+            ).items()
+            if k in CM_METRICS
+        }
+    )
+
+
 def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> dict[str, Any]:
     """One hand-eye trial → one ``trials.csv`` row (metrics of the largest M, plus per-M columns)."""
     t0 = time.perf_counter()
@@ -346,31 +381,7 @@ def run_handeye_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -> d
             row[f"handeye_translation_mm_m{m}"] = trans
             row[f"seconds_m{m}"] = res.seconds
             if m == m_max:
-                row.update(
-                    handeye_tip_mm=tip_mm,
-                    handeye_rotation_deg=rot,
-                    handeye_translation_mm=trans,
-                    n_poses=m,
-                    seconds_registration=res.seconds,
-                    converged=res.converged,
-                    mean_residual_px=float(np.nanmean(res.residuals_px)),
-                )
-                row.update(axis_and_roll_deg(res.ee_from_cm, sc.ee_from_cm))
-                row["est_ee_from_cm"] = np.round(res.ee_from_cm, 5).tolist()
-                row["est_control_points_deg"] = np.round(res.control_points_deg, 4).tolist()
-                cam = sc.camera.camera_from_world
-                row.update(
-                    {
-                        k: v
-                        for k, v in cm_errors(
-                            carm_from_cm_est=cam @ res.world_from_cm[0],
-                            carm_from_cm_true=cam @ sc.world_from_cm[0],
-                            control_points_est_deg=res.control_points_deg,
-                            control_points_true_deg=sc.control_points_deg,
-                        ).items()
-                        if k in CM_METRICS
-                    }
-                )
+                _record_largest_m(row, res, sc, m, tip_mm, rot, trans)
                 if tip9 is not None:
                     row["eq9_vs_eq10_mm"] = float(np.linalg.norm(tip9[:m] - tip10, axis=1).mean())
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
@@ -504,7 +515,8 @@ def run_navigation_trial(trial_id: int, seed: int, *, cfg: HandEyeStudyConfig) -
             verify_views=cfg.verify_views,
         )
         row["landmarks"] = "oracle" if cfg.oracle_landmarks else "detector"
-        row.update(navigation_row(run_simulated_navigation(sim, ct=cfg.ct), cfg))
+        nav = None if cfg.navigation is None else replace(cfg.navigation, device=cfg.device, seed=seed)
+        row.update(navigation_row(run_simulated_navigation(sim, ct=cfg.ct, navigation=nav), cfg))
     except Exception as exc:  # a failed trial is recorded with its reason, never dropped
         mark_failed(row, exc, trial_id)
         if cfg.fault is not None:

@@ -1,18 +1,13 @@
 """The paper's simulation studies, one trial at a time (``fluoronav study``).
 
 A trial (§III-B; :mod:`fluoronav.simulation.protocol`) samples the ground truth, simulates the X-ray
-images with the physics simulator (moving pelvis and femur, voxelised CM; never the registration's
-renderer), finds the CM landmarks (the shipped detector, or ``--oracle-landmarks``: the truth plus
-U(−3, 3) px as the authors' code), registers pelvis and femur, initialises the CM from its centreline
-and registers it (single-view, multi-view or multiple-CM), and records the paper's metrics.
-
-Frames: single-view and multiple-CM work in the world frame of the (known) C-arm view. Multi-view
-relates the views through the pelvis (§II-C): each view's pelvis registration gives
-``camera_k_from_ct``, and femur and CM are registered in the CT frame with those cameras. Errors are
-computed in the C-arm frame of the first view.
-
-A study may run in a simulated world (``StudyConfig.world``; :mod:`fluoronav.studies.world_trials`):
-the images of the patient, the case's CT, cameras and FBG reading given to the registration.
+images with the physics simulator (never the registration's renderer), finds the CM landmarks (the
+shipped detector, or ``--oracle-landmarks``: the truth plus U(−3, 3) px), registers pelvis and
+femur, initialises the CM from its centreline, registers it and records the paper's metrics.
+Frames: single-view and multiple-CM work in the world frame of the (known) C-arm view; multi-view
+relates the views through the pelvis (each view's ``camera_k_from_ct``) and registers femur and CM
+in the CT frame. Errors are computed in the C-arm frame of the first view. A study may run in a
+simulated world (``StudyConfig.world``; :mod:`fluoronav.studies.world_trials`).
 """
 
 from __future__ import annotations
@@ -139,6 +134,32 @@ def _with_bones(volume: Volume, cfg: StudyConfig) -> bool:
         and volume.label_value("femur_left") is not None
         and "entry_left" in volume.landmarks_world
     )
+
+
+#: what a trial needs of a CT: the simulator moves the left femur by its label, the protocol aims
+#: the C-arm and the CM at its landmarks (:func:`~fluoronav.simulation.protocol.sample_trial`)
+_TRIAL_LABELS = ("femur_left",)
+_TRIAL_LANDMARKS = ("femoral_head_left", "entry_left")
+
+
+def _check_trial_ct(volume: Volume, source: str) -> None:
+    """Refuse, before any trial, a CT without the labels and landmarks a trial needs (an
+    :class:`InputError` naming them), rather than fail every trial on it."""
+    missing = [
+        f"label {name!r}"
+        for name in _TRIAL_LABELS
+        if volume.labels is None
+        or (value := volume.label_value(name)) is None
+        or not np.any(volume.labels == value)
+    ]
+    missing += [f"landmark {name!r}" for name in _TRIAL_LANDMARKS if name not in volume.landmarks_world]
+    if missing:
+        needed = [f"label {n!r}" for n in _TRIAL_LABELS] + [f"landmark {n!r}" for n in _TRIAL_LANDMARKS]
+        raise InputError(
+            source,
+            f"a study's trials move the left femur and aim at it, so the CT needs {', '.join(needed)}; "
+            f"this one lacks {', '.join(missing)} (labels and landmarks: docs/data-formats.md)",
+        )
 
 
 def _full_to_image_px(uv_full: np.ndarray, binning: int) -> np.ndarray:
@@ -563,7 +584,8 @@ def run_study(
         if any(old.get(k) != cfg_dict.get(k) for k in keep):
             raise InputError(cfg_path, "this directory holds a study with other settings; use another --out")
     if cfg.ct != "phantom":
-        resolve_ct(cfg.ct)  # fail early, in this process, on a bad CT
+        # fail early, in this process, on a bad CT or one without what the trials simulate
+        _check_trial_ct(resolve_ct(cfg.ct), cfg.ct)
     if not cfg.oracle_landmarks:
         # fail early when no detector model is available; the precision its networks run in
         # (bfloat16 on a CPU with native bfloat16) is part of the record

@@ -1,35 +1,15 @@
 """A registration-study trial in a simulated world (``fluoronav study WORKFLOW --world``).
 
-The registration studies (:mod:`fluoronav.studies.pipeline`) take the simulated world of the
-navigation study (:mod:`fluoronav.simulation.world`), source by source as the simulated navigation
-does (:mod:`fluoronav.simulation.navigation.scenario`):
-
-- CT (``world.ct``): the images are rendered from the *patient*, whose landmarks and poses are the
-  truth, and the registration is given the case's CT
-  (:func:`~fluoronav.simulation.world_anatomy.world_anatomy`);
-- C-arm (``world.carm``): each image is taken with its C-arm position's nominal camera flexed
-  (:func:`~fluoronav.simulation.world.flexed_camera`), and the registration is given the nominal
-  camera with a calibration error (:func:`~fluoronav.simulation.world.case_camera`); one draw of each
-  per C-arm position (the multiple-CM workflow's images share one). Both change the intrinsics
-  only, so errors are still measured in the imaging C-arm's frame;
-- FBG (``world.fbg``): the registration's initial control points are the FBG reading of the true
-  shape (:func:`~fluoronav.simulation.world.fbg_reading`) instead of the protocol's truth +
-  U(−0.5, 0.5)°, and its prior is weighted by the reading's stated accuracy
-  (:func:`~fluoronav.registration.cm.config.fbg_shape_prior`); with the instrument as built the
-  reading (either) is of its shape, the model's nearest to it;
-- instrument (``world.instrument``): the images show the CM as built
-  (:func:`~fluoronav.simulation.instrument.build_instrument`) and the tip truth is its tip; the
-  oracle landmarks follow it (and the flex) to where the images show them;
-- motion within a set (``world.motion.within_set_*``): each image of a trial with several images
-  (multi-view, multiple-CM) sees the patient moved from the trial's pose by
-  :func:`~fluoronav.simulation.world.patient_motion` about the pelvis centre; the truth stays the
-  trial's pose. A one-image trial has no motion within its set, and the motion between sets does not
-  apply (a trial is one set).
-
-Randomness: the world draws from its own generator (:func:`world_rng`, from the trial's seed) in the
-navigation's order (CT, instrument, per image motion then flex, case cameras, FBG); the trial's
-generator makes the protocol's draws alone, so the ideal world, which draws nothing, gives the
-trials of the studies before worlds bit for bit.
+The registration studies (:mod:`fluoronav.studies.pipeline`) take each source of the simulated
+world (:mod:`fluoronav.simulation.world`) as the simulated navigation does: the images rendered
+from the *patient* and the case's CT given to the registration (``world.ct``); each image taken
+with its C-arm position's camera flexed and the registration given the nominal camera with a
+calibration error (``world.carm``; intrinsics only, so errors stay in the imaging C-arm's frame);
+the FBG reading as the initial control points and prior (``world.fbg``); the CM as built in the
+images, its tip the truth (``world.instrument``); the patient moved between the images of one set
+(``world.motion.within_set_*``; none between sets). The world draws from its own generator
+(:func:`world_rng`, from the trial's seed) in the navigation's order, the protocol from the trial's,
+so the ideal world, which draws nothing, gives the same trials as a study without a world.
 """
 
 from __future__ import annotations
@@ -44,6 +24,7 @@ import torch
 from fluoronav.anatomy.volume import Volume
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.simulation.articulated import ArticulatedSimulator
 from fluoronav.simulation.instrument import (
     BuiltCM,
     build_instrument,
@@ -134,6 +115,49 @@ def _oracle_landmarks_px(
     return np.asarray(trial.oracle_landmarks_px + (shown - trial.landmarks_px))
 
 
+def _simulate_images(
+    trial: Trial,
+    simulator: ArticulatedSimulator,
+    positions: list[int],
+    world: World,
+    built: BuiltCM | None,
+    *,
+    seed: int,
+    image_size: int,
+    world_rng: np.random.Generator,
+) -> tuple[list[SimulatedImage], dict[int, Camera]]:
+    """The trial's images (image ``i`` with noise seed ``seed + i``) in ``world`` → the images and
+    per C-arm position (``positions``, :func:`_positions`) its flexed camera; per image the world draws
+    the patient's motion within the set, then a new position's flex."""
+    motion = world.motion
+    # one image is its own set: the patient at that image is the trial's truth
+    moving = trial.n_images > 1 and (motion.within_set_mm > 0 or motion.within_set_deg > 0)
+    flexed: dict[int, Camera] = {}
+    images: list[SimulatedImage] = []
+    for i, (cam, T) in enumerate(zip(trial.cameras, trial.world_from_cm, strict=True)):
+        wp, wf = trial.world_from_patient, trial.world_from_femur
+        if moving:
+            M = patient_motion(
+                motion.within_set_mm, motion.within_set_deg, world_rng, center_world=trial.pelvis_center_world
+            )
+            wp, wf = M @ wp, M @ wf
+        if positions[i] not in flexed:
+            flexed[positions[i]] = flexed_camera(cam, world.carm, world_rng)
+        images.append(
+            simulator.simulate(
+                flexed[positions[i]],
+                world_from_patient=wp,
+                world_from_femur=wf,
+                cm=(T, trial.control_points_deg),
+                seed=seed + i,
+                image_size=image_size,
+                cm_config=trial.cm_config,
+                built_cm=built,
+            )
+        )
+    return images, flexed
+
+
 def simulate_world_trial(
     workflow: str,
     ct: str,
@@ -167,33 +191,10 @@ def simulate_world_trial(
     if world.instrument.enabled:  # the CM in the images is not the model the registration fits
         built = build_instrument(world.instrument, trial.cm_config, world_rng)
     seed = int(rng.integers(2**31))
-    motion = world.motion
-    # one image is its own set: the patient at that image is the trial's truth
-    moving = trial.n_images > 1 and (motion.within_set_mm > 0 or motion.within_set_deg > 0)
     positions = _positions(trial.cameras)
-    flexed: dict[int, Camera] = {}
-    images: list[SimulatedImage] = []
-    for i, (cam, T) in enumerate(zip(trial.cameras, trial.world_from_cm, strict=True)):
-        wp, wf = trial.world_from_patient, trial.world_from_femur
-        if moving:
-            M = patient_motion(
-                motion.within_set_mm, motion.within_set_deg, world_rng, center_world=trial.pelvis_center_world
-            )
-            wp, wf = M @ wp, M @ wf
-        if positions[i] not in flexed:
-            flexed[positions[i]] = flexed_camera(cam, world.carm, world_rng)
-        images.append(
-            simulator.simulate(
-                flexed[positions[i]],
-                world_from_patient=wp,
-                world_from_femur=wf,
-                cm=(T, trial.control_points_deg),
-                seed=seed + i,
-                image_size=image_size,
-                cm_config=trial.cm_config,
-                built_cm=built,
-            )
-        )
+    images, flexed = _simulate_images(
+        trial, simulator, positions, world, built, seed=seed, image_size=image_size, world_rng=world_rng
+    )
     cameras = tuple(im.camera for im in images)
     if world.carm.enabled:  # the case's calibration of each nominal position, not the flexed truth
         case = {

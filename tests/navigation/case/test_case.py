@@ -27,6 +27,14 @@ from fluoronav.navigation.case.model import (
     load_navigation_case,
     write_navigation_case,
 )
+from fluoronav.navigation.case.schema import (
+    CaseFile,
+    InlineCamera,
+    MovedFrom,
+    RobotEntry,
+    Verification,
+    ViewEntry,
+)
 from fluoronav.navigation.planning import Plan
 
 HEAD_LEFT = np.array([14.0, 2.0, -6.0])
@@ -183,6 +191,55 @@ def test_written_case_loads_back_equal(tmp_path: Path, robot: SerialRobot) -> No
     assert back.source == path
 
 
+DATA = Path(__file__).parent / "data"
+
+
+def _case_with_a_masked_verification_view() -> NavigationCase:
+    """:func:`_case` with a DH robot and a verification view holding landmarks, a mask and
+    ``same_camera_as`` (the order of a view's keys)."""
+    case = _case(robot=_robot_other())
+    assert case.verification is not None
+    views = list(case.verification.views)
+    views[1] = replace(_view("oblique again", 4, with_mask=True), moved_from="oblique", carm_motion=np.eye(4))
+    return replace(case, verification=replace(case.verification, views=tuple(views)))
+
+
+@pytest.mark.parametrize(
+    ("make", "kwargs", "expected"),
+    [
+        (_case, {"extra": {"notes": "simulated", "_truth": [1, 2]}}, "written_case.json"),
+        (
+            _case_with_a_masked_verification_view,
+            {
+                "ct_path": "phantom",
+                "extra": {"description": "a DH robot", "phantom_seed": 3, "isocenter_ct_mm": [1.0, 2.0, 3.5]},
+            },
+            "written_case_dh_robot.json",
+        ),
+    ],
+    ids=["UR10", "dh-robot-phantom"],
+)
+def test_written_case_file_keeps_its_bytes(
+    tmp_path: Path, make: Callable[[], NavigationCase], kwargs: dict[str, Any], expected: str
+) -> None:
+    """``navigation.json`` byte for byte as the writer wrote it before the schema models (data/):
+    the demo reads back the case it writes, so its results hang on these bytes."""
+    path = write_navigation_case(make(), tmp_path, **kwargs)
+    assert path.read_text(encoding="utf-8") == (DATA / expected).read_text(encoding="utf-8")
+
+
+def test_an_inline_camera_and_plan_read_as_their_files(tmp_path: Path) -> None:
+    path = write_navigation_case(replace(_case(), verification=None), tmp_path)
+    back = load_navigation_case(path)
+    d = json.loads(path.read_text())
+    d["views"][2]["camera"] = json.loads((tmp_path / d["views"][2]["camera"]).read_text())
+    d["plan"] = json.loads((tmp_path / d["plan"]).read_text())
+    path.write_text(json.dumps(d))
+    inline = load_navigation_case(path)
+    _assert_views_equal(back.views, inline.views)
+    assert repr(inline.plan) == repr(back.plan)
+
+
 def test_side_defaults_to_the_head_nearest_the_entry_and_ct_path_is_kept(tmp_path: Path) -> None:
     case = _case()
     first = write_navigation_case(case, tmp_path / "a")
@@ -317,6 +374,15 @@ def _dup_names(d: dict[str, Any], root: Path) -> None:
     d["views"][2]["name"] = d["views"][0]["name"]
 
 
+def _inline_camera(**change: Any) -> Edit:
+    """views[0]'s camera inline (its own, so only ``change`` is wrong)."""
+
+    def edit(d: dict[str, Any], _: Path) -> None:
+        d["views"][0]["camera"] = {**Camera.load(d["views"][0]["camera"]).to_dict(), **change}
+
+    return edit
+
+
 NOT_RIGID = (np.diag([2.0, 1.0, 1.0, 1.0])).tolist()
 MALFORMED: dict[str, tuple[Edit, str]] = {
     "missing-ct": (_delete("ct"), "'ct': missing"),
@@ -330,18 +396,20 @@ MALFORMED: dict[str, tuple[Edit, str]] = {
     "plan-not-found": (_set("plan", value="gone.json"), "'plan' file not found: gone.json"),
     "ee-not-rigid": (
         _set("robot", "ee_from_cm", value=NOT_RIGID),
-        "robot.ee_from_cm is not a rigid transform",
+        "robot.ee_from_cm: expected a 4x4 rigid matrix (the rotation part is not orthonormal)",
     ),
+    "ee-shape": (
+        _set("robot", "ee_from_cm", value=NOT_RIGID[:3]),
+        "robot.ee_from_cm: expected a 4x4 rigid matrix, got shape (3, 4)",
+    ),
+    "ee-not-numbers": (_set("robot", "ee_from_cm", value=5), "robot.ee_from_cm: expected a 4x4 rigid matrix"),
     "image-camera-size": (_wrong_size_camera, "views[0]: the image is 32x40"),
     "duplicate-names": (_dup_names, "views[2].name 'ap' is used twice"),
     "unknown-key": (_set("veiws", value=[]), "unknown key(s) ['veiws']; allowed:"),
     "no-femoral-head": (_no_head, "landmark 'femoral_head_left'"),
     "fbg-length": (_set("fbg_control_points_deg", value=[0.0] * 4), "fbg_control_points_deg has 4 values"),
-    "fbg-sigma-zero": (
-        _set("fbg_sigma_deg", value=0),
-        "'fbg_sigma_deg' must be a positive number of degrees",
-    ),
-    "fbg-sigma-text": (_set("fbg_sigma_deg", value="0.1"), "'fbg_sigma_deg' must be a positive number"),
+    "fbg-sigma-zero": (_set("fbg_sigma_deg", value=0), "'fbg_sigma_deg': input should be greater than 0"),
+    "fbg-sigma-text": (_set("fbg_sigma_deg", value="0.1"), "'fbg_sigma_deg': input should be a valid number"),
     "fbg-sigma-alone": (_delete("fbg_control_points_deg"), "'fbg_sigma_deg' is given without"),
     "verification-joints": (
         _set("verification", "joints_deg", value=[0.0] * 7),
@@ -350,7 +418,7 @@ MALFORMED: dict[str, tuple[Edit, str]] = {
     "joint-outside-limits": (_set("robot", "joints_deg", 2, value=400.0), "robot.joints_deg[2] = 400"),
     "mask-without-landmarks": (
         _delete("views", 1, "landmarks_px"),
-        "views[1].mask is given without landmarks_px",
+        "views[1].mask: given without landmarks_px",
     ),
     "bad-robot-model": (_set("robot", "model", value="UR-10"), "robot.model 'UR-10' is neither"),
     "moved-from-unknown-view": (
@@ -363,12 +431,43 @@ MALFORMED: dict[str, tuple[Edit, str]] = {
     ),
     "carm-motion-not-rigid": (
         _set("verification", "views", 0, "moved_from", "carm_after_from_carm_before", value=NOT_RIGID),
-        "verification.views[0].moved_from.carm_after_from_carm_before is not a rigid transform",
+        "verification.views[0].moved_from.carm_after_from_carm_before: expected a 4x4 rigid matrix",
     ),
     "moved-from-malformed": (
         _set("verification", "views", 0, "moved_from", value="ap"),
-        "verification.views[0].moved_from must be",
+        "verification.views[0].moved_from: expected an object with keys ['view', 'carm_after_from",
     ),
+    "missing-robot-key": (
+        _delete("robot", "joints_deg"),
+        "robot.joints_deg: missing (give the joint readings",
+    ),
+    "joint-not-a-number": (
+        _set("robot", "joints_deg", 1, value=True),
+        "robot.joints_deg[1]: input should be",
+    ),
+    "unknown-view-key": (
+        _set("views", 0, "camrea", value="x"),
+        "views[0]: unknown key(s) ['camrea']; allowed:",
+    ),
+    "side-not-an-enum": (_set("side", value="both"), "'side': input should be 'left' or 'right'"),
+    "no-views": (_set("views", value=[]), "'views': list should have at least 1 item"),
+    "plan-a-number": (_set("plan", value=3), "'plan': expected a plan file or an inline plan object"),
+    "isocentre-length": (_set("isocenter_ct_mm", value=[1.0, 2.0]), "'isocenter_ct_mm': expected 3 numbers"),
+    "landmarks-not-finite": (
+        _set("views", 1, "landmarks_px", 0, value=[float("nan"), 1.0]),
+        "views[1].landmarks_px: expected [[uA, vA], [uB, vB]] (pixels) of finite numbers",
+    ),
+    "inline-camera-spacing": (
+        _inline_camera(pixel_spacing_mm=-0.5),
+        "views[0].camera.pixel_spacing_mm: input should be greater than 0",
+    ),
+    "inline-camera-not-rigid": (
+        _inline_camera(camera_from_world=NOT_RIGID),
+        "views[0].camera.camera_from_world: expected a 4x4 rigid matrix",
+    ),
+    "inline-camera-unknown-key": (_inline_camera(pixel_spacing=0.8), "views[0].camera: unknown key(s)"),
+    "phantom-with-labels": (_set("ct", value="phantom"), "['labels', 'landmarks'] cannot be given with 'ct'"),
+    "seed-without-phantom": (_set("phantom_seed", value=1), "'phantom_seed' is only for 'ct': \"phantom\""),
 }
 
 
@@ -397,6 +496,13 @@ def test_malformed_case_names_the_file_and_the_key(written_case: Path, tmp_path:
     assert expected in message
     if name == "plan-not-json":
         assert "bad_plan.json" in message and "not valid JSON" in message
+
+
+def test_every_required_key_says_what_to_give() -> None:
+    """A missing key's message is ``<key>: missing (give <its description>)``."""
+    for model in (CaseFile, RobotEntry, ViewEntry, MovedFrom, Verification, InlineCamera):
+        for key, field in model.model_fields.items():
+            assert not field.is_required() or field.description, f"{model.__name__}.{key}"
 
 
 def test_writer_rejects_extra_keys_that_would_not_load(tmp_path: Path) -> None:

@@ -8,16 +8,20 @@ import dataclasses
 import pytest
 
 from fluoronav.navigation.checks.safety import SafetyConfig
-from fluoronav.navigation.result import NavigationConfig
+from fluoronav.navigation.config import NavigationConfig
 from fluoronav.registration.cm.checks import CMCheckConfig
 
 
 def test_safety_config_keeps_its_fields_and_defaults() -> None:
     assert dataclasses.asdict(SafetyConfig()) == {
-        "max_landmark_residual_mm": 2.0,
-        "min_edge_ncc": 0.7,
+        "cm": {
+            "max_landmark_residual_mm": 2.0,
+            "min_edge_ncc": 0.7,
+            "min_views": 2,
+            "max_shape_departure_sigmas": None,
+            "shape_search_tolerance_deg": 3.0,
+        },
         "max_motion_tip_mm": 3.0,
-        "min_views": 2,
         "verify_min_views": 1,
         "max_joint_motion_deg": 30.0,
         "max_move_mm": 200.0,
@@ -33,7 +37,9 @@ def test_safety_config_keeps_its_fields_and_defaults() -> None:
 
 
 def test_safety_config_sets_the_cm_checks() -> None:
-    s = SafetyConfig(max_landmark_residual_mm=1.5, min_edge_ncc=0.6, max_motion_tip_mm=4.0, min_views=3)
+    s = SafetyConfig(
+        cm=CMCheckConfig(max_landmark_residual_mm=1.5, min_edge_ncc=0.6, min_views=3), max_motion_tip_mm=4.0
+    )
     assert s.cm_checks() == CMCheckConfig(max_landmark_residual_mm=1.5, min_edge_ncc=0.6, min_views=3)
     # the first registration's shape is checked against the FBG reading, the verification's is not
     first = NavigationConfig(safety=s).view_set_settings(verification=False).cm_checks
@@ -59,9 +65,9 @@ def test_a_stated_fbg_accuracy_weights_the_first_shape_prior_only() -> None:
 def test_a_two_view_verification_fused_with_the_kinematics_may_keep_one_view() -> None:
     """Fused with the kinematics a two-view verification's CM stands on one view (as a one-image
     verification does); with three views, or from the images alone, it needs ``min_views``."""
-    from fluoronav.navigation.result import VerificationConfig
+    from fluoronav.navigation.config import VerificationConfig
 
-    s = SafetyConfig(min_views=2, verify_min_views=1)
+    s = SafetyConfig(cm=CMCheckConfig(min_views=2), verify_min_views=1)
     nav = NavigationConfig(safety=s)
     two = nav.view_set_settings(verification=True, n_views=2).cm_checks
     three = nav.view_set_settings(verification=True, n_views=3).cm_checks
@@ -74,14 +80,19 @@ def test_a_two_view_verification_fused_with_the_kinematics_may_keep_one_view() -
 
 
 def test_navigation_config_gives_each_registration_its_settings_and_one_device() -> None:
+    from fluoronav.navigation.config import VerificationConfig
     from fluoronav.registration.cm import CMRegistrationConfig
 
     first_cm, verify_cm = (
         CMRegistrationConfig(roi_size_full_px=400),
         CMRegistrationConfig(roi_size_full_px=600),
     )
-    cfg = NavigationConfig(device="cuda:1", cm=first_cm, verify_cm=verify_cm, max_cm_starts=1)
+    cfg = NavigationConfig(
+        device="cuda:1",
+        views=dataclasses.replace(NavigationConfig().views, cm=first_cm, max_cm_starts=1),
+        verification=VerificationConfig(cm=verify_cm),
+    )
     first, ver = cfg.view_set_settings(verification=False), cfg.view_set_settings(verification=True)
     assert first.device == ver.device == "cuda:1"
     assert first.cm is first_cm and ver.cm is verify_cm and first.max_cm_starts == 1
-    assert first.pelvis is cfg.pelvis and first.pelvis_refine is cfg.verify_pelvis_refine
+    assert first.pelvis is cfg.views.pelvis and first.pelvis_refine is cfg.verification.pelvis_refine

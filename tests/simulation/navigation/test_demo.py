@@ -42,7 +42,7 @@ def test_results_of_a_refused_run_say_so_and_carry_no_move() -> None:
 
 def test_a_run_without_a_pipeline_result_still_writes_results(tmp_path: Path) -> None:
     run = SimulatedNavigation(config=SimulatedNavigationConfig(seed=1))
-    run.timings_s["anatomy"] = 1.0
+    run.loop_stages["anatomy"] = StageRecord(seconds=1.0)
     written = write_demo_outputs(run, tmp_path)
     assert written == [tmp_path / "results.json"]
     assert json.loads(written[0].read_text(encoding="utf-8"))["status"] == "failed"

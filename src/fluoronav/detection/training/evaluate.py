@@ -1,19 +1,13 @@
 """Accuracy of a detector on a simulate data set (held-out split or all samples).
 
 Metrics: Dice of the mask at the input resolution (positives), landmark error in pixels and in mm at
-the detector plane (``pixel_spacing_mm`` of each manifest record), the found rate on positives and
-the false-positive rate on negatives. With ``field_frac`` each image is first cropped to a collimated
-field of that fraction of its sides (at a random place that keeps the whole CM; seeded per sample):
-real fluoroscopy is often collimated, and then the image has no air around the body.
-
-The summary also splits the positives by how long the CM projects (the true A–B distance on the
-detector, mm): CMs seen nearly along their axis are the hard cases, and a test set's mix of them moves
-the means. It splits them too by how long the CM's mounting shaft projects (where the manifest has the
-camera and the CM's pose): a shaft seen nearly along its axis is a short stub at A that the detector
-can take for part of the CM. ``per_sample`` writes one JSON line per image as it is scored, to find
-the failures. Finally it splits them by what the view shows of the CM (:func:`view_kind`): nearly
-end-on, lying over its own shaft, or clear of both; in the first two the stored image hardly tells
-where the notched CM begins or ends, and they hold most of the gross landmark errors.
+the detector (``pixel_spacing_mm`` of each manifest record), the found rate on positives and the
+false-positive rate on negatives. With ``field_frac`` each image is first cropped to a collimated
+field of that fraction of its sides (a random place that keeps the whole CM; seeded per sample).
+The summary splits the positives by how long the CM and its mounting shaft project and by what the
+view shows of the CM (:func:`view_kind`: nearly end-on, over its own shaft, or clear), the views
+that hold most gross landmark errors; ``per_sample`` writes one JSON line per scored image.
+docs/detector.md ("What ``evaluate`` reports") lists every figure.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """A navigation case: the CT, plan, CM, robot state, hand-eye matrix and C-arm views, and its files.
 
-``model``: the case in memory and its ``navigation.json``; ``parse``: the file's fields read and
-checked; ``view``: one C-arm image of a case.
+``model``: the case in memory and its ``navigation.json``; ``schema``: the file's keys and types as
+pydantic models; ``parse``: the files it names, read and checked; ``view``: one C-arm image of a case.
 """
 
 from typing import TYPE_CHECKING

@@ -3,27 +3,22 @@
 A case is the CT (with labels and landmarks), the plan, the CM, the robot's state while imaging and
 its hand-eye matrix, and the C-arm views; optionally the views taken after the robot moved
 (verification). On disk it is one JSON file whose paths are relative to it (docs/data-formats.md,
-"Navigation case"); :func:`load_navigation_case` reads and validates it, :func:`write_navigation_case`
-writes one (the demo's simulated cases).
+"Navigation case"; its models in :mod:`.schema`); :func:`load_navigation_case` reads and validates
+it, :func:`write_navigation_case` writes one (the demo's simulated cases).
 
-Frames: ``ct`` is the CT's physical frame (LPS, mm, as SimpleITK reads it). Every view's camera
-holds ``camera_from_ct`` as it is known before registration (a C-arm calibration, the DICOM geometry
-with the CT placed at the isocentre, or a rough manual alignment); the pelvis registration corrects
-it per view. Cameras given as ``"dicom"`` are the image's own geometry tags, whose world is the
-C-arm isocentre frame; the case's ``isocenter_ct_mm`` (default: the plan side's femoral head
-landmark) is the CT point at the isocentre, and the CT's LPS axes are taken as the isocentre
-frame's (a supine patient): ``camera_from_ct = camera_from_iso @ translate(−isocenter_ct_mm)``.
+Frames: ``ct`` is the CT's physical frame (LPS, mm, as SimpleITK reads it). Every view's camera holds
+``camera_from_ct`` as known before registration, which the pelvis registration corrects per view;
+``"dicom"`` cameras are placed by ``isocenter_ct_mm`` (default: the femoral head landmark; :mod:`.parse`).
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -38,9 +33,18 @@ from fluoronav.navigation.case.parse import (
     parse_joints,
     parse_robot,
     parse_views,
+    readings,
     require_file,
-    vector,
     write_views,
+)
+from fluoronav.navigation.case.schema import (
+    COMMENT_KEYS,
+    CaseFile,
+    RobotEntry,
+    Side,
+    Verification,
+    is_comment_key,
+    validate_case,
 )
 from fluoronav.navigation.case.view import CaseView
 from fluoronav.navigation.planning import Plan, load_plan, plan_from_dict, save_plan
@@ -58,24 +62,7 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 #: Top-level keys of a navigation case file (besides the comment keys :data:`COMMENT_KEYS`).
-CASE_KEYS = (
-    "ct",
-    "phantom_seed",
-    "labels",
-    "landmarks",
-    "plan",
-    "side",
-    "cm",
-    "fbg_control_points_deg",
-    "fbg_sigma_deg",
-    "robot",
-    "isocenter_ct_mm",
-    "views",
-    "verification",
-)
-#: Keys the reader skips (free text for people); any key starting with ``_`` is skipped too.
-COMMENT_KEYS = ("description", "notes")
-_VERIFICATION_KEYS = ("joints_deg", "views")
+CASE_KEYS = tuple(CaseFile.model_fields)
 
 
 @dataclass(frozen=True, eq=False)
@@ -130,30 +117,19 @@ class NavigationCase:
 
 
 # ----- reading ---------------------------------------------------------------------------------
-def _volume(d: dict[str, Any], src: str, root: Path) -> tuple[Volume, str]:
+def _volume(spec: CaseFile, src: str, root: Path) -> tuple[Volume, str]:
     """The CT with labels and landmarks → (volume, the ``ct`` value for messages)."""
-    ct = d.get("ct")
-    if ct is None:
-        raise InputError(src, "'ct': missing (give a CT file, a DICOM directory or \"phantom\")")
-    if not isinstance(ct, str) or not ct.strip():
-        raise InputError(src, f"'ct' must be a CT file, a DICOM directory or \"phantom\", got {ct!r}")
-    if ct.strip().lower() == "phantom":
-        extra = [k for k in ("labels", "landmarks") if d.get(k) is not None]
-        if extra:
-            raise InputError(src, f"{extra} cannot be given with 'ct': \"phantom\" (it has its own)")
-        seed = d.get("phantom_seed", 0)
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise InputError(src, f"'phantom_seed' must be an integer ≥ 0, got {seed!r}")
+    if spec.is_phantom():
+        seed = 0 if spec.phantom_seed is None else spec.phantom_seed
         return resolve_ct("phantom", seed=seed), "phantom"
-    if "phantom_seed" in d:
-        raise InputError(src, "'phantom_seed' is only for 'ct': \"phantom\"")
+    ct = spec.ct
     if not (root / ct).exists():
         raise InputError(src, f"'ct' file not found: {ct}")
     labels = landmarks = None
-    if d.get("labels") is not None:
-        labels = require_file(src, root, d["labels"], "'labels'", what="a label map file")
-    if d.get("landmarks") is not None:
-        landmarks = require_file(src, root, d["landmarks"], "'landmarks'", what="a landmark file")
+    if spec.labels is not None:
+        labels = require_file(src, root, spec.labels, "'labels'")
+    if spec.landmarks is not None:
+        landmarks = require_file(src, root, spec.landmarks, "'landmarks'")
     try:
         volume = load_ct(root / ct, labels_path=labels, landmarks_path=landmarks)
     except InputError as exc:  # name the key of the file at fault
@@ -162,9 +138,8 @@ def _volume(d: dict[str, Any], src: str, root: Path) -> tuple[Volume, str]:
     return volume, ct
 
 
-def _side(d: dict[str, Any], volume: Volume, plan: Plan, src: str, ct: str) -> str:
+def _side(side: str | None, volume: Volume, plan: Plan, src: str, ct: str) -> str:
     """The plan's side (given, or the femoral head nearest the entry point), its anatomy checked."""
-    side = d.get("side")
     lms = volume.landmarks_world
     heads = {s: lms[f"femoral_head_{s}"] for s in ("left", "right") if f"femoral_head_{s}" in lms}
     if side is None:
@@ -174,8 +149,6 @@ def _side(d: dict[str, Any], volume: Volume, plan: Plan, src: str, ct: str) -> s
             )
         side = min(heads, key=lambda s: float(np.linalg.norm(heads[s] - plan.entry_point_world_mm)))
         logger.info("%s: side %s (femoral head nearest the plan's entry point)", src, side)
-    elif side not in ("left", "right"):
-        raise InputError(src, f'side must be "left" or "right", got {side!r}')
     missing = []
     for label in ("pelvis", f"femur_{side}"):
         value = volume.label_value(label)
@@ -209,75 +182,32 @@ def load_navigation_case(path: str | Path) -> NavigationCase:
     p = Path(path)
     src = str(p)
     root = p.parent
-    d = read_json_object(p, what="navigation case")
-    unknown = sorted(k for k in d if k not in CASE_KEYS and k not in COMMENT_KEYS and not k.startswith("_"))
-    if unknown:
-        raise InputError(
-            src,
-            f"unknown key(s) {unknown}; allowed: {list(CASE_KEYS)} "
-            f"(and {list(COMMENT_KEYS)} or keys starting with '_' for comments)",
-        )
-    volume, ct = _volume(d, src, root)
-
-    pv = d.get("plan")
-    if pv is None:
-        raise InputError(src, "'plan': missing (a plan file or an inline plan object)")
-    if isinstance(pv, dict):
-        with keyed(src, "'plan'"):
-            plan = plan_from_dict(pv, source=src)
-    else:
-        plan_path = require_file(src, root, pv, "'plan'", what="a plan file or an inline plan object")
-        with keyed(src, "'plan'"):
-            plan = load_plan(plan_path)
-    cm_config = parse_cm_config(d.get("cm"), src, root)
+    spec = validate_case(read_json_object(p, what="navigation case"), src)
+    volume, ct = _volume(spec, src, root)
+    plan = _plan(spec.plan, src, root)
+    cm_config = parse_cm_config(spec.cm, src, root)
     n_cp = cm_config.n_control_points
     if plan.control_points_deg is not None and len(plan.control_points_deg) != n_cp:
         raise InputError(
             src, f"'plan' control_points_deg has {len(plan.control_points_deg)} values, the CM has {n_cp}"
         )
     fbg = None
-    if d.get("fbg_control_points_deg") is not None:
-        fbg = vector(
-            d["fbg_control_points_deg"], "fbg_control_points_deg", src, n=n_cp, why=f"the CM has {n_cp}"
+    if spec.fbg_control_points_deg is not None:
+        fbg = readings(
+            spec.fbg_control_points_deg, "fbg_control_points_deg", src, n=n_cp, why=f"the CM has {n_cp}"
         )
-    fbg_sigma = _fbg_sigma(d, fbg, src)
-    side = _side(d, volume, plan, src, ct)
-    robot, joints, ee_from_cm = parse_robot(d, src, root)
+    fbg_sigma = None if spec.fbg_sigma_deg is None else float(spec.fbg_sigma_deg)
+    side = _side(spec.side, volume, plan, src, ct)
+    robot, joints, ee_from_cm = parse_robot(spec.robot, src, root)
 
-    if d.get("isocenter_ct_mm") is not None:
-        iso = vector(d["isocenter_ct_mm"], "isocenter_ct_mm", src, n=3, why="a CT point has 3")
+    if spec.isocenter_ct_mm is not None:
+        iso = np.asarray(spec.isocenter_ct_mm, dtype=np.float64)
     else:
         iso = np.asarray(volume.landmarks_world[f"femoral_head_{side}"], dtype=np.float64)
-    views = parse_views(d.get("views"), key="views", src=src, root=root, isocenter_ct_mm=iso)
-
+    views = parse_views(spec.views, key="views", src=src, root=root, isocenter_ct_mm=iso)
     verification = None
-    vd = d.get("verification")
-    if vd is not None:
-        if not isinstance(vd, dict):
-            raise InputError(src, "'verification' must be an object with joints_deg and views")
-        unknown = sorted(set(vd) - set(_VERIFICATION_KEYS))
-        if unknown:
-            raise InputError(
-                src, f"verification: unknown key(s) {unknown}; allowed: {list(_VERIFICATION_KEYS)}"
-            )
-        verification = VerificationViews(
-            joints_deg=parse_joints(vd.get("joints_deg"), "verification.joints_deg", robot, src),
-            views=parse_views(
-                vd.get("views"),
-                key="verification.views",
-                src=src,
-                root=root,
-                isocenter_ct_mm=iso,
-                default_prefix="verify",
-            ),
-        )
-    if verification is not None:
-        names = {v.name for v in views}
-        for k, v in enumerate(verification.views):
-            if v.moved_from is not None and v.moved_from not in names:
-                raise InputError(
-                    src, f"verification.views[{k}] names view {v.moved_from!r}, which is not among the views"
-                )
+    if spec.verification is not None:
+        verification = _verification(spec.verification, robot, src, root, iso)
     n_verify = 0 if verification is None else len(verification.views)
     logger.info("%s: %s side, %d view(s), %d verification view(s)", src, side, len(views), n_verify)
     return NavigationCase(
@@ -296,16 +226,31 @@ def load_navigation_case(path: str | Path) -> NavigationCase:
     )
 
 
-def _fbg_sigma(d: dict[str, Any], fbg: np.ndarray | None, src: str) -> float | None:
-    """The case's ``fbg_sigma_deg``: a positive number, and only with a reading."""
-    v = d.get("fbg_sigma_deg")
-    if v is None:
-        return None
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
-        raise InputError(src, f"'fbg_sigma_deg' must be a positive number of degrees, got {v!r}")
-    if fbg is None:
-        raise InputError(src, "'fbg_sigma_deg' is given without 'fbg_control_points_deg'")
-    return float(v)
+def _plan(value: str | dict[str, Any], src: str, root: Path) -> Plan:
+    """``plan``: a plan file or the plan object inline (both checked by the planning module)."""
+    if isinstance(value, dict):
+        with keyed(src, "'plan'"):
+            return plan_from_dict(value, source=src)
+    plan_path = require_file(src, root, value, "'plan'")
+    with keyed(src, "'plan'"):
+        return load_plan(plan_path)
+
+
+def _verification(
+    spec: Verification, robot: SerialRobot, src: str, root: Path, isocenter_ct_mm: np.ndarray
+) -> VerificationViews:
+    """``verification``: its joint readings (for ``robot``) and its views."""
+    return VerificationViews(
+        joints_deg=parse_joints(spec.joints_deg, "verification.joints_deg", robot, src),
+        views=parse_views(
+            spec.views,
+            key="verification.views",
+            src=src,
+            root=root,
+            isocenter_ct_mm=isocenter_ct_mm,
+            default_prefix="verify",
+        ),
+    )
 
 
 # ----- writing ---------------------------------------------------------------------------------
@@ -331,8 +276,9 @@ def write_navigation_case(
     ``<name>.npz`` (``image`` float32, ``pixel_spacing_mm`` when the camera has one),
     ``<name>_camera.json`` (``camera_from_world`` = camera_from_ct) and ``<name>_mask.png``;
     verification views likewise with the prefix ``verification_``. The CM config is written inline.
-    :func:`load_navigation_case` of the result gives back an equal case (float32 images, NIfTI
-    geometry to float32 precision).
+    The file is the dump of :class:`~fluoronav.navigation.case.schema.CaseFile` (not validated here:
+    the reader checks); :func:`load_navigation_case` of it gives back an equal case (float32 images,
+    NIfTI geometry to float32 precision).
 
     Args:
         case: the case.
@@ -353,48 +299,36 @@ def write_navigation_case(
     """
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
-    d: dict[str, Any] = {}
-    if ct_path is None:
-        written = save_volume(case.volume, out / "ct.nii.gz")
-        d["ct"] = written[0].name
-        for f in written[1:]:
-            if f.name.endswith("_labels.nii.gz"):
-                d["labels"] = f.name
-            elif f.name.endswith("_landmarks.json"):
-                d["landmarks"] = f.name
-    elif ct_path.strip().lower() == "phantom":
-        d["ct"] = "phantom"
-    else:
-        if not Path(ct_path).exists():
-            raise FileNotFoundError(f"ct_path {ct_path} does not exist")
-        d["ct"] = _relative(Path(ct_path), out)
-    d["plan"] = save_plan(case.plan, out / "plan.json").name
-    d["side"] = case.side
-    d["cm"] = case.cm_config.model_dump(mode="json")
-    if case.fbg_control_points_deg is not None:
-        d["fbg_control_points_deg"] = [float(v) for v in case.fbg_control_points_deg]
-        if case.fbg_sigma_deg is not None:
-            d["fbg_sigma_deg"] = float(case.fbg_sigma_deg)
-    if case.robot == UR10:
-        model = "UR10"
-    else:
-        model = "robot_dh.json"
-        (out / model).write_text(json.dumps(robot_to_dict(case.robot), indent=2) + "\n", encoding="utf-8")
-    d["robot"] = {
-        "model": model,
-        "joints_deg": [float(v) for v in case.joints_deg],
-        "ee_from_cm": np.asarray(case.ee_from_cm, dtype=np.float64).tolist(),
-    }
-    d["views"] = write_views(case.views, out)
+    ct = _write_ct(case.volume, out, ct_path)
+    plan = save_plan(case.plan, out / "plan.json").name
+    fbg = None if case.fbg_control_points_deg is None else [float(v) for v in case.fbg_control_points_deg]
+    sigma = None if fbg is None or case.fbg_sigma_deg is None else float(case.fbg_sigma_deg)
+    robot = _write_robot(case, out)
+    views = write_views(case.views, out)
+    verification = None
     if case.verification is not None:
-        d["verification"] = {
-            "joints_deg": [float(v) for v in case.verification.joints_deg],
-            "views": write_views(case.verification.views, out, prefix="verification_"),
-        }
+        verification = Verification.model_construct(
+            joints_deg=[float(v) for v in case.verification.joints_deg],
+            views=write_views(case.verification.views, out, prefix="verification_"),
+        )
+    spec = CaseFile.model_construct(
+        ct=ct["ct"],
+        labels=ct.get("labels"),
+        landmarks=ct.get("landmarks"),
+        plan=plan,
+        side=cast(Side, case.side),  # written as the case holds it
+        cm=case.cm_config,
+        fbg_control_points_deg=fbg,
+        fbg_sigma_deg=sigma,
+        robot=robot,
+        views=views,
+        verification=verification,
+    )
+    d = spec.model_dump(mode="json")  # the models' order; absent keys left out
     for key, value in (extra or {}).items():
         if key in d:
             raise ValueError(f"extra key {key!r} is written from the case itself")
-        if key not in CASE_KEYS and key not in COMMENT_KEYS and not key.startswith("_"):
+        if key not in CASE_KEYS and not is_comment_key(key):
             raise ValueError(
                 f"extra key {key!r} would not load; use {list(COMMENT_KEYS)}, a key starting with '_', "
                 f"or one of {list(CASE_KEYS)}"
@@ -404,3 +338,35 @@ def write_navigation_case(
     path.write_text(json.dumps(d, indent=2) + "\n", encoding="utf-8")
     logger.info("wrote navigation case %s (%d view(s))", path, len(case.views))
     return path
+
+
+def _write_robot(case: NavigationCase, out: Path) -> RobotEntry:
+    """The case's ``robot`` (its DH file ``robot_dh.json`` written unless the robot is the UR10)."""
+    if case.robot == UR10:
+        model = "UR10"
+    else:
+        model = "robot_dh.json"
+        (out / model).write_text(json.dumps(robot_to_dict(case.robot), indent=2) + "\n", encoding="utf-8")
+    return RobotEntry.model_construct(
+        model=model,
+        joints_deg=[float(v) for v in case.joints_deg],
+        ee_from_cm=np.asarray(case.ee_from_cm, dtype=np.float64).tolist(),
+    )
+
+
+def _write_ct(volume: Volume, out: Path, ct_path: str | None) -> dict[str, str]:
+    """The case's ``ct`` (and ``labels``, ``landmarks``): ``volume`` written to ``out``, or ``ct_path``."""
+    if ct_path is None:
+        written = save_volume(volume, out / "ct.nii.gz")
+        d = {"ct": written[0].name}
+        for f in written[1:]:
+            if f.name.endswith("_labels.nii.gz"):
+                d["labels"] = f.name
+            elif f.name.endswith("_landmarks.json"):
+                d["landmarks"] = f.name
+        return d
+    if ct_path.strip().lower() == "phantom":
+        return {"ct": "phantom"}
+    if not Path(ct_path).exists():
+        raise FileNotFoundError(f"ct_path {ct_path} does not exist")
+    return {"ct": _relative(Path(ct_path), out)}

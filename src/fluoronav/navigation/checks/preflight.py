@@ -1,19 +1,14 @@
 """Checks of a navigation case that run before any registration: the plan, the labels, the images.
 
 A registration cannot repair inputs that contradict each other, and some contradictions let the
-pipeline run to a confident robot command (a plan target in soft tissue, labels whose pelvis and
-femur are swapped, the same image given as two views). Each check here is cheap (a distance
-transform of one label, a few image correlations, a 64² DRR per view) and names the problem in one
-line: what is wrong, with which view, plan or label, and what to check. The checks of the images
-and cameras are :mod:`fluoronav.navigation.checks.preflight_images`'s; the thresholds and the findings are
-:mod:`fluoronav.navigation.checks.preflight_config`'s. :func:`preflight` runs them all.
-
-A finding's ``kind`` says how the navigation ends: ``"input"`` is bad input (an
-:class:`~fluoronav.errors.InputError`, exit status 2, see :func:`raise_for_input`); ``"plan"`` is a
-plan the robot must not carry out (a refusal, exit status 3).
-
-Frames: the CT's world frame (LPS, mm); label distances are measured on the CT's voxel grid through
-its ``world_from_index`` / ``index_from_world`` transforms.
+pipeline run to a confident robot command (a plan target in soft tissue, swapped pelvis and femur
+labels, one image given as two views). Each check is cheap and names the problem in one line: what
+is wrong, with which view, plan or label, and what to check (the list: docs/navigation.md). The
+checks of the images and cameras are :mod:`fluoronav.navigation.checks.preflight_images`'s; the
+thresholds and the findings :mod:`fluoronav.navigation.checks.preflight_config`'s. :func:`preflight`
+runs them all. A finding's ``kind`` is ``"input"`` (an :class:`~fluoronav.errors.InputError`, exit
+status 2, :func:`raise_for_input`) or ``"plan"`` (a refusal, exit status 3). Frames: the CT's world
+frame (LPS, mm); label distances are measured on the CT's voxel grid.
 """
 
 from __future__ import annotations

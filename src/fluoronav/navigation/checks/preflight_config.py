@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from fluoronav.settings import setting
+
 __all__ = [
     "PreflightConfig",
     "PreflightFinding",
@@ -67,22 +69,53 @@ class PreflightConfig:
             inverse, and the mirror of an inverted image 0.05–0.63 against 0.80–0.97.
     """
 
-    target_margin_mm: float = 3.0
-    entry_surface_max_mm: float = 5.0
-    direction_probe_mm: float = 10.0
-    max_insertion_depth_mm: float | None = None
-    landmark_margin_mm: float = 2.0
-    pelvis_volume_ml: tuple[float, float] = (100.0, 3000.0)
-    femur_volume_ml: tuple[float, float] = (25.0, 1500.0)
-    sdd_mm: tuple[float, float] = (600.0, 1600.0)
-    pixel_spacing_mm: tuple[float, float] = (0.05, 10.0)
-    detector_span: tuple[float, float] = (0.05, 0.8)
-    max_focal_aspect: float = 1.05
-    identical_ncc: float = 0.9999
-    drr_size_px: int = 64
-    drr_voxel_mm: float = 4.0
-    inverted_ncc: float = -0.5
-    mirrored_ncc: float = 0.5
+    target_margin_mm: float = setting(
+        3.0, "the plan's tip target at most this far outside the femur label", unit="mm", ge=0
+    )
+    entry_surface_max_mm: float = setting(
+        5.0, "the plan's entry point within this of the femur label's surface", unit="mm", gt=0
+    )
+    direction_probe_mm: float = setting(
+        10.0,
+        "this far along the insertion direction from the entry must be inside the femur",
+        unit="mm",
+        gt=0,
+    )
+    max_insertion_depth_mm: float | None = setting(
+        None, "a site's limit on the plan's insertion depth; none: the CM's reach", unit="mm", gt=0
+    )
+    landmark_margin_mm: float = setting(
+        2.0, "the femoral-head landmark at most this far outside the femur label", unit="mm", ge=0
+    )
+    pelvis_volume_ml: tuple[float, float] = setting(
+        (100.0, 3000.0), "plausible (low, high) volume of the pelvis label", unit="mL", ge=0
+    )
+    femur_volume_ml: tuple[float, float] = setting(
+        (25.0, 1500.0), "plausible (low, high) volume of the femur label", unit="mL", ge=0
+    )
+    sdd_mm: tuple[float, float] = setting(
+        (600.0, 1600.0), "plausible (low, high) source-to-detector distance", unit="mm", gt=0
+    )
+    pixel_spacing_mm: tuple[float, float] = setting(
+        (0.05, 10.0), "plausible (low, high) pixel spacing at the stored resolution", unit="mm", gt=0
+    )
+    detector_span: tuple[float, float] = setting(
+        (0.05, 0.8), "plausible (low, high) detector width over the source-to-detector distance", gt=0
+    )
+    max_focal_aspect: float = setting(1.05, "largest ratio of fx and fy (C-arm pixels are square)", ge=1)
+    identical_ncc: float = setting(
+        0.9999, "two images whose correlation reaches this are one image given twice", ge=-1, le=1
+    )
+    drr_size_px: int = setting(
+        64, "the inversion check's DRR size along the image's longer side", unit="px", ge=1
+    )
+    drr_voxel_mm: float = setting(4.0, "the CT's voxel size for that DRR", unit="mm", gt=0)
+    inverted_ncc: float = setting(
+        -0.5, "an image correlating with that DRR below this is taken as inverted", ge=-1, le=1
+    )
+    mirrored_ncc: float = setting(
+        0.5, "an image whose mirror correlates with that DRR this well looks mirrored", ge=-1, le=1
+    )
 
 
 @dataclass(frozen=True)

@@ -1,40 +1,24 @@
 """The checks a registration must pass before the robot may act on it: their thresholds.
 
-A surgical navigation must know when it is wrong. Each CM registration is checked per view
-(:mod:`fluoronav.registration.cm.checks`): the registered landmarks against the detected ones and
-the registered CM's outline against the image. A view that fails is left out and the CM registered
-again without it while enough views remain; otherwise the navigation refuses.
-
-The robot's commands are bounded too: the first move and the correction may turn no joint by
-more than ``max_joint_motion_deg``, the first move may carry the CM tip and turn the CM only so far
-(``max_move_mm``, ``max_move_deg``), and the correction, which only translates, must be small
-(``max_correction_mm``, ``max_correction_deg``) and no larger than the agreement between the robot's
-kinematics and the verification images can vouch for: its tip translation may exceed the planned
-tip's distance from the kinematic prediction by at most ``max_motion_tip_mm``, unless the images
-overrule the kinematics (below). A command beyond a bound is refused with the plan's name, the
-measured value and the bound.
-
-The verification finds the CM where its images show it (the kinematic prediction is one start
-among the images' own, not a gate), then compares the two. Joint readings that differ from the
-command are refused at once. A disagreement beyond ``max_motion_tip_mm`` with readings that match
-the command points at the hand-eye matrix (or the first registration): the images are then
-trusted over the kinematics only when they are unambiguous (``overrule_min_views`` views passed,
-none left out, landmarks within ``overrule_max_landmark_residual_mm``) and the correction is within
-``max_correction_mm``. That is safe because the correction is a relative move measured in the
-images: a translation of the CM from where the images show it, executed from the current joints,
-so a hand-eye translation error cancels and a hand-eye rotation error δ turns the correction by δ
-(a 10 mm correction with a 3° error errs by 0.5 mm). The result then carries a warning naming the
-disagreement.
-
-The thresholds live in :class:`SafetyConfig`; docs/validation.md ("The checks' thresholds") gives
-the data they were chosen on.
+Each CM registration is checked per view (:mod:`fluoronav.registration.cm.checks`); a view that
+fails is left out while enough views remain, otherwise the navigation refuses. The robot's
+commands are bounded: no joint turns more than ``max_joint_motion_deg``; the first move carries
+the CM tip and turns the CM only so far (``max_move_mm``, ``max_move_deg``); the correction, a
+translation, stays small (``max_correction_mm``, ``max_correction_deg``) and within what the
+agreement of the kinematics and the verification images can vouch for (``max_motion_tip_mm``),
+unless unambiguous images overrule the kinematics (``overrule_min_views``,
+``overrule_max_landmark_residual_mm``). A command beyond a bound is refused naming the plan, the
+value and the bound. The thresholds live in :class:`SafetyConfig`; docs/navigation.md ("Checks")
+says what each does and docs/validation.md ("The checks' thresholds") what data they rest on.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from fluoronav.registration.cm.checks import MAX_MOTION_TIP_MM, CMCheckConfig
+from fluoronav.settings import setting
 
 __all__ = ["SafetyConfig"]
 
@@ -44,14 +28,15 @@ class SafetyConfig:
     """Thresholds of the registration checks and bounds of the robot's commands.
 
     Attributes:
-        max_landmark_residual_mm: a view's registered A or B may lie at most this far (mm at the
-            detector) from the detected one.
-        min_edge_ncc: a view's gradient NCC on the registered CM's outline must reach this.
+        cm: the CM registration's per-view checks (:class:`CMCheckConfig`): a view's registered A
+            or B at most ``max_landmark_residual_mm`` (mm at the detector) from the detected one,
+            its gradient NCC on the registered CM's outline at least ``min_edge_ncc``, and
+            ``min_views`` views that must pass for a CM registration to stand (a view that fails is
+            left out only while this many remain). Its ``max_shape_departure_sigmas`` is
+            ``max_fbg_departure_sigmas`` for the first registration (:meth:`cm_checks`).
         max_motion_tip_mm: the verification's CM tip (femur frame) may differ at most this much from
             the kinematic prediction (the robot's and the first registration's errors together).
-        min_views: views that must pass for a CM registration to stand (a view that fails is left
-            out only while this many remain).
-        verify_min_views: the same for a verification of two views whose CM is fused with the
+        verify_min_views: ``cm.min_views`` for a verification of two views whose CM is fused with the
             robot's kinematics (``VerificationConfig.fuse_kinematics``). One view with the
             kinematics' depth is what a one-image verification is: a view whose detection is wrong
             may be left out of two down to one, rather than refuse where one image alone would
@@ -94,21 +79,45 @@ class SafetyConfig:
             :func:`~fluoronav.registration.cm.checks.judge_shape`). None: not checked.
     """
 
-    max_landmark_residual_mm: float = CMCheckConfig.max_landmark_residual_mm
-    min_edge_ncc: float = CMCheckConfig.min_edge_ncc
-    max_motion_tip_mm: float = MAX_MOTION_TIP_MM
-    min_views: int = CMCheckConfig.min_views
-    verify_min_views: int = 1
-    max_joint_motion_deg: float = 30.0
-    max_move_mm: float = 200.0
-    max_move_deg: float = 90.0
-    max_correction_mm: float = 10.0
-    max_correction_deg: float = 5.0
-    max_joint_reading_deg: float = 0.5
-    overrule_min_views: int = 3
-    overrule_max_landmark_residual_mm: float = 1.0
-    consistent_views_max_cost_px: float = 3.0
-    max_fbg_departure_sigmas: float | None = 4.0
+    cm: CMCheckConfig = setting(doc="the CM registration's per-view checks", default_factory=CMCheckConfig)
+    max_motion_tip_mm: float = setting(
+        MAX_MOTION_TIP_MM,
+        "the verification's CM tip may differ this much from the kinematics",
+        unit="mm",
+        ge=0,
+    )
+    verify_min_views: int = setting(
+        1, "cm.min_views of a two-view verification fused with the kinematics", ge=1
+    )
+    max_joint_motion_deg: float = setting(30.0, "no joint of a command may turn by more", unit="deg", ge=0)
+    max_move_mm: float = setting(
+        200.0, "the first move may carry the CM tip at most this far", unit="mm", ge=0
+    )
+    max_move_deg: float = setting(90.0, "the first move may turn the CM at most this much", unit="deg", ge=0)
+    max_correction_mm: float = setting(
+        10.0, "the correction may move the CM tip at most this far", unit="mm", ge=0
+    )
+    max_correction_deg: float = setting(
+        5.0, "the correction may turn the CM at most this much", unit="deg", ge=0
+    )
+    max_joint_reading_deg: float = setting(
+        0.5, "the verification's joint readings may differ this much from the command", unit="deg", ge=0
+    )
+    overrule_min_views: int = setting(
+        3, "views that must pass for the images to overrule the kinematics", ge=1
+    )
+    overrule_max_landmark_residual_mm: float = setting(
+        1.0, "for the images to overrule, every view's landmarks within this of the detected", unit="mm", ge=0
+    )
+    consistent_views_max_cost_px: float = setting(
+        3.0, "views agree on a CM where their centreline fit's mean cost is within this", unit="px", ge=0
+    )
+    max_fbg_departure_sigmas: float | None = setting(
+        4.0,
+        "the first CM shape's departure from the FBG reading beyond its tolerance; none: unchecked",
+        unit="sigma",
+        ge=0,
+    )
 
     def cm_checks(self, *, fused_views: int | None = None, fbg: bool = False) -> CMCheckConfig:
         """The thresholds of a CM registration; ``fused_views``: the number of views of a
@@ -116,9 +125,8 @@ class SafetyConfig:
         ``verify_min_views``), None for any other registration; ``fbg``: its shape's prior is the
         FBG reading (the first registration), checked by ``max_fbg_departure_sigmas``."""
         two_fused = fused_views is not None and fused_views <= 2
-        return CMCheckConfig(
-            max_landmark_residual_mm=self.max_landmark_residual_mm,
-            min_edge_ncc=self.min_edge_ncc,
-            min_views=self.verify_min_views if two_fused else self.min_views,
+        return dataclasses.replace(
+            self.cm,
+            min_views=self.verify_min_views if two_fused else self.cm.min_views,
             max_shape_departure_sigmas=self.max_fbg_departure_sigmas if fbg else None,
         )

@@ -1,45 +1,15 @@
 """The navigation, live in 3D Slicer over OpenIGTLink (``fluoronav navigate --igtl HOST:PORT``).
 
-:class:`IGTLinkStreamer` is an OpenIGTLink client: 3D Slicer's OpenIGTLinkIF module runs the server
-(a connector of type *server*, port 18944 by default) and fluoronav connects to it. The streamer
-takes the pipeline's callbacks (``on_stage`` and ``on_event``, see
-:data:`fluoronav.navigation.pipeline.EventCallback`) and sends, as soon as each is known:
-
-* STRING ``Status``: ``"<stage>: started"`` / ``"<stage>: done"`` per stage, then
-  ``"navigation ok"`` or ``"navigation refused: <reason>"``.
-* IMAGE per view (device name: the view's name, see :func:`device_name`), float32 pixels as the case
-  holds them (the log image, bright = attenuating), placed as the detector plane in the CT
-  (:func:`image_ijk_to_ras`): first with the view's initial camera, then again with the camera
-  the pelvis registration placed (``cameras_ct``) once the registration is known.
-* TRANSFORM ``CMToCT`` (``ct_from_cm``) and ``FemurToCT`` (``ct_from_femur``) after each
-  registration (the first images, then the verification images after the move, under the same
-  names), and ``PlanToCT`` (``ct_from_femur @ femur_from_cm_target``: the planned CM pose in the
-  CT) once the plan is known; all converted to RAS (:func:`ras_from_lps_transform`).
-
-Conventions (verified in the sources of Slicer's OpenIGTLinkIF module, ``SlicerOpenIGTLink``
-``vtkMRMLIGTLConnectorNode.cxx``, and of the OpenIGTLinkIO converters it uses,
-``igtlioTransformConverter.cxx``, ``igtlioImageConverter.cxx``, ``igtlioConverterUtilities.cxx``):
-
-* Slicer's scene is RAS; the CT frame here is LPS (as SimpleITK reads the CT). A point converts
-  with ``ras_from_lps = diag(-1, -1, 1)``; a transform ``T`` (LPS both sides) with
-  ``ras_from_lps @ T @ lps_from_ras``.
-* A TRANSFORM message creates (or updates) a linear transform node named after the device and
-  sets the 4×4 matrix as the node's *to parent* transform (``SetMatrixTransformToParent``): it maps
-  the coordinates of a node placed under it into its parent's (the scene's) coordinates. So
-  ``CMToCT`` carries ``ct_from_cm`` in RAS, and a model in the CM frame (loaded in Slicer, which
-  converts an LPS file to RAS) put under ``CMToCT`` shows where the CM is in the CT.
-* An IMAGE message creates (or updates) a scalar volume node named after the device, with its
-  IJK→RAS matrix from the message: the message carries the i, j, k axis vectors scaled by the
-  spacing and the position of the image *centre* (OpenIGTLink), which the converter turns back into
-  a corner origin; the message's coordinate-system field (RAS / LPS) is not read, the geometry is
-  always taken as RAS. Images are therefore sent in RAS (and the field says RAS).
-* A STRING message creates (or updates) a text node named after the device.
-* Device names are at most 20 bytes (OpenIGTLink header); every number is float32 on the wire
-  (matrices and image geometry), so poses arrive to float32 precision.
-
-The link never changes the navigation: if no server answers within ``timeout_s`` at the start, or
-the connection is lost later, the streamer logs one warning and every later call does nothing.
-Each message is sent synchronously (bounded by ``timeout_s``), in the order the pipeline reports.
+:class:`IGTLinkStreamer` is an OpenIGTLink client of 3D Slicer's OpenIGTLinkIF server. It takes the
+pipeline's callbacks (``on_stage``, ``on_event``: :data:`fluoronav.navigation.pipeline.EventCallback`)
+and sends each result as soon as it is known: STRING ``Status``, an IMAGE per view (the detector
+plane in the CT, :func:`image_ijk_to_ras`, named by :func:`device_name`) and the TRANSFORMs
+``CMToCT``, ``FemurToCT`` and ``PlanToCT`` (docs/navigation.md, "Live view in 3D Slicer"). Slicer's
+scene is RAS, the CT frame LPS: every pose and image geometry is sent in RAS
+(:func:`ras_from_lps_transform`), a TRANSFORM as its node's "to parent" matrix. The link never
+changes the navigation: if no server answers within ``timeout_s`` at the start, or the connection is
+lost, the streamer logs one warning and does nothing more. Each message is sent synchronously
+(bounded by ``timeout_s``), in the order the pipeline reports.
 """
 
 from __future__ import annotations

@@ -1,22 +1,14 @@
 """The navigation result as files for 3D Slicer: transforms, surface models and markups.
 
-Conventions (from Slicer's documentation and its storage nodes):
-
-* **Transforms** are ITK transform files (``.h5``; ``.tfm``/``.txt`` also work), in LPS. ITK, and
-  so Slicer's transform files, store a transform in the *resampling* direction: a transform node's
-  "from parent" transform, which maps points of the parent frame into the child frame. A file
-  written for ``ct_from_x`` (x-frame points → CT) therefore holds its inverse ``x_from_ct``:
-  ``sitk.ReadTransform(file).TransformPoint(p_ct) == x_from_ct @ p_ct``. Slicer loads such a file
-  as a linear transform node (named after the file) whose "to parent" matrix is ``ct_from_x``
-  (converted to its RAS scene), so a node placed under it shows in the CT where it belongs. It is
-  written as ``AffineTransform_double_3_3`` with a zero centre, as Slicer writes linear transforms.
-* **Models** are VTK legacy polydata files (``.vtk``, file version 4.2 as Slicer writes) whose
-  header line carries ``SPACE=LPS``: Slicer's model reader takes the coordinate system from that
-  header (``SPACE=RAS`` / ``SPACE=LPS``) and assumes LPS when it is absent.
-* **Markups** are ``.mrk.json`` files (:mod:`fluoronav.anatomy.markups`), in LPS.
-
 All positions are in the CT's world frame (LPS, mm, as SimpleITK reads the CT) unless a name says
-otherwise; transforms are named ``<to>_from_<from>`` (``ct_from_cm`` maps CM-frame points to CT).
+otherwise; transforms are named ``<to>_from_<from>``. Transforms are ITK files (``.h5``), which
+store the *resampling* direction: the file written for ``ct_from_x`` holds ``x_from_ct``
+(``sitk.ReadTransform(file).TransformPoint(p_ct) == x_from_ct @ p_ct``), and Slicer loads it as a
+transform node whose "to parent" matrix is ``ct_from_x``; it is written as
+``AffineTransform_double_3_3`` with a zero centre, as Slicer writes linear transforms. Models are
+VTK legacy polydata (``.vtk``, version 4.2) whose header says ``SPACE=LPS``; markups are
+``.mrk.json`` (:mod:`fluoronav.anatomy.markups`). docs/navigation.md ("Viewing the result in 3D
+Slicer") lists the files.
 """
 
 from __future__ import annotations
@@ -395,6 +387,20 @@ polydata with SPACE=LPS in the header; markups are Slicer .mrk.json files in LPS
 """
 
 
+def _write_plan(out: Path, plan_points: Mapping[str, np.ndarray]) -> tuple[Path, str]:
+    """``out/plan.mrk.json`` of the (non-empty) plan: a Line for two points, a Curve for more, a point
+    list for one → its path and its line in the folder's README."""
+    n_plan = len(plan_points)
+    plan_kind: Literal["Fiducial", "Line", "Curve"] = (
+        "Line" if n_plan == 2 else ("Curve" if n_plan > 2 else "Fiducial")
+    )
+    path = write_markups(
+        out / "plan.mrk.json", plan_points, name="plan", kind=plan_kind, color=(1.0, 0.9, 0.1)
+    )
+    shape = {"Line": "a line", "Curve": "a curve", "Fiducial": "a point"}[plan_kind]
+    return path, f"  plan.mrk.json       the plan ({shape}: {' -> '.join(plan_points)})\n"
+
+
 def write_slicer_folder(
     out_dir: str | Path,
     *,
@@ -460,19 +466,10 @@ def write_slicer_folder(
         write_model(out / "cm_in_cm_frame.vtk", cm_vertices, cm_faces, description="CM in the CM frame")
     )
     written.append(write_model(out / "femur.vtk", femur_vertices_ct, femur_faces, description="femur"))
-    n_plan = len(plan_points)
-    plan_kind: Literal["Fiducial", "Line", "Curve"] = (
-        "Line" if n_plan == 2 else ("Curve" if n_plan > 2 else "Fiducial")
-    )
     plan_line = ""
     if plan_points:
-        written.append(
-            write_markups(
-                out / "plan.mrk.json", plan_points, name="plan", kind=plan_kind, color=(1.0, 0.9, 0.1)
-            )
-        )
-        shape = {"Line": "a line", "Curve": "a curve", "Fiducial": "a point"}[plan_kind]
-        plan_line = f"  plan.mrk.json       the plan ({shape}: {' -> '.join(plan_points)})\n"
+        plan_path, plan_line = _write_plan(out, plan_points)
+        written.append(plan_path)
     written.append(
         write_markups(out / "landmarks.mrk.json", landmarks, name="landmarks", color=(1.0, 0.5, 0.5))
     )

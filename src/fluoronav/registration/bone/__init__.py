@@ -1,27 +1,14 @@
 """Intensity-based 2D/3D registration of the pelvis and the femur (single and multi-view).
 
-Pelvis (the fiducial relating the C-arm views; Gao et al., IEEE TBME 69(1), 2022, sec. II-C): 6 DoF
-(:class:`RigidAboutPoint`, rotation about the pelvis centre, axes of the first view's camera) of the
-label-masked pelvis DRR against the whole image with patch gradient NCC, as xReg does. Femur: 3 DoF
-rotation about the femoral head (:class:`RotationAboutPoint`) after the pelvis; the moving image is
-the static pelvis DRR at the registered pose (rendered once per level) plus the femur DRR.
-
-The DRR volume of a bone is its attenuation in excess of soft tissue (:func:`bone_excess_mu`). Every
-level renders the whole CMA-ES population and all views in one call (P·V cameras) of a
-box-downsampled copy of the cropped volume at a binned working image (the ROI is the whole image,
-binned): :mod:`~fluoronav.registration.bone.levels`. The levels are data
-(:mod:`~fluoronav.registration.bone.presets`: :func:`pelvis_config`, :func:`femur_config`; a femur
-in one view from a grid of tilted starts; ``authors=True`` gives the authors' σ and population 50).
-
-Checks: each view's registered bone against its image, a mirrored image named as such, and the
-femur registered again without a view that fails (:mod:`~fluoronav.registration.bone.checks`).
-
-Instruments: a view's ``mask`` leaves the CM and its shaft out of the similarity
-(:mod:`~fluoronav.registration.bone.views`).
-
-Multi-view: ``register_pelvis`` with several views optimises one ``world_from_patient`` against all
-of them (joint); :func:`register_pelvis_per_view` registers each view alone and returns each view's
-``camera_from_patient``, from which ``relative_view_poses`` gives ``camera_k_from_camera_0``.
+Pelvis (the fiducial relating the C-arm views; Gao et al. 2022, II-C): 6 DoF
+(:class:`RigidAboutPoint`: about the pelvis centre, axes of the first view's camera) of the
+label-masked pelvis DRR against the whole image with patch gradient NCC. Femur: 3 DoF rotation
+about the femoral head (:class:`RotationAboutPoint`) after the pelvis, against the static pelvis
+DRR plus the femur DRR. A bone's DRR volume is its attenuation in excess of soft tissue; each level
+renders the whole population and all views in one call (``levels``); the levels are data
+(``presets``); a view's ``mask`` leaves the CM and its shaft out (``views``); each view's result is
+checked (``checks``). :func:`register_pelvis_per_view` gives each view's ``camera_from_patient``
+(``relative_view_poses``: ``camera_k_from_camera_0``). Why these measures: docs/registration.md.
 """
 
 from __future__ import annotations

@@ -1,17 +1,12 @@
-"""What each level of a bone registration works on: the bone's excess attenuation volume, its
-box-downsampled pyramid, the binned views (:class:`BoneLevelData`), the batched DRRs and the masked
-similarity.
+"""What each level of a bone registration works on: volumes, binned views, DRRs and the similarity.
 
 The DRR volume of a bone is its *attenuation in excess of soft tissue*,
 ``max(0, μ(HU) − μ(TISSUE_HU))`` on the bone's label (dilated by one voxel for its partial-volume
-rim), cropped to the label's bounding box: bone against the tissue around it is what the X-ray
-shows, and the excess goes smoothly to 0 at the bone surface, so the label mask itself adds no
-artificial edge.
-
-Patch radius: xReg's rule (41 px at the 0.194 mm detector pixel, scaled; 3 px at ~96 px of a
-1536² detector) unless the level sets one; with much larger patches the femur's out-of-plane
-rotations were unobservable (measured: a 10° rotation about the camera x axis changed the cost by
-< 2 %).
+rim), cropped to the label's bounding box and box-downsampled per level: bone against the tissue
+around it is what the X-ray shows, and the excess goes smoothly to 0 at the bone surface, so the
+label mask adds no artificial edge. The views are binned per level (:class:`BoneLevelData`). The
+patch radius follows xReg's rule (41 px at the 0.194 mm detector pixel, scaled) unless the level
+sets one (docs/validation.md, "Bones").
 """
 
 from __future__ import annotations

@@ -245,6 +245,28 @@ def views_in_ct_frame(
 
 
 # ----- femur --------------------------------------------------------------------------------------
+def _femur_level_data(
+    views: Sequence[BoneView],
+    volume: Volume,
+    mu: np.ndarray,
+    world_from_index: np.ndarray,
+    label: str,
+    config: BoneRegistrationConfig,
+    device: torch.device,
+) -> BoneLevelData:
+    """One bone's level data on the femur's levels (the moving femur, or the static pelvis)."""
+    return BoneLevelData(
+        views,
+        torch.from_numpy(mu).to(device),
+        world_from_index,
+        config.levels,
+        "femur",
+        device,
+        skip_empty=config.skip_empty,
+        renderers=shared_level_renderers(volume, [label], device),
+    )
+
+
 def register_femur(
     views: Sequence[BoneView],
     volume: Volume,
@@ -285,26 +307,8 @@ def register_femur(
         initial_world_from_femur if initial_world_from_femur is not None else world_from_patient, np.float64
     )
     param = RotationAboutPoint(views[0].camera.camera_from_world @ W0, head, axes="camera", device=device)
-    femur = BoneLevelData(
-        views,
-        torch.from_numpy(mu_f).to(device),
-        w_f,
-        config.levels,
-        "femur",
-        device,
-        skip_empty=config.skip_empty,
-        renderers=shared_level_renderers(volume, [f"femur_{side}"], device),
-    )
-    pelvis = BoneLevelData(
-        views,
-        torch.from_numpy(mu_p).to(device),
-        w_p,
-        config.levels,
-        "femur",
-        device,
-        skip_empty=config.skip_empty,
-        renderers=shared_level_renderers(volume, ["pelvis"], device),
-    )
+    femur = _femur_level_data(views, volume, mu_f, w_f, f"femur_{side}", config, device)
+    pelvis = _femur_level_data(views, volume, mu_p, w_p, "pelvis", config, device)
     view0_from_patient = torch.as_tensor(views[0].camera.camera_from_world @ np.asarray(world_from_patient))[
         None
     ]

@@ -11,11 +11,12 @@ A's depth kept inside the search range.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 from fluoronav.geometry.camera import project_points
 from fluoronav.geometry.rotations import rotvec_to_matrix
@@ -128,6 +129,25 @@ def joint_fit(
             parts.append(shaft_depth_residual(depth_cue, K, T)[:, None])
         return torch.cat(parts, dim=1)
 
+    sol = _solve(residuals, n_cp, float(a0[2]), depth_range_mm, config, dt, dev)
+    x = torch.as_tensor(sol.x, dtype=dt, device=dev)
+    T = torch.eye(4, dtype=dt, device=dev)
+    T[:3, :3] = rotvec_to_matrix(x[:3]) @ R0
+    T[:3, 3] = a0 + x[3:6]
+    return T.cpu().numpy(), (control_points0_deg + x[6:]).cpu().numpy(), float(sol.cost)
+
+
+def _solve(
+    residuals: Callable[[torch.Tensor], torch.Tensor],
+    n_cp: int,
+    z0: float,
+    depth_range_mm: tuple[float, float],
+    config: JointFitConfig,
+    dt: torch.dtype,
+    dev: torch.device,
+) -> OptimizeResult:
+    """The bounded soft-L1 least squares from the start (A's depth ``z0`` mm kept in the range), with
+    forward-difference Jacobians: the residuals and their Jacobian come from one batched call."""
     step = np.array(
         [config.step_rotation_rad] * 3
         + [config.step_translation_mm] * 3
@@ -145,18 +165,12 @@ def joint_fit(
         r = cache[key]
         return r[0], ((r[1:] - r[0]) / step[:, None]).T
 
-    z0 = float(a0[2])
     lo = np.full(6 + n_cp, -np.inf)
     hi = np.full(6 + n_cp, np.inf)
     lo[5], hi[5] = depth_range_mm[0] - z0, depth_range_mm[1] - z0  # A's depth stays in the range
     x0 = np.zeros(6 + n_cp)
     x0[5] = np.clip(0.0, lo[5] + 1e-6, hi[5] - 1e-6)
-    sol = least_squares(
+    return least_squares(
         lambda x: both(x)[0], x0, jac=lambda x: both(x)[1], bounds=(lo, hi), method="trf",
         loss="soft_l1", f_scale=config.loss_scale, max_nfev=config.max_evaluations,
     )  # fmt: skip
-    x = torch.as_tensor(sol.x, dtype=dt, device=dev)
-    T = torch.eye(4, dtype=dt, device=dev)
-    T[:3, :3] = rotvec_to_matrix(x[:3]) @ R0
-    T[:3, 3] = a0 + x[3:6]
-    return T.cpu().numpy(), (control_points0_deg + x[6:]).cpu().numpy(), float(sol.cost)

@@ -43,15 +43,13 @@ class MultiViewInitConfig:
             19 px at 768², ~7.5 mm on the CIOS Fusion detector).
         prior_gate_mm: with landmarks predicted in 3D (``landmark_prior_world``), a detection whose
             pixel lies farther than this from the prediction's, in mm at the prediction's depth, is
-            left out (the verification's wrong detections of A lay ~11 mm off, its first moves
-            0.5–2.4 mm from the plan).
+            left out (docs/validation.md, "The checks' thresholds").
         min_landmark_confidence: with the detector's confidences, a landmark detected less
             confidently than this is left out of its triangulation where at least one view detected
             it confidently (with one such view, it lies on that view's ray at the model's A–B
             distance from the other landmark: both intersections are scanned). Where no view is
-            confident, all are used. On verification views where A lay at the skin's edge, wrong
-            detections of A came with confidences of 0.18–0.42, right ones with ≥ 0.36, nearly all
-            ≥ 0.59 (docs/validation.md). None: confidences only break two-view ties.
+            confident, all are used (the confidences of wrong and right detections:
+            docs/validation.md, "Unsure landmarks"). None: confidences only break two-view ties.
     """
 
     n_theta: int = 360
@@ -141,15 +139,7 @@ def centerline_initialize_multiview(
         InputError: malformed inputs; RegistrationFailure: coincident triangulated landmarks.
     """
     opt = init_config or MultiViewInitConfig()
-    if len(cameras) < 2 or len(centerlines_px) != len(cameras):
-        raise InputError("cameras", f"need ≥ 2 views with one centreline each, got {len(cameras)}")
-    lm = checked_array(landmarks_px, (len(cameras), 2, 2), "landmarks_px")
-    conf = (
-        None
-        if landmark_confidence is None
-        else checked_array(landmark_confidence, (len(cameras), 2), "landmark_confidence")
-    )
-    cls = [checked_array(c, None, f"centerlines_px[{k}]") for k, c in enumerate(centerlines_px)]
+    lm, conf, cls = _checked_inputs(cameras, landmarks_px, centerlines_px, landmark_confidence)
     cfg = config or CMConfig()
     cp = checked_array(control_points_deg, (cfg.n_control_points,), "control_points_deg")
     kin = CMKinematics(cfg)
@@ -159,18 +149,7 @@ def centerline_initialize_multiview(
     scored = [k for k in range(len(cameras)) if inliers[k].all()] or list(range(len(cameras)))
     centerline_cm = kin.centerline_cm(cp_t, n_points=opt.n_model_points)
     theta = torch.arange(opt.n_theta, dtype=torch.float64) * (360.0 / opt.n_theta)
-    scans = []
-    for cand in candidates:
-        if np.linalg.norm(cand[1] - cand[0]) < 1e-6:
-            raise RegistrationFailure("the triangulated landmarks A and B coincide")
-        W, cost = _roll_scan(cameras, cls, scored, cand, lm_cm, centerline_cm, theta, opt.trim_fraction)
-        c = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, math.inf))
-        minima = (c <= torch.roll(c, 1)) & (c <= torch.roll(c, -1)) & torch.isfinite(c)
-        scans.append((cand, W, c, torch.nonzero(minima).squeeze(-1)))
-    all_minima = [(float(c[i]), s, int(i)) for s, (_, _, c, idx) in enumerate(scans) for i in idx]
-    if not all_minima:
-        raise RegistrationFailure("no finite centreline cost over the roll scan")
-    all_minima.sort(key=lambda m: m[0])
+    scans, all_minima = _scan_candidates(cameras, cls, scored, candidates, lm_cm, centerline_cm, theta, opt)
     best_cost, best_scan, best = all_minima[0]
     ab, W_best, c_best, _ = scans[best_scan]
     return MultiViewInitResult(
@@ -185,6 +164,58 @@ def centerline_initialize_multiview(
         landmark_inliers=inliers.copy(),
         landmarks_px=_consensus_landmarks(cameras, lm, ab, inliers),
     )
+
+
+def _checked_inputs(
+    cameras: Sequence[Camera],
+    landmarks_px: np.ndarray,
+    centerlines_px: Sequence[np.ndarray],
+    landmark_confidence: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray | None, list[np.ndarray]]:
+    """The views' inputs checked: ``(landmarks (V, 2, 2), confidences (V, 2) or None, centrelines)``;
+    InputError where malformed."""
+    if len(cameras) < 2 or len(centerlines_px) != len(cameras):
+        raise InputError("cameras", f"need ≥ 2 views with one centreline each, got {len(cameras)}")
+    lm = checked_array(landmarks_px, (len(cameras), 2, 2), "landmarks_px")
+    conf = (
+        None
+        if landmark_confidence is None
+        else checked_array(landmark_confidence, (len(cameras), 2), "landmark_confidence")
+    )
+    cls = [checked_array(c, None, f"centerlines_px[{k}]") for k, c in enumerate(centerlines_px)]
+    return lm, conf, cls
+
+
+_Scan = tuple[np.ndarray, torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def _scan_candidates(
+    cameras: Sequence[Camera],
+    centerlines_px: Sequence[np.ndarray],
+    scored: Sequence[int],
+    candidates: Sequence[np.ndarray],
+    lm_cm: torch.Tensor,
+    centerline_cm: torch.Tensor,
+    theta: torch.Tensor,
+    opt: MultiViewInitConfig,
+) -> tuple[list[_Scan], list[tuple[float, int, int]]]:
+    """The roll scan of each candidate landmark pair ``(ab, world_from_cm, cost, minima)`` and the
+    local minima of all scans ``(cost, scan, θ index)``, cheapest first."""
+    scans = []
+    for cand in candidates:
+        if np.linalg.norm(cand[1] - cand[0]) < 1e-6:
+            raise RegistrationFailure("the triangulated landmarks A and B coincide")
+        W, cost = _roll_scan(
+            cameras, centerlines_px, scored, cand, lm_cm, centerline_cm, theta, opt.trim_fraction
+        )
+        c = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, math.inf))
+        minima = (c <= torch.roll(c, 1)) & (c <= torch.roll(c, -1)) & torch.isfinite(c)
+        scans.append((cand, W, c, torch.nonzero(minima).squeeze(-1)))
+    all_minima = [(float(c[i]), s, int(i)) for s, (_, _, c, idx) in enumerate(scans) for i in idx]
+    if not all_minima:
+        raise RegistrationFailure("no finite centreline cost over the roll scan")
+    all_minima.sort(key=lambda m: m[0])
+    return scans, all_minima
 
 
 def _landmark_candidates(

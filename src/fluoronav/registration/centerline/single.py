@@ -395,6 +395,58 @@ def _joint_polish(
     return alternatives, costs, (alternatives[0], np.asarray(cp_fit[0], dtype=np.float64))
 
 
+@dataclass(frozen=True)
+class _Optimum:
+    """The search's outcome: the grid and its best cost, the best (depth, θ, branch) and its cost, the
+    refined minima (S, 4, 4) and their costs (None without refinement), the joint fit's (pose,
+    control points) (None without it) and the feasible evaluations."""
+
+    grid: _Grid
+    grid_cost: float
+    best: tuple[float, float, int]
+    best_cost: float
+    alternatives: np.ndarray | None
+    alternative_costs: np.ndarray | None
+    joint: tuple[np.ndarray, np.ndarray] | None
+    n_evaluated: int
+
+
+def _optimise(
+    search: _Search,
+    camera: Camera,
+    lm: np.ndarray,
+    cp_t: torch.Tensor,
+    kin: CMKinematics,
+    opt: CenterlineInitConfig,
+    seed: int,
+    device: torch.device | str | None,
+) -> _Optimum:
+    """The grid search, then (as configured) the compass search and the joint fit of its minima;
+    RegistrationFailure where no grid candidate is feasible."""
+    grid = _grid_search(search, opt, seed, device)
+    n_evaluated = int(torch.isfinite(grid.cost).sum())
+    if n_evaluated == 0:
+        raise RegistrationFailure("no feasible (depth, theta) candidate in the search range")
+    best, grid_best = grid.best()
+    best_cost = grid_best
+    alternatives: np.ndarray | None = None
+    alternative_costs: np.ndarray | None = None
+    joint: tuple[np.ndarray, np.ndarray] | None = None  # (camera_from_cm, control points) of the fit
+    if opt.refine:
+        alternatives, alternative_costs, refined, refined_cost, n_refine = _compass_search(
+            search, grid, opt, device
+        )
+        n_evaluated += n_refine
+        if refined_cost < best_cost:
+            best, best_cost = refined, refined_cost
+        if opt.joint_refine:
+            alternatives, alternative_costs, joint = _joint_polish(
+                search, alternatives, camera, lm, cp_t, kin, opt, device
+            )
+            best_cost = float(alternative_costs[0])
+    return _Optimum(grid, grid_best, best, best_cost, alternatives, alternative_costs, joint, n_evaluated)
+
+
 def _returned_pose(
     search: _Search,
     best: tuple[float, float, int],
@@ -466,28 +518,9 @@ def centerline_initialize(
     kin = CMKinematics(cfg)
     cp_t = torch.as_tensor(cp, dtype=dt, device=device)
     search = _search(camera, lm, cl, cp_t, kin, opt, (lo, hi), image, device)
-    grid = _grid_search(search, opt, seed, device)
-    n_evaluated = int(torch.isfinite(grid.cost).sum())
-    if n_evaluated == 0:
-        raise RegistrationFailure("no feasible (depth, theta) candidate in the search range")
-    best, grid_best = grid.best()
-    best_cost = grid_best
-    alternatives: np.ndarray | None = None
-    alternative_costs: np.ndarray | None = None
-    joint: tuple[np.ndarray, np.ndarray] | None = None  # (camera_from_cm, control points) of the fit
-    if opt.refine:
-        alternatives, alternative_costs, refined, refined_cost, n_refine = _compass_search(
-            search, grid, opt, device
-        )
-        n_evaluated += n_refine
-        if refined_cost < best_cost:
-            best, best_cost = refined, refined_cost
-        if opt.joint_refine:
-            alternatives, alternative_costs, joint = _joint_polish(
-                search, alternatives, camera, lm, cp_t, kin, opt, device
-            )
-            best_cost = float(alternative_costs[0])
-    T_best, cp_best, best = _returned_pose(search, best, joint, cp, device)
+    out = _optimise(search, camera, lm, cp_t, kin, opt, seed, device)
+    grid, grid_best, best_cost, n_evaluated = out.grid, out.grid_cost, out.best_cost, out.n_evaluated
+    T_best, cp_best, best = _returned_pose(search, out.best, out.joint, cp, device)
     logger.debug(
         "centreline init: d_A %.1f mm, theta %.1f deg, %s, cost %.3f px (grid %.3f), %d evaluations, %.2f s",
         best[0], best[1], BRANCHES[best[2]], best_cost, grid_best, n_evaluated, time.perf_counter() - t0,
@@ -505,8 +538,8 @@ def centerline_initialize(
         candidate_costs=grid.cost.permute(1, 2, 0).cpu().numpy() if keep else None,
         candidate_depth_mm=grid.depth.cpu().numpy() if keep else None,
         candidate_theta_deg=grid.theta.cpu().numpy() if keep else None,
-        alternatives=alternatives,
-        alternative_costs_px=alternative_costs,
+        alternatives=out.alternatives,
+        alternative_costs_px=out.alternative_costs,
         control_points_deg=cp_best,
         shaft_depth_mm=None if search.cue is None else search.cue.depth_mm,
     )

@@ -1,39 +1,14 @@
 """CM 2D/3D registration workflows: single-view, multi-view and multiple-CM (Gao et al. 2022, II-C).
 
-All three are one problem: K images (views), each of the CM at one of M base poses, with known
-cameras in a common world frame, and 6 + 5 unknowns (a rigid perturbation of the CM base pose, or of
-the multiple-CM reference frame, plus the five control points):
-
-- single-view: K = 1, M = 1;
-- multi-view: K views of one CM pose (cameras related through the pelvis registration), M = 1;
-- multiple-CM: one C-arm pose, M images of the CM at M robot poses whose relative poses are known
-  (robot kinematics + hand-eye, ``base_from_cm``), K = M; parameterised by
-  :class:`~fluoronav.registration.parameterization.MultiCMReference` (reference frame: identity
-  rotation, mean translation of the CM base origins).
-
-Per view the image is cropped to a square of ``roi_size_full_px`` *full-detector* pixels (authors: 500)
-around the midpoint of the two landmarks and binned to the level's resolution (authors: 4×). Images
-that are already binned (``CMView.binning``, e.g. 2 for a 768² image of the 1536² CIOS detector) are
-cropped to ``500 / binning`` pixels and binned ``4 / binning`` times, so the working ROI is the same.
-All views share the working ROI size, so the whole CMA-ES population × all views is rendered in
-one :class:`~fluoronav.rendering.cm.CMRenderer` call per generation.
-
-Cost: Σ_views patch gradient NCC (authors: patch radius round(41/4) = 10 px at 4×, stride 5 for the
-CM) + the landmark reprojection prior (eqs. 2/4) with σ in full-detector pixels (authors: 100). An
-optional static background per view (the anatomy rendered once at the registered bone pose) is added
-to the CM DRR; see :mod:`fluoronav.registration.cm.background`.
-
-The parts, one job each (all names are importable from here):
-
-- :mod:`~fluoronav.registration.cm.config`: levels and :class:`CMRegistrationConfig`;
-- :mod:`~fluoronav.registration.cm.views`: :class:`CMView` and the ROIs per level;
-- :mod:`~fluoronav.registration.cm.problem`: :class:`CMProblem` and :func:`register_cm`;
-- :mod:`~fluoronav.registration.cm.result`: :class:`CMRegistrationResult`, :func:`cm_pose_errors`;
-- :mod:`~fluoronav.registration.cm.multistart`: :func:`register_cm_multistart`;
-- :mod:`~fluoronav.registration.cm.roll_scan`: :func:`roll_scan` about the A→B chord;
-- :mod:`~fluoronav.registration.cm.overlays`: :func:`save_overlays`;
-- :mod:`~fluoronav.registration.cm.checks`: :func:`register_cm_checked`, the registration checked
-  view by view (:class:`CMCheckConfig`) and against a predicted pose (:class:`PredictedCMPose`).
+All three are one problem: K views, each of the CM at one of M base poses, with known cameras in one
+world frame, and 6 + 5 unknowns (a rigid perturbation of the CM base pose, or of the multiple-CM
+reference frame, and the five control points). Single-view: K = M = 1; multi-view: K views of one
+pose; multiple-CM: one C-arm pose, M = K images at robot poses of known relative pose
+(``base_from_cm``; :class:`~fluoronav.registration.parameterization.MultiCMReference`). The ROIs,
+the cost and the levels: docs/registration.md. The parts (all names importable from here):
+``config``, ``views`` (:class:`CMView`), ``problem`` (:func:`register_cm`), ``result``,
+``multistart``, ``roll_scan``, ``overlays``, ``background`` (the anatomy behind the CM) and
+``checks`` (:func:`register_cm_checked`: view by view and against a predicted pose).
 """
 
 from __future__ import annotations

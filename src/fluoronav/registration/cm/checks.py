@@ -1,16 +1,14 @@
 """Whether a CM registration can be trusted: per-view verdicts, views left out, a second start, refusal.
 
-Every registration reports how much it can be trusted. A CM registration is checked in each view
-(:mod:`~fluoronav.registration.cm.diagnostics`): the registered landmarks against the detected ones
-and the registered CM's outline against the image. A view that fails is left out and the CM
-registered again without it while enough views remain. Where another account of the CM's pose is
-known (after the robot's move: where its kinematics put the CM, :class:`PredictedCMPose`), the
-registration must agree with it too; where it does not, the next start is tried. A registration
-that passes from no start raises :class:`~fluoronav.errors.RegistrationRefused`, naming the view
-and the check that failed last.
-
-The thresholds are :class:`CMCheckConfig` and :attr:`PredictedCMPose.max_tip_mm`; docs/validation.md
-("The checks' thresholds") gives the data they were chosen on.
+A CM registration is checked in each view (:mod:`~fluoronav.registration.cm.diagnostics`): the
+registered landmarks against the detected ones and the registered CM's outline against the image.
+A view that fails is left out and the CM registered again without it while enough views remain.
+Where another account of the CM's pose is known (after the robot's move: where its kinematics put
+the CM, :class:`PredictedCMPose`), the registration must agree with it too, else the next start is
+tried. A registration that passes from no start raises
+:class:`~fluoronav.errors.RegistrationRefused`, naming the view and the check that failed last.
+The thresholds are :class:`CMCheckConfig` and :attr:`PredictedCMPose.max_tip_mm`;
+docs/validation.md ("The checks' thresholds") gives the data they were chosen on.
 """
 
 from __future__ import annotations
@@ -34,6 +32,7 @@ from fluoronav.registration.cm.multistart import register_cm_multistart
 from fluoronav.registration.cm.problem import register_cm
 from fluoronav.registration.cm.result import CMRegistrationResult
 from fluoronav.registration.cm.views import CMView
+from fluoronav.settings import setting
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +51,8 @@ __all__ = [
 ]
 
 #: how far (mm) the registered CM tip may lie from a predicted one: the robot's and the first
-#: registration's errors together
+#: registration's errors together (the default of every such tolerance; the navigation's is
+#: ``SafetyConfig.max_motion_tip_mm``)
 MAX_MOTION_TIP_MM = 3.0
 
 
@@ -73,11 +73,17 @@ class CMCheckConfig:
             shape the images accept that far from the reading names the reading as the cause.
     """
 
-    max_landmark_residual_mm: float = 2.0
-    min_edge_ncc: float = 0.7
-    min_views: int = 2
-    max_shape_departure_sigmas: float | None = None
-    shape_search_tolerance_deg: float = 3.0
+    max_landmark_residual_mm: float = setting(
+        2.0, "a view's registered A or B at most this far from the detected one", unit="mm", ge=0
+    )
+    min_edge_ncc: float = setting(0.7, "a view's gradient NCC on the registered CM's outline", ge=-1, le=1)
+    min_views: int = setting(2, "views that must pass for a CM registration to stand", ge=1)
+    max_shape_departure_sigmas: float | None = setting(
+        None, "the shape's departure from its measured prior beyond its tolerance; none: unchecked", ge=0
+    )
+    shape_search_tolerance_deg: float = setting(
+        3.0, "a failed view's second registration frees the shape this far from the reading", unit="deg", ge=0
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -279,26 +285,11 @@ def register_cm_checked(
             seed=seed + t,
         )
         while True:
-            diags, verdicts, motion, moved = _judge(
-                cm,
-                [names[k] for k in use],
-                [landmarks_px[k] for k in use],
-                [spacing[k] for k in use],
-                checks,
-                predicted,
-                config,
-                np.asarray(initial_control_points_deg, np.float64),
-            )
+            verdicts, moved = _judge_recorded(
+                cm, use, t, names, landmarks_px, spacing, diagnostics, checks, predicted, config,
+                initial_control_points_deg,
+            )  # fmt: skip
             failed = [v for v in verdicts if not v.passed]
-            diagnostics.update(
-                cost=float(cm.cost),
-                converged=bool(cm.converged),
-                reason=cm.reason,
-                views={names[k]: d.to_dict() for k, d in zip(use, diags, strict=True)},
-                views_used=[names[k] for k in use],
-                tries=t + 1,
-                **(motion or {}),
-            )
             if not failed and moved is None:
                 if left_out:
                     diagnostics["left_out"] = left_out
@@ -310,15 +301,7 @@ def register_cm_checked(
                 left_out[v.view] = f"{v.check}: {v.detail}"
                 log.warning("%s: view %s left out (%s: %s)", stage, v.view, v.check, v.detail)
             use = [k for k, v in zip(use, verdicts, strict=True) if v.passed]
-            cm = register_cm(
-                [views[k] for k in use],
-                initial_control_points_deg=cm.control_points_deg,
-                initial_world_from_cm=cm.world_from_cm[0],
-                config=config,
-                seed=seed + 17 + t,
-                # the prior stays on the reading: a continued registration must not settle beside it
-                prior_control_points_deg=initial_control_points_deg,
-            )
+            cm = _register_kept(views, use, cm, config, seed + 17 + t, initial_control_points_deg)
         if t + 1 < len(tries):
             log.warning(
                 "%s: %s failed (%s); trying the next start",
@@ -330,6 +313,63 @@ def register_cm_checked(
     if left_out:
         diagnostics["left_out"] = left_out
     raise RegistrationRefused(stage, last.check, last.detail, view=last.view)
+
+
+def _judge_recorded(
+    cm: CMRegistrationResult,
+    use: list[int],
+    t: int,
+    names: list[str],
+    landmarks_px: Sequence[np.ndarray | None],
+    spacing: list[float | None],
+    diagnostics: dict[str, Any],
+    checks: CMCheckConfig,
+    predicted: PredictedCMPose | None,
+    config: CMRegistrationConfig,
+    initial_control_points_deg: np.ndarray,
+) -> tuple[list[ViewVerdict], ViewVerdict | None]:
+    """Try ``t``'s registration on the views ``use`` judged (:func:`_judge`) and its figures written
+    into ``diagnostics``: ``(per-view verdicts, the shape's or the motion's verdict)``."""
+    diags, verdicts, motion, moved = _judge(
+        cm,
+        [names[k] for k in use],
+        [landmarks_px[k] for k in use],
+        [spacing[k] for k in use],
+        checks,
+        predicted,
+        config,
+        np.asarray(initial_control_points_deg, np.float64),
+    )
+    diagnostics.update(
+        cost=float(cm.cost),
+        converged=bool(cm.converged),
+        reason=cm.reason,
+        views={names[k]: d.to_dict() for k, d in zip(use, diags, strict=True)},
+        views_used=[names[k] for k in use],
+        tries=t + 1,
+        **(motion or {}),
+    )
+    return verdicts, moved
+
+
+def _register_kept(
+    views: Sequence[CMView],
+    use: list[int],
+    cm: CMRegistrationResult,
+    config: CMRegistrationConfig,
+    seed: int,
+    initial_control_points_deg: np.ndarray,
+) -> CMRegistrationResult:
+    """The CM registered again on the kept views ``use``, from where ``cm`` left it."""
+    return register_cm(
+        [views[k] for k in use],
+        initial_control_points_deg=cm.control_points_deg,
+        initial_world_from_cm=cm.world_from_cm[0],
+        config=config,
+        seed=seed,
+        # the prior stays on the reading: a continued registration must not settle beside it
+        prior_control_points_deg=initial_control_points_deg,
+    )
 
 
 def _judge(

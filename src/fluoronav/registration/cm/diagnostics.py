@@ -6,11 +6,10 @@ Two measures per view, both computable without the truth:
   and B projected into the view and the detected ones (the larger of the two). A registration that
   slid along the CM or settled on another structure leaves them apart.
 - ``edge_ncc``: the gradient NCC between the view's ROI and the registered CM's DRR, over the pixels
-  where the DRR has an edge (the CM's outline, dilated by 2 px). It is near 1 where the outline lies
-  on the CM in the image and drops where the outline lies beside it.
+  where the DRR has an edge (the CM's outline, dilated by 2 px): near 1 where the outline lies on
+  the CM in the image, lower where it lies beside it.
 
-A registration whose views disagree with the CM it found is the failure a navigation must not act
-on; the thresholds that decide it are :class:`~fluoronav.registration.cm.checks.CMCheckConfig`.
+The thresholds that decide are :class:`~fluoronav.registration.cm.checks.CMCheckConfig`'s.
 """
 
 from __future__ import annotations

@@ -1,43 +1,15 @@
-"""One set of C-arm views registered: the bones, then the CM, in the CT frame (§II-C).
+"""One set of C-arm views registered: the bones, then the CM, in the CT frame (LPS, mm; §II-C).
 
-The chain that the navigation (its first images and its verification after the move) and the
-multi-view study share, :func:`register_view_set`, in three stages:
-
-1. ``pelvis``: the pelvis registered to each view alone, with the CM and its shaft left out of the
-   similarity (:func:`bone_views`); each view's ``camera_from_ct`` follows, and with it the views'
-   relative geometry. After a move (:class:`ViewSetPrior`), each view's pelvis again with the
-   femur's footprint (the femur where the earlier registration put it) left out as well. Each
-   view's pelvis is checked (:mod:`fluoronav.registration.bone.checks`); a view that fails (a
-   mirrored image, a wrong camera) is left out of every later stage.
-2. ``femur``: the femur (rotation about its head) registered to the views in the CT frame →
-   ``ct_from_femur``, checked view by view; a view that fails is left out and the femur
-   registered again without it.
-3. ``cm``: the CM's landmarks triangulated over the views and its roll scanned against the
-   centrelines (:func:`~fluoronav.registration.centerline.centerline_initialize_multiview`), then
-   the CM registered (pose and shape) from the best roll minima and checked view by view
-   (:mod:`fluoronav.registration.cm.checks`). After a move the CM is registered from the robot's
-   kinematic prediction where the views' checks pass it, else from the images' own starts screened
-   together with the prediction (the plan's pose the fallback); the result is compared with the
-   prediction (reported, not judged) and, where consistent, its tip fused with the predicted one,
-   each weighted by its uncertainty (``fusion``).
-
-Where the views' cameras are already close (taken from registered views' C-arm positions moved by
-the C-arm's known motion: :attr:`ViewSetSettings.local`) the bones need only their local levels;
-where the C-arm did not move and the anatomy did not either (``unmoved``), the earlier bones are
-kept (``known_bones``).
-
-:func:`register_view_set_bones` and :func:`register_view_set_cm` are the two halves, for workflows
-that keep their own CM registration or know their cameras. What differs in a later registration of
-the same anatomy is data (:class:`ViewSetPrior`), not code. Each stage is timed and its diagnostics
-recorded through a :data:`~fluoronav.registration.stages.StageRecorder`.
-
-Modules: ``views`` (:class:`FluoroView`, :class:`ViewDetection`, :func:`bone_views`), ``settings``
-(:class:`ViewSetSettings`, :class:`ViewSetSeeds`, :class:`ViewSetPrior`), ``bones`` (stages 1–2),
-``cm`` (stage 3), ``fusion`` (the tip from the images and the kinematics), ``unmoved`` (views of
-unmoved C-arm positions), ``register`` (the chain, :class:`ViewSetRegistration`).
-
-Frames: ``ct`` (LPS, mm) is the world frame of the registered views; ``femur`` is the CT frame
-moved with the femur (``ct_from_femur``).
+:func:`register_view_set` is the chain the navigation (its first images and its verification after
+the move) and the multi-view study share: ``pelvis`` (each view alone, the CM and its shaft left
+out; each view's ``camera_from_ct`` follows, and a view that fails its checks is left out of every
+later stage), ``femur`` (rotation about its head → ``ct_from_femur``, checked view by view) and
+``cm`` (landmarks triangulated, roll scanned against the centrelines, the CM registered and checked
+view by view). What differs in a later registration of the same anatomy is data
+(:class:`ViewSetPrior`: the kinematic prediction, the earlier bones), not code; docs/navigation.md
+("Stages") describes both. Modules: ``views``, ``settings``, ``bones`` (stages 1–2), ``cm`` (stage
+3), ``fusion`` (the tip from images and kinematics), ``unmoved`` (views of unmoved C-arm positions),
+``register`` (the chain; :func:`register_view_set_bones` and :func:`register_view_set_cm` its halves).
 """
 
 from typing import TYPE_CHECKING

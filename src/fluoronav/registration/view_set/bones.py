@@ -1,16 +1,13 @@
-"""The bones of a view set: the pelvis per view, then the femur, each checked view by view (stages
-``pelvis`` and ``femur`` of :func:`~fluoronav.registration.view_set.register_view_set`).
+"""The bones of a view set (stages ``pelvis`` and ``femur``): the pelvis per view, then the femur.
 
 Each view's pelvis is registered alone (the CM and its shaft left out of the similarity), which
-places its camera in the CT frame; after a move, each view's pelvis again with the femur's footprint
-(the femur where the earlier registration put it) left out as well. A view whose pelvis fails its
-checks (:mod:`fluoronav.registration.bone.checks`: a mirrored image, a wrong camera) is left out of
-every later stage. The femur (rotation about its head) is then registered to the views in the CT
-frame → ``ct_from_femur``, checked view by view; a view that fails is left out and the femur
-registered again without it.
-
-Frames: ``ct`` (LPS, mm) is the world frame of the registered views; ``femur`` is the CT frame
-moved with the femur (``ct_from_femur``).
+places its camera in the CT frame; after a move, again with the femur's footprint (where the
+earlier registration put it) left out as well. A view whose pelvis fails its checks
+(:mod:`fluoronav.registration.bone.checks`: a mirrored image, a wrong camera) is left out of every
+later stage. The femur (rotation about its head) is then registered to the views in the CT frame →
+``ct_from_femur``, checked view by view; a view that fails is left out and the femur registered
+again without it. Frames: ``ct`` (LPS, mm) is the world frame of the registered views; ``femur``
+is the CT frame moved with the femur (``ct_from_femur``).
 """
 
 from __future__ import annotations
@@ -104,6 +101,41 @@ def register_view_set_bones(
     record = recorder or unrecorded
     names = list(names) if names is not None else [f"view{k}" for k in range(len(views))]
     W0 = np.eye(4) if initial_world_from_pelvis is None else initial_world_from_pelvis
+    pelvis, kept, left_out = _pelvis_stage(
+        views, volume, side, names, W0, prior_ct_from_femur, settings, seeds, record
+    )
+    views, pelvis, names = [views[k] for k in kept], [pelvis[k] for k in kept], [names[k] for k in kept]
+    if in_ct_frame:
+        femur_views = views_in_ct_frame(views, pelvis)
+        world_from_pelvis = np.eye(4)
+    else:
+        femur_views, world_from_pelvis = list(views), pelvis[0].world_from_bone
+    femur, femur_kept = _femur_stage(
+        femur_views, names, volume, side, world_from_pelvis, prior_ct_from_femur, settings, seeds, record,
+        left_out,
+    )  # fmt: skip
+    return ViewSetBones(
+        tuple(pelvis[k] for k in femur_kept),
+        tuple(femur_views[k].camera for k in femur_kept),
+        femur,
+        kept=None if not left_out else tuple(kept[k] for k in femur_kept),
+        left_out=left_out,
+    )
+
+
+def _pelvis_stage(
+    views: Sequence[BoneView],
+    volume: Volume,
+    side: str,
+    names: list[str],
+    W0: np.ndarray,
+    prior_ct_from_femur: np.ndarray | None,
+    settings: ViewSetSettings,
+    seeds: ViewSetSeeds,
+    record: StageRecorder,
+) -> tuple[list[BoneRegistrationResult], list[int], dict[str, str]]:
+    """Stage "pelvis": each view's pelvis (:func:`_pelvis`), checked view by view where
+    ``settings.bone_checks`` says so: ``(per-view pelvis, the kept views' indices, left out: name → why)``."""
     with record("pelvis") as rec:
         rec.diagnostics["views"] = {n: {} for n in names}
         pelvis = _pelvis(
@@ -128,12 +160,24 @@ def register_view_set_bones(
                 raise
             if left_out:
                 rec.diagnostics["left_out"] = dict(left_out)
-    views, pelvis, names = [views[k] for k in kept], [pelvis[k] for k in kept], [names[k] for k in kept]
-    if in_ct_frame:
-        femur_views = views_in_ct_frame(views, pelvis)
-        world_from_pelvis = np.eye(4)
-    else:
-        femur_views, world_from_pelvis = list(views), pelvis[0].world_from_bone
+    return pelvis, kept, left_out
+
+
+def _femur_stage(
+    femur_views: Sequence[BoneView],
+    names: list[str],
+    volume: Volume,
+    side: str,
+    world_from_pelvis: np.ndarray,
+    prior_ct_from_femur: np.ndarray | None,
+    settings: ViewSetSettings,
+    seeds: ViewSetSeeds,
+    record: StageRecorder,
+    left_out: dict[str, str],
+) -> tuple[BoneRegistrationResult, list[int]]:
+    """Stage "femur": the femur registered to the views, checked view by view where
+    ``settings.bone_checks`` says so (the views it leaves out added to ``left_out``):
+    ``(femur, the kept views' indices into femur_views)``."""
 
     def femur_of(fviews: Sequence[BoneView]) -> BoneRegistrationResult:
         config = settings.femur or femur_config(views=len(fviews))
@@ -163,13 +207,7 @@ def register_view_set_bones(
                 raise
             left_out.update(rec.diagnostics.get("left_out", {}))
         rec.diagnostics.update(cost=float(femur.cost), converged=bool(femur.converged), reason=femur.reason)
-    return ViewSetBones(
-        tuple(pelvis[k] for k in femur_kept),
-        tuple(femur_views[k].camera for k in femur_kept),
-        femur,
-        kept=None if not left_out else tuple(kept[k] for k in femur_kept),
-        left_out=left_out,
-    )
+    return femur, femur_kept
 
 
 def _pelvis(

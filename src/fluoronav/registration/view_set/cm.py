@@ -1,19 +1,15 @@
-"""The CM of a view set whose cameras are known in one frame (stage ``cm`` of
-:func:`~fluoronav.registration.view_set.register_view_set`).
+"""The CM of a view set whose cameras are known in one frame (stage ``cm`` of ``register_view_set``).
 
 The CM's landmarks are triangulated over the views and its roll scanned against the centrelines
-(:func:`~fluoronav.registration.centerline.centerline_initialize_multiview`); the CM is then
-registered (pose and shape) from the best roll minima and checked view by view
-(:mod:`fluoronav.registration.cm.checks`). After a move (:class:`ViewSetPrior`) with a prediction
-of stated uncertainty, the CM is first registered from the prediction with the local levels, the
-views' checks judging it (one view, whose checks cannot see depth, only where its landmarks agree
-with the prediction); otherwise, and where that fails, the images' own starts are screened
-together with the prediction and the plan's pose is the fallback. The result is compared with the
-prediction (reported, not judged) and, where the two are consistent, its tip fused with the
-predicted one (:func:`~fluoronav.registration.view_set.fusion.fuse_tip`).
-
-Frames: the world frame of the given cameras (the CT frame, LPS, mm); the prior's poses are
-relative to the femur (``femur_from_cm``), placed through the registered ``ct_from_femur``.
+(:func:`~fluoronav.registration.centerline.centerline_initialize_multiview`); the CM is registered
+from the best roll minima and checked view by view (:mod:`fluoronav.registration.cm.checks`).
+After a move (:class:`ViewSetPrior`) it is first registered from the kinematic prediction with the
+local levels, the views' checks judging it (one view only where its landmarks agree with the
+prediction); otherwise the images' own starts are screened with the prediction, the plan's pose
+the fallback. The result is compared with the prediction and, where consistent, its tip fused
+with the predicted one (:func:`~fluoronav.registration.view_set.fusion.fuse_tip`). Frames: the
+given cameras' world (the CT frame, LPS, mm); the prior's poses are relative to the femur
+(``femur_from_cm``), placed through the registered ``ct_from_femur``.
 """
 
 from __future__ import annotations
@@ -113,19 +109,17 @@ def register_view_set_cm(
         )
         diag.update(cost=float(cm.cost), converged=bool(cm.converged), reason=cm.reason)
         return cm, init
-    fast: CMRegistrationResult | None = None
-    gap = math.inf
-    if predicted is not None:  # the images' own landmarks against the prediction, before any registration
-        gap = landmark_gap_mm(
-            cm_views, lm_views, init, predicted.world_from_cm, cm_config, initial_control_points_deg
-        )
-        diag["prediction_gap_mm"] = gap
-    if predicted is not None and prior is not None and prior.prediction_sigma_mm is not None:
-        fast = _register_from_prediction(
+    fast = _from_prediction(
+        cm_views, lm_views, init, predicted, prior, cm_settings, settings, cm_config,
+        initial_control_points_deg, seed, diag,
+    )  # fmt: skip
+    if fast is not None:
+        cm = fast
+    else:
+        cm = _register_checked(
             cm_views,
             lm_views,
-            init,
-            gap,
+            tries,
             predicted,
             cm_settings,
             settings,
@@ -133,41 +127,92 @@ def register_view_set_cm(
             seed,
             diag,
         )
-    if fast is not None:
-        cm = fast
-    else:
-        try:
-            cm = register_cm_checked(
-                cm_views,
-                lm_views,
-                tries,
-                diag,
-                initial_control_points_deg=initial_control_points_deg,
-                config=cm_settings,
-                checks=settings.cm_checks,
-                seed=seed,
-            )
-        except RegistrationRefused as exc:
-            if predicted is not None:
-                raise
-            # a view's failure may be the FBG reading's: name it where it is
-            named = name_fbg_cause(
-                exc,
-                cm_views,
-                lm_views,
-                tries,
-                reading_deg=np.asarray(initial_control_points_deg, np.float64),
-                config=cm_settings,
-                checks=settings.cm_checks,
-                seed=seed + 101,
-            )
-            if named is exc:
-                raise
-            raise named from exc
     if predicted is not None:  # reported, not judged here: the caller knows what a disagreement means
         sigma = None if prior is None else prior.prediction_sigma_mm
         cm = _compare_and_fuse(cm, cm_views, predicted, sigma, settings, cm_config, diag)
     return cm, init
+
+
+def _from_prediction(
+    cm_views: Sequence[CMView],
+    lm_views: Sequence[np.ndarray | None],
+    init: MultiViewInitResult | None,
+    predicted: PredictedCMPose | None,
+    prior: ViewSetPrior | None,
+    cm_settings: CMRegistrationConfig,
+    settings: ViewSetSettings,
+    cm_config: CMConfig,
+    initial_control_points_deg: np.ndarray,
+    seed: int,
+    diag: dict[str, Any],
+) -> CMRegistrationResult | None:
+    """With a prediction, the images' own landmarks against it (``prediction_gap_mm``, before any
+    registration) and, where it has a σ, the CM registered from it (:func:`_register_from_prediction`);
+    None otherwise."""
+    if predicted is None:
+        return None
+    gap = landmark_gap_mm(
+        cm_views, lm_views, init, predicted.world_from_cm, cm_config, initial_control_points_deg
+    )
+    diag["prediction_gap_mm"] = gap
+    if prior is None or prior.prediction_sigma_mm is None:
+        return None
+    return _register_from_prediction(
+        cm_views,
+        lm_views,
+        init,
+        gap,
+        predicted,
+        cm_settings,
+        settings,
+        initial_control_points_deg,
+        seed,
+        diag,
+    )
+
+
+def _register_checked(
+    cm_views: Sequence[CMView],
+    lm_views: Sequence[np.ndarray | None],
+    tries: Sequence[Sequence[np.ndarray]],
+    predicted: PredictedCMPose | None,
+    cm_settings: CMRegistrationConfig,
+    settings: ViewSetSettings,
+    initial_control_points_deg: np.ndarray,
+    seed: int,
+    diag: dict[str, Any],
+) -> CMRegistrationResult:
+    """The CM registered from the starts ``tries`` and checked; without a prediction a refusal that
+    the FBG reading explains is raised naming it (:func:`name_fbg_cause`)."""
+    assert settings.cm_checks is not None
+    try:
+        return register_cm_checked(
+            cm_views,
+            lm_views,
+            tries,
+            diag,
+            initial_control_points_deg=initial_control_points_deg,
+            config=cm_settings,
+            checks=settings.cm_checks,
+            seed=seed,
+        )
+    except RegistrationRefused as exc:
+        if predicted is not None:
+            raise
+        # a view's failure may be the FBG reading's: name it where it is
+        named = name_fbg_cause(
+            exc,
+            cm_views,
+            lm_views,
+            tries,
+            reading_deg=np.asarray(initial_control_points_deg, np.float64),
+            config=cm_settings,
+            checks=settings.cm_checks,
+            seed=seed + 101,
+        )
+        if named is exc:
+            raise
+        raise named from exc
 
 
 def _tries(

@@ -133,28 +133,68 @@ def register_view_set(
     settings = settings or ViewSetSettings()
     seeds = seed if isinstance(seed, ViewSetSeeds) else ViewSetSeeds.from_seed(seed)
     record = recorder or unrecorded
+    bones = _bones(
+        views, volume, side, settings, seeds, prior, initial_world_from_pelvis, record, known_bones
+    )
+    if bones.kept is not None:
+        views = [views[k] for k in bones.kept]
+    cm, init = _cm(views, bones, cm_config, initial_control_points_deg, settings, seeds, prior, name, record)
+    return ViewSetRegistration(
+        views=tuple(views),
+        pelvis=bones.pelvis,
+        cameras_ct=bones.cameras,
+        femur=bones.femur,
+        cm=cm,
+        cm_init=init,
+        left_out=dict(bones.left_out),
+    )
+
+
+def _bones(
+    views: Sequence[FluoroView],
+    volume: Volume,
+    side: str,
+    settings: ViewSetSettings,
+    seeds: ViewSetSeeds,
+    prior: ViewSetPrior | None,
+    initial_world_from_pelvis: np.ndarray | None,
+    record: StageRecorder,
+    known_bones: ViewSetBones | None,
+) -> ViewSetBones:
+    """Stages "pelvis" and "femur": ``known_bones`` where given (recorded as known), else registered."""
     if known_bones is not None:
         for stage in ("pelvis", "femur"):
             with record(stage) as rec:
                 rec.diagnostics["known"] = True
-        bones = known_bones
-    else:
-        bones = register_view_set_bones(
-            bone_views(views),
-            volume,
-            side=side,
-            names=[v.name for v in views],
-            settings=settings,
-            seeds=seeds,
-            prior_ct_from_femur=None if prior is None else prior.ct_from_femur,
-            initial_world_from_pelvis=initial_world_from_pelvis,
-            recorder=record,
-        )
-    if bones.kept is not None:
-        views = [views[k] for k in bones.kept]
+        return known_bones
+    return register_view_set_bones(
+        bone_views(views),
+        volume,
+        side=side,
+        names=[v.name for v in views],
+        settings=settings,
+        seeds=seeds,
+        prior_ct_from_femur=None if prior is None else prior.ct_from_femur,
+        initial_world_from_pelvis=initial_world_from_pelvis,
+        recorder=record,
+    )
+
+
+def _cm(
+    views: Sequence[FluoroView],
+    bones: ViewSetBones,
+    cm_config: CMConfig,
+    initial_control_points_deg: np.ndarray,
+    settings: ViewSetSettings,
+    seeds: ViewSetSeeds,
+    prior: ViewSetPrior | None,
+    name: str,
+    record: StageRecorder,
+) -> tuple[CMRegistrationResult, MultiViewInitResult | None]:
+    """Stage "cm": the CM in the views placed by the bones (:func:`register_view_set_cm`)."""
     with record("cm") as rec:
         try:
-            cm, init = register_view_set_cm(
+            return register_view_set_cm(
                 views,
                 bones.cameras,
                 cm_config=cm_config,
@@ -169,12 +209,3 @@ def register_view_set(
         except RegistrationRefused:
             rec.passed = False
             raise
-    return ViewSetRegistration(
-        views=tuple(views),
-        pelvis=bones.pelvis,
-        cameras_ct=bones.cameras,
-        femur=bones.femur,
-        cm=cm,
-        cm_init=init,
-        left_out=dict(bones.left_out),
-    )

@@ -6,7 +6,7 @@ Frames: ``ct`` (LPS, mm); ``femur`` is the CT frame moved with the femur (``ct_f
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -17,6 +17,7 @@ from fluoronav.registration.cm import CMRegistrationConfig
 from fluoronav.registration.cm.checks import MAX_MOTION_TIP_MM, CMCheckConfig
 from fluoronav.registration.levels import LevelConfig
 from fluoronav.registration.view_set.fusion import TipFusionConfig
+from fluoronav.settings import setting
 
 __all__ = [
     "ViewSetPrior",
@@ -73,23 +74,53 @@ class ViewSetSettings:
             and a patient moved by half a millimetre: docs/validation.md, "Unmoved C-arm positions").
     """
 
-    device: str = "cpu"
-    pelvis: BoneRegistrationConfig = PELVIS_PRESET
-    femur: BoneRegistrationConfig | None = None
-    pelvis_refine: BoneRegistrationConfig | None = PELVIS_REFINE_PRESET
-    femur_margin_mm: float = 3.0
-    cm: CMRegistrationConfig = field(default_factory=CMRegistrationConfig)
-    max_cm_starts: int = 2
-    cm_checks: CMCheckConfig | None = field(default_factory=CMCheckConfig)
-    bone_checks: BoneCheckConfig | None = field(default_factory=BoneCheckConfig)
-    local: bool = False
-    pelvis_local: BoneRegistrationConfig = PELVIS_REFINE_PRESET
-    femur_local: BoneRegistrationConfig = FEMUR_LOCAL_PRESET
-    fusion_max_gap_mm: float = 3.0
-    fusion_max_mahalanobis: float = 3.0
-    fusion_cm_levels: tuple[LevelConfig, ...] | None = None
-    tip_fusion: TipFusionConfig = field(default_factory=TipFusionConfig)
-    min_unmoved_ncc: float = 0.995
+    device: str = setting("cpu", "torch device of every renderer and similarity")
+    pelvis: BoneRegistrationConfig = setting(PELVIS_PRESET, "the per-view pelvis registration's levels")
+    femur: BoneRegistrationConfig | None = setting(
+        None, "the femur registration's levels; none: the preset for the number of views"
+    )
+    pelvis_refine: BoneRegistrationConfig | None = setting(
+        PELVIS_REFINE_PRESET,
+        "after a move, each view's second pelvis registration, femur left out; none: none",
+    )
+    femur_margin_mm: float = setting(
+        3.0, "how far around the femur's footprint that registration leaves out", unit="mm", ge=0
+    )
+    cm: CMRegistrationConfig = setting(
+        doc="the CM registration's settings", default_factory=CMRegistrationConfig
+    )
+    max_cm_starts: int = setting(2, "roll minima of the centreline initialisation the CM starts from", ge=1)
+    cm_checks: CMCheckConfig | None = setting(
+        doc="thresholds of the CM's per-view checks; none: unchecked", default_factory=CMCheckConfig
+    )
+    bone_checks: BoneCheckConfig | None = setting(
+        doc="thresholds of the bones' per-view checks; none: unchecked", default_factory=BoneCheckConfig
+    )
+    local: bool = setting(False, "the views' cameras are already within about a millimetre and a degree")
+    pelvis_local: BoneRegistrationConfig = setting(
+        PELVIS_REFINE_PRESET, "the pelvis's levels from such cameras"
+    )
+    femur_local: BoneRegistrationConfig = setting(
+        FEMUR_LOCAL_PRESET, "the femur's levels from the earlier femur after a move"
+    )
+    fusion_max_gap_mm: float = setting(
+        3.0,
+        "one view registers the CM from the prediction where its landmarks are this close",
+        unit="mm",
+        ge=0,
+    )
+    fusion_max_mahalanobis: float = setting(
+        3.0, "the registered and predicted tips are fused where within this", unit="sigma", ge=0
+    )
+    fusion_cm_levels: tuple[LevelConfig, ...] | None = setting(
+        None, "the CM's levels from the prediction; none: the local levels for the number of views"
+    )
+    tip_fusion: TipFusionConfig = setting(
+        doc="how well one view registers the tip, across and along its ray", default_factory=TipFusionConfig
+    )
+    min_unmoved_ncc: float = setting(
+        0.995, "an unmoved C-arm's view keeps the earlier bones where its image agrees this well", ge=-1, le=1
+    )
 
 
 @dataclass(frozen=True)

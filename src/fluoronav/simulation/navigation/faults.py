@@ -1,18 +1,14 @@
 """Input faults injected into a simulated navigation case (``fluoronav study navigation --fault``).
 
-Each fault of :data:`FAULTS` is one way a user's inputs can be wrong: an image mirrored or inverted,
-a camera with the wrong focal length, swapped labels, a plan in soft tissue, a hand-eye matrix or
-joint readings that lie, verification images taken before the move. The navigation must, for each,
-either leave the faulty view out and land within 2 mm of the plan, or refuse with a reason that names
-the fault; it must never command the robot from a registration more than 2 mm off.
-:class:`Fault` says what a fault does and which outcomes count as handling it; the functions here
-apply the case-level faults to a :class:`~fluoronav.navigation.case.model.NavigationCase` (pure: a new
-case, the input untouched). The faults that need other images (``view_without_cm``,
-``verify_no_move``) and the hand-eye fault (a setting of the scene) are driven by
+Each fault of :data:`FAULTS` is one way a user's inputs can be wrong (an image mirrored or
+inverted, a wrong focal length, swapped labels, a plan in soft tissue, a hand-eye matrix or joint
+readings that lie, verification images taken before the move). The navigation must, for each,
+leave the faulty view out and land within 2 mm of the plan, or refuse naming the fault; it must
+never command the robot from a registration more than 2 mm off. :class:`Fault` says what a fault
+does and which outcomes handle it (:attr:`Fault.handled_by`: a check name, or ``"stage:check"``
+where the name alone is ambiguous); the functions here apply the case-level faults (pure: a new
+case). The faults that need other images, and the hand-eye fault, are driven by
 :mod:`fluoronav.simulation.navigation.loop` from the :class:`Fault` fields.
-
-A refusal names a fault when its check is one of :attr:`Fault.handled_by`: a check name
-(``"mirrored"``) or ``"stage:check"`` (``"cm:edge_ncc"``) where the check's name alone is ambiguous.
 """
 
 from __future__ import annotations

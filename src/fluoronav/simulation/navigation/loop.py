@@ -1,29 +1,15 @@
-"""The navigation loop in simulation: a simulated case, the pipeline on it, the robot's moves, and
-every estimate against the truth. ``fluoronav demo`` and ``fluoronav study navigation`` both run it.
+"""The navigation loop in simulation, as ``fluoronav demo`` and ``fluoronav study navigation`` run it.
 
-1. ``scene``: the seeded hip phantom, a UR-10 (with joint and calibration errors) holding the CM
-   above the femoral head, pelvis and femur moved as the paper's protocol
-   (:mod:`fluoronav.simulation.robot_scene`), three C-arm views centred between the femoral head
-   and the CM: AP and two orbits about the patient's long axis
-   (:mod:`fluoronav.simulation.navigation.scenario`).
-2. ``simulate``: physics X-rays of the views (never the registration's renderer) → a
-   :class:`~fluoronav.navigation.case.model.NavigationCase`: the CT, the plan (the CM tip on the femur's
-   entry point, its axis along the neck towards the head), the FBG reading, the nominal robot with
-   the joints read while imaging and a hand-eye matrix of documented error, and each view's camera
-   with the CT placed where the pelvis was before it moved (the registration's start). Optionally
-   written to files and read back (the demo), so that the pipeline sees only what a user's files give.
-3. :func:`~fluoronav.navigation.pipeline.navigate` on that case: detection, bones, CM, plan, command.
-4. ``move``: the *true* robot moves to the commanded joints; the true tip's distance to the plan is
-   the repositioning error.
-5. ``verify_simulate``: the C-arm slid to centre the femoral head and the planned CM as the
-   registrations placed them (± ``aim_error_mm``: a person positions it), images of the CM where the
-   robot took it, added to the case as its verification views; then
-   :func:`~fluoronav.navigation.pipeline.verify` (bones and CM registered anew, one corrective
-   command) and ``correct_move``.
-
-Frames: ``world`` is the simulation's world (the CT frame before the patient moved); ``ct`` is the
-CT frame the pipeline works in. CM and femur errors are measured in the C-arm frame of the AP view
-(as the paper's), repositioning in the world frame.
+Stages: ``scene`` (:mod:`fluoronav.simulation.navigation.scenario`: the patient, a UR-10 with
+errors holding the CM, three C-arm views); ``simulate`` (physics X-rays → a
+:class:`~fluoronav.navigation.case.model.NavigationCase`, optionally written to files and read back
+so that the pipeline sees only what a user's files give); :func:`~fluoronav.navigation.pipeline.navigate`;
+``move`` (the *true* robot to the commanded joints: the repositioning error); ``verify_simulate``
+(the C-arm slid to centre the femoral head and the planned CM as registered, ± ``aim_error_mm``,
+images of the CM where the robot took it), :func:`~fluoronav.navigation.pipeline.verify` and
+``correct_move``. Frames: ``world`` is the simulation's (the CT frame before the patient moved),
+``ct`` the pipeline's. CM and femur errors are measured in the AP view's C-arm frame (as the
+paper's), repositioning in the world frame.
 """
 
 from __future__ import annotations
@@ -31,9 +17,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -55,6 +39,7 @@ from fluoronav.navigation.case.model import (
 )
 from fluoronav.navigation.pipeline import EventCallback, NavigationConfig, NavigationResult, navigate, verify
 from fluoronav.registration.metrics import axis_error_deg
+from fluoronav.registration.stages import StageRecord, StageTimer
 from fluoronav.simulation.navigation.faults import (
     apply_case_fault,
     apply_first_fault,
@@ -94,7 +79,8 @@ class SimulatedNavigation:
     """What a simulated navigation measured.
 
     ``errors`` is a flat dict of floats (against the truth); ``truth`` holds the true poses with the
-    keys of ``navigation.json`` (JSON-ready); ``timings_s`` the loop's and the pipeline's stages;
+    keys of ``navigation.json`` (JSON-ready); ``loop_stages`` the loop's own stages (the pipeline's
+    are ``result.stages``), their seconds in ``timings_s``;
     ``artifacts`` holds arrays for the report (not serialised).
     """
 
@@ -102,8 +88,13 @@ class SimulatedNavigation:
     result: NavigationResult | None = None
     errors: dict[str, float] = field(default_factory=dict)
     truth: dict[str, Any] = field(default_factory=dict)
-    timings_s: dict[str, float] = field(default_factory=dict)
+    loop_stages: dict[str, StageRecord] = field(default_factory=dict)
     artifacts: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def timings_s(self) -> dict[str, float]:
+        """Seconds of the loop's own stages, in the order they ran."""
+        return {name: rec.seconds for name, rec in self.loop_stages.items()}
 
     @property
     def status(self) -> str:
@@ -112,25 +103,6 @@ class SimulatedNavigation:
     @property
     def reason(self) -> str:
         return "" if self.result is None else self.result.reason
-
-
-class _Timer:
-    """Times the loop's own stages into ``out`` and reports them to a callback."""
-
-    def __init__(self, out: dict[str, float], on_stage: Callable[[str, str], None] | None) -> None:
-        self.out, self.on_stage = out, on_stage
-
-    @contextmanager
-    def __call__(self, name: str) -> Iterator[None]:
-        if self.on_stage is not None:
-            self.on_stage(name, "start")
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.out[name] = time.perf_counter() - t0
-            if self.on_stage is not None:
-                self.on_stage(name, "done")
 
 
 def _views(
@@ -309,6 +281,62 @@ def _verification_case(
     return case, images2
 
 
+def _navigate_first(
+    s: Scenario,
+    run: SimulatedNavigation,
+    case: NavigationCase,
+    images: list[Any],
+    nav_cfg: NavigationConfig,
+    *,
+    on_stage: Callable[[str, str], None] | None,
+    on_event: EventCallback | None,
+) -> NavigationResult | None:
+    """The pipeline on the first case and its registrations' true errors → its result (also
+    ``run.result``); None where an injected fault made the case invalid input (recorded in
+    ``run.artifacts["input_error"]``)."""
+    try:
+        res = navigate(case, nav_cfg, on_stage=on_stage, on_event=on_event)
+    except InputError as exc:
+        if s.config.fault is None:
+            raise
+        run.artifacts["input_error"] = {"reason": str(exc), "check": getattr(exc, "check", "")}
+        return None
+    run.result = res
+    first_registration_errors(
+        run.result,
+        run.errors,
+        run.truth["tip_ct_mm"],
+        s.sc,
+        dict(zip(s.names, images, strict=True)),
+        s.W_regi,
+        s.cp_true,
+        tip_cm_true=s.tip_cm_true,
+    )
+    return res
+
+
+def _verification_errors(
+    s: Scenario,
+    run: SimulatedNavigation,
+    case: NavigationCase,
+    images2: list[Any],
+    W_after: np.ndarray,
+    moved: np.ndarray,
+) -> None:
+    """The verification's true errors (``run.errors``): its images named as the case's verification
+    views, the CM at ``W_after`` (4, 4) world, the patient moved by ``moved`` (4, 4)."""
+    names2 = [v.name for v in case.verification.views] if case.verification is not None else []
+    verification_errors(
+        run.result,
+        run.errors,
+        s.sc,
+        dict(zip(names2, images2, strict=True)),
+        W_after,
+        moved_from_world=moved,
+        tip_cm_true=s.tip_cm_true,
+    )
+
+
 def run_simulated_navigation(
     config: SimulatedNavigationConfig | None = None,
     *,
@@ -337,7 +365,7 @@ def run_simulated_navigation(
     nav_cfg = navigation or NavigationConfig(device=cfg.device, seed=cfg.seed)
     rng_seed = abs(int(cfg.seed))
     run = SimulatedNavigation(config=cfg)
-    T, E, A = _Timer(run.timings_s, on_stage), run.errors, run.artifacts
+    T, E, A = StageTimer(run.loop_stages, on_stage), run.errors, run.artifacts
     torch.manual_seed(rng_seed % 2**63)
     rng = np.random.default_rng(rng_seed)
     seeds = rng.integers(2**31, size=8)
@@ -349,25 +377,8 @@ def run_simulated_navigation(
     if until == "case":
         return run
 
-    try:
-        res = navigate(case, nav_cfg, on_stage=on_stage, on_event=on_event)
-    except InputError as exc:
-        if cfg.fault is None:
-            raise
-        A["input_error"] = {"reason": str(exc), "check": getattr(exc, "check", "")}
-        return run
-    run.result = res
-    first_registration_errors(
-        run.result,
-        run.errors,
-        run.truth["tip_ct_mm"],
-        s.sc,
-        dict(zip(s.names, images, strict=True)),
-        s.W_regi,
-        s.cp_true,
-        tip_cm_true=s.tip_cm_true,
-    )
-    if res.status != "ok" or res.joints_target_deg is None:
+    res = _navigate_first(s, run, case, images, nav_cfg, on_stage=on_stage, on_event=on_event)
+    if res is None or res.status != "ok" or res.joints_target_deg is None:
         return run
     with T("move"):
         W_after, planned_tip_world, W_plan_true = _move(s, run, res, rng)
@@ -383,16 +394,7 @@ def run_simulated_navigation(
         case, images2 = _verification_case(s, run, case, W_after, rng, int(seeds[2]), case_dir, moved)
     A.update(images2=images2, case=case)
     verify(case, res, on_stage=on_stage, on_event=on_event)
-    names2 = [v.name for v in case.verification.views] if case.verification is not None else []
-    verification_errors(
-        run.result,
-        run.errors,
-        s.sc,
-        dict(zip(names2, images2, strict=True)),
-        W_after,
-        moved_from_world=moved,
-        tip_cm_true=s.tip_cm_true,
-    )
+    _verification_errors(s, run, case, images2, W_after, moved)
     if res.status != "ok" or res.joints_correction_deg is None:
         return run
     with T("correct_move"):

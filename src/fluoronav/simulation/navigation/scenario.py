@@ -2,25 +2,19 @@
 
 :func:`build_scenario` draws the stages ``anatomy`` and ``scene`` of
 :func:`~fluoronav.simulation.navigation.loop.run_simulated_navigation`: the seeded hip phantom (or a
-labelled CT) and the case's CT as the world says it differs from the patient
-(:mod:`fluoronav.simulation.world_anatomy`), a UR-10 (with joint and calibration errors) holding the
-CM above the femoral head at a working pose that reaches the plan gently (the scene is redrawn until
-it does: ``working_pose_max_joint_deg``), three C-arm views centred between the femoral head and the
-CM (AP and orbits about the patient's long axis), the plan, and the hand-eye matrix the case gives.
-:class:`Scenario` holds that truth and takes the physics images of the CM wherever the robot puts it
-(:meth:`Scenario.simulate`), with the cameras the case records for them
-(:meth:`Scenario.case_cameras`).
-
-Frames: ``world`` is the simulation's world (the CT frame before the patient moved); ``cm`` the CM's
-base frame.
+labelled CT) and the case's CT as the world makes it (:mod:`fluoronav.simulation.world_anatomy`), a
+UR-10 with joint and calibration errors holding the CM above the femoral head at a working pose
+that reaches the plan gently (redrawn until it does: ``working_pose_max_joint_deg``), three C-arm
+views (AP and orbits), the plan and the case's hand-eye matrix. :class:`Scenario` holds that truth
+and takes the physics images of the CM wherever the robot puts it (:meth:`Scenario.simulate`), with
+the cameras the case records (:meth:`Scenario.case_cameras`). Frames: ``world`` is the simulation's
+world (the CT frame before the patient moved); ``cm`` the CM's base frame.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable
-from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +28,7 @@ from fluoronav.geometry.carm import centre_on, orbit_camera
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.navigation.planning import Plan, neck_entry_plan, planned_femur_from_cm
 from fluoronav.navigation.targeting import UnreachableTarget, least_motion_target
+from fluoronav.registration.stages import StageRecorder
 from fluoronav.simulation.articulated import ArticulatedSimulator
 from fluoronav.simulation.instrument import BuiltCM, build_instrument, built_tip_cm
 from fluoronav.simulation.robot_scene import (
@@ -50,12 +45,8 @@ log = logging.getLogger(__name__)
 __all__ = [
     "Scenario",
     "SimulatedNavigationConfig",
-    "StageTimer",
     "build_scenario",
 ]
-
-#: ``timer(stage)``: a context that times (and reports) one of the loop's stages.
-StageTimer = Callable[[str], AbstractContextManager[None]]
 
 
 @dataclass(frozen=True)
@@ -221,7 +212,7 @@ def verification_view_indices(n_views: int, k: int) -> list[int]:
 def build_scenario(
     cfg: SimulatedNavigationConfig,
     ct: str,
-    T: StageTimer,
+    T: StageRecorder,
     rng: np.random.Generator,
     scene_seed: int,
     world_seed: int,
