@@ -40,13 +40,13 @@ def run(
     from fluoronav.simulation.navigation.demo import (  # lazy: fast --help
         ERROR_ROWS,
         ordered_timings,
+        run_demo,
         write_demo_outputs,
     )
-    from fluoronav.simulation.navigation.loop import (
+    from fluoronav.simulation.navigation.loop import (  # lazy: fast --help
         SIMULATION_STAGES,
         SimulatedNavigationConfig,
-        run_simulated_navigation,
-    )  # lazy: fast --help
+    )
     from fluoronav.simulation.world import load_world  # lazy: fast --help
 
     link = IGTLinkStreamer(igtl) if igtl is not None else None  # a malformed address is bad input
@@ -65,9 +65,9 @@ def run(
     )
     total = len(SIMULATION_STAGES) + len(STAGES) + len(VERIFY_STAGES)
     with stage_progress(total, "demo") as progress, link or nullcontext():
-        run_ = run_simulated_navigation(  # run_demo, with the site's settings
+        run_ = run_demo(
             cfg,
-            case_dir=out / "case",
+            out=out,
             navigation=navigation,
             on_stage=chain_stage_callbacks(progress, link.on_stage if link is not None else None),
             on_event=link.on_event if link is not None else None,

@@ -38,6 +38,7 @@ from fluoronav.studies.handeye_trials import (
     run_handeye_trial,
     run_navigation_trial,
 )
+from fluoronav.studies.study_ct import HANDEYE_CT, NAVIGATION_CT, check_study_ct
 from fluoronav.studies.summary import summarize, write_summary
 
 __all__ = [
@@ -253,7 +254,9 @@ def run_handeye_study(
         if any(old.get(k) != cfg_dict.get(k) for k in keep):
             raise InputError(cfg_path, "this directory holds a study with other settings; use another --out")
     if cfg.ct != "phantom":
-        resolve_ct(cfg.ct)
+        # fail early, in this process, on a bad CT or one without what the scene needs
+        needs = HANDEYE_CT if cfg.workflow == "hand-eye" else NAVIGATION_CT
+        check_study_ct(resolve_ct(cfg.ct), cfg.ct, needs)
     detector = detector_or_none(cfg.device)
     cfg_dict["detector_precision"] = None if detector is None else detector.precision
     cfg_path.write_text(json.dumps(cfg_dict, indent=2), encoding="utf-8")

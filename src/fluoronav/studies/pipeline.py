@@ -63,6 +63,7 @@ from fluoronav.simulation.world import IDEAL, World
 from fluoronav.studies.bone_errors import bone_registration_errors
 from fluoronav.studies.check_values import check_values
 from fluoronav.studies.figures import study_figures
+from fluoronav.studies.study_ct import TRIAL_CT, check_study_ct
 from fluoronav.studies.summary import summarize, write_summary
 from fluoronav.studies.world_trials import simulate_world_trial, world_rng
 
@@ -134,32 +135,6 @@ def _with_bones(volume: Volume, cfg: StudyConfig) -> bool:
         and volume.label_value("femur_left") is not None
         and "entry_left" in volume.landmarks_world
     )
-
-
-#: what a trial needs of a CT: the simulator moves the left femur by its label, the protocol aims
-#: the C-arm and the CM at its landmarks (:func:`~fluoronav.simulation.protocol.sample_trial`)
-_TRIAL_LABELS = ("femur_left",)
-_TRIAL_LANDMARKS = ("femoral_head_left", "entry_left")
-
-
-def _check_trial_ct(volume: Volume, source: str) -> None:
-    """Refuse, before any trial, a CT without the labels and landmarks a trial needs (an
-    :class:`InputError` naming them), rather than fail every trial on it."""
-    missing = [
-        f"label {name!r}"
-        for name in _TRIAL_LABELS
-        if volume.labels is None
-        or (value := volume.label_value(name)) is None
-        or not np.any(volume.labels == value)
-    ]
-    missing += [f"landmark {name!r}" for name in _TRIAL_LANDMARKS if name not in volume.landmarks_world]
-    if missing:
-        needed = [f"label {n!r}" for n in _TRIAL_LABELS] + [f"landmark {n!r}" for n in _TRIAL_LANDMARKS]
-        raise InputError(
-            source,
-            f"a study's trials move the left femur and aim at it, so the CT needs {', '.join(needed)}; "
-            f"this one lacks {', '.join(missing)} (labels and landmarks: docs/data-formats.md)",
-        )
 
 
 def _full_to_image_px(uv_full: np.ndarray, binning: int) -> np.ndarray:
@@ -585,7 +560,7 @@ def run_study(
             raise InputError(cfg_path, "this directory holds a study with other settings; use another --out")
     if cfg.ct != "phantom":
         # fail early, in this process, on a bad CT or one without what the trials simulate
-        _check_trial_ct(resolve_ct(cfg.ct), cfg.ct)
+        check_study_ct(resolve_ct(cfg.ct), cfg.ct, TRIAL_CT)
     if not cfg.oracle_landmarks:
         # fail early when no detector model is available; the precision its networks run in
         # (bfloat16 on a CPU with native bfloat16) is part of the record

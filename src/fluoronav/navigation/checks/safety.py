@@ -40,7 +40,7 @@ class SafetyConfig:
             robot's kinematics (``VerificationConfig.fuse_kinematics``). One view with the
             kinematics' depth is what a one-image verification is: a view whose detection is wrong
             may be left out of two down to one, rather than refuse where one image alone would
-            pass. Three views keep ``min_views``: left out down to one they could no longer
+            pass. Three views keep ``cm.min_views``: left out down to one they could no longer
             overrule kinematics that are wrong (a hand-eye matrix 10 mm off), which two views
             from the images' own starts can correct.
         max_joint_motion_deg: no joint of a command (first move or correction) may turn by more

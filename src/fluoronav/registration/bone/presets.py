@@ -111,7 +111,7 @@ PELVIS_PRESET = PELVIS_CMAES_PRESET
 #: the linearised refinement (:mod:`~fluoronav.registration.linearized`, ≤ 8 steps of 7 renders each)
 #: at ~128 px / 2 mm and ~256 px / 1 mm, where CMA-ES spent 720 renders: about the accuracy of
 #: :data:`PELVIS_CMAES_PRESET` at ~400 renders instead of 1,360 (docs/validation.md). The navigation
-#: pipeline's pelvis (``NavigationConfig.pelvis``).
+#: pipeline's pelvis (``NavigationConfig.views.pelvis``).
 PELVIS_LINEARIZED_PRESET = BoneRegistrationConfig(
     levels=(
         BoneLevel(

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from fluoronav import __version__
+from fluoronav.navigation.config import NavigationConfig
 from fluoronav.navigation.outputs.files import write_outputs
 from fluoronav.navigation.pipeline import STAGES, VERIFY_STAGES, EventCallback
 from fluoronav.simulation.navigation.loop import (
@@ -62,11 +63,17 @@ def run_demo(
     config: SimulatedNavigationConfig | None = None,
     *,
     out: Path,
+    navigation: NavigationConfig | None = None,
     on_stage: Callable[[str, str], None] | None = None,
     on_event: EventCallback | None = None,
 ) -> SimulatedNavigation:
-    """Simulate a case into ``out/case``, navigate on its files, move, verify, correct."""
-    return run_simulated_navigation(config, case_dir=out / "case", on_stage=on_stage, on_event=on_event)
+    """Simulate a case into ``out/case``, navigate on its files, move, verify, correct.
+
+    ``navigation``: the pipeline's settings (a site's settings file; None: the defaults, with the
+    simulation's device and seed)."""
+    return run_simulated_navigation(
+        config, case_dir=out / "case", navigation=navigation, on_stage=on_stage, on_event=on_event
+    )
 
 
 def results_json(run: SimulatedNavigation) -> dict[str, Any]:
