@@ -51,20 +51,4 @@ __all__ = [
     "write_markups",  # write one markup (point list, line or curve) as a Slicer .mrk.json file
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.anatomy.io": ("VOLUME_SUFFIXES", "load_ct", "load_label_map", "resolve_ct", "save_volume"),
-        "fluoronav.anatomy.landmarks": (
-            "read_fcsv",
-            "read_landmarks",
-            "read_landmarks_json",
-            "write_fcsv",
-            "write_landmarks",
-            "write_landmarks_json",
-        ),
-        "fluoronav.anatomy.markups": ("MarkupNode", "read_markup_nodes", "read_markups", "write_markups"),
-        "fluoronav.anatomy.phantom": ("LABEL_NAMES", "hip_phantom"),
-        "fluoronav.anatomy.volume": ("MU_WATER_PER_MM", "Volume", "hu_to_mu"),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

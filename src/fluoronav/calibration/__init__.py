@@ -71,38 +71,4 @@ __all__ = [
     "transform_error",  # (rotation °, translation mm) of inv(reference) · estimated
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.calibration.handeye": (
-            "AX_XB_METHODS",
-            "AX_YB_METHODS",
-            "calibrate_hand_eye",
-            "calibrate_robot_world_hand_eye",
-            "check_motion",
-            "estimate_rbase_from_tracker",
-            "handeye_residuals",
-            "simulate_tracker_calibration",
-            "tip_errors",
-            "tip_rbase_image_chain",
-            "tip_rbase_tracker_chain",
-            "transform_error",
-        ),
-        "fluoronav.calibration.image_handeye": (
-            "ImageHandEyeConfig",
-            "ImageHandEyeProblem",
-            "ImageHandEyeResult",
-            "calibrate_hand_eye_from_images",
-            "default_handeye_levels",
-            "initial_world_from_rbase_pnp",
-        ),
-        "fluoronav.calibration.results": ("HandEyeFailure", "HandEyeResult", "TipErrors"),
-        "fluoronav.calibration.tracker": (
-            "DEFAULT_BODY",
-            "OpticalTracker",
-            "RigidBody",
-            "TrackedPose",
-            "kabsch",
-        ),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

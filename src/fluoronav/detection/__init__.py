@@ -35,13 +35,4 @@ __all__ = [
     "write_detection",  # writes a detection's JSON, mask and overlay
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.detection.centerline": ("extract_centerline", "resample_polyline"),
-        "fluoronav.detection.config": ("DetectorConfig",),
-        "fluoronav.detection.detector": ("Detector", "load_image", "shipped_model_path"),
-        "fluoronav.detection.instrument": ("instrument_mask", "instrument_masks"),
-        "fluoronav.detection.result": ("Detection", "detection_to_dict", "write_detection"),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

@@ -87,48 +87,4 @@ __all__ = [
     "triangulate_points_robust",  # the same, dropping views whose pixel disagrees with the others
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.geometry": ("se3",),
-        "fluoronav.geometry.camera": (
-            "CIOS_FUSION",
-            "Camera",
-            "DetectorSpec",
-            "project_points",
-            "stack_cameras",
-            "triangulate_points",
-            "triangulate_points_robust",
-        ),
-        "fluoronav.geometry.carm": (
-            "carm_camera",
-            "carm_camera_from_world",
-            "centre_on",
-            "orbit_camera",
-            "recentre",
-        ),
-        "fluoronav.geometry.dicom": ("camera_from_dicom", "camera_from_dicom_tags"),
-        "fluoronav.geometry.rotations": (
-            "angle_between_rotations_deg",
-            "axis_angle_to_matrix",
-            "euler_to_matrix",
-            "matrix_to_quat",
-            "matrix_to_rotvec",
-            "quat_to_matrix",
-            "random_rotation_about_random_axis",
-            "rotvec_to_matrix",
-            "rotx",
-            "roty",
-            "rotz",
-        ),
-        "fluoronav.geometry.transforms": (
-            "apply_transform",
-            "compose",
-            "invert_transform",
-            "make_transform",
-            "params_from_transform",
-            "rotation_about_point",
-            "transform_from_params",
-        ),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

@@ -58,24 +58,4 @@ __all__ = [
     "write_stl",  # write a binary STL (float32, mm) with unit face normals
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.manipulator.config": ("CMConfig", "load_cm_config", "with_shaft"),
-        "fluoronav.manipulator.geometry": ("VoxelizedCM", "inside_cm", "inside_cm_straight", "voxelize_cm"),
-        "fluoronav.manipulator.kinematics": ("CMKinematics",),
-        "fluoronav.manipulator.mesh": ("cm_surface_mesh", "mesh_volume", "read_stl", "write_stl"),
-        "fluoronav.manipulator.robot": (
-            "UR10",
-            "DHRow",
-            "IKFailure",
-            "IKSolution",
-            "RobotErrorModel",
-            "SerialRobot",
-            "load_robot",
-            "random_configurations_deg",
-            "robot_to_dict",
-            "wrap_deg",
-        ),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

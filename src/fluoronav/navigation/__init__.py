@@ -55,25 +55,4 @@ __all__ = [
     "verify",  # registers the verification views and commands one correction
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.navigation.case.model": (
-            "CaseView",
-            "NavigationCase",
-            "VerificationViews",
-            "load_navigation_case",
-        ),
-        "fluoronav.navigation.checks.preflight": ("PreflightConfig", "PreflightFinding", "preflight"),
-        "fluoronav.navigation.checks.safety": ("SafetyConfig",),
-        "fluoronav.navigation.pipeline": (
-            "NavigationConfig",
-            "NavigationRefused",
-            "NavigationResult",
-            "navigate",
-            "verify",
-        ),
-        "fluoronav.navigation.planning": ("Plan", "load_plan", "planned_femur_from_cm"),
-        "fluoronav.navigation.targeting": ("UnreachableTarget", "robot_target", "tip_correction_target"),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

@@ -79,33 +79,4 @@ __all__ = [
     "register_view_set",  # one set of views registered: pelvis per view, femur, CM, with checks
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.registration.engine": ("Registration", "RegistrationResult"),
-        "fluoronav.registration.levels": ("LevelConfig",),
-        "fluoronav.registration.linearized": ("LinearizedRefiner",),
-        "fluoronav.registration.metrics": ("axis_error_deg", "base_error", "cm_errors", "point_error_mm"),
-        "fluoronav.registration.optimizer": ("CMAES", "NelderMead", "OptimizationResult", "Optimizer"),
-        "fluoronav.registration.parameterization": (
-            "CMPoseShape",
-            "HandEye",
-            "MultiCMReference",
-            "Parameterization",
-            "RigidAboutPoint",
-            "RotationAboutPoint",
-        ),
-        "fluoronav.registration.priors": ("LandmarkPrior", "control_point_prior", "gaussian_parameter_prior"),
-        "fluoronav.registration.similarity": ("NCC", "GradNCC", "PatchGradNCC"),
-        "fluoronav.registration.stages": ("StageRecord", "StageRecorder"),
-        "fluoronav.registration.trace": ("LevelTrace", "RegistrationTrace"),
-        "fluoronav.registration.view_set": (
-            "FluoroView",
-            "ViewDetection",
-            "ViewSetPrior",
-            "ViewSetRegistration",
-            "ViewSetSettings",
-            "register_view_set",
-        ),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

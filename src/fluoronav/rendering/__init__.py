@@ -31,17 +31,4 @@ __all__ = [
     "veil_response",  # −ln((1 − f)·exp(−g·L) + f): a −log image's response to line integrals L
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.rendering.cm": ("CMRenderer",),
-        "fluoronav.rendering.ct": (
-            "DEFAULT_STEP_VOXELS",
-            "CTRenderer",
-            "mipmap_factors",
-            "render_line_integrals",
-        ),
-        "fluoronav.rendering.reference": ("siddon_line_integrals",),
-        "fluoronav.rendering.response": ("veil_response",),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

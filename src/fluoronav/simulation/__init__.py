@@ -57,18 +57,4 @@ __all__ = [
     "split_femur",  # the femur's voxels and bounding box, cut from the patient volume
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.simulation.articulated": ("ArticulatedSimulator", "anatomy_and_simulator", "split_femur"),
-        "fluoronav.simulation.cm_case": ("SimulatedCMCase", "simulate_cm_case"),
-        "fluoronav.simulation.dataset": ("DatasetSpec", "check_dataset", "simulate_dataset"),
-        "fluoronav.simulation.materials": ("decompose_hu", "hu_to_density", "linear_attenuation_per_mm"),
-        "fluoronav.simulation.physics": ("XrayPhysics",),
-        "fluoronav.simulation.protocol": ("ProtocolConfig", "Trial", "sample_trial", "simulate_trial_images"),
-        "fluoronav.simulation.robot_scene": ("HandEyeScenario", "sample_handeye_scenario"),
-        "fluoronav.simulation.scene": ("Scene", "SceneSampling", "sample_scene"),
-        "fluoronav.simulation.spectrum": ("Spectrum", "load_spectrum"),
-        "fluoronav.simulation.xray": ("SimulatedImage", "SimulationConfig", "XraySimulator"),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

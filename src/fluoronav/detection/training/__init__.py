@@ -16,10 +16,4 @@ __all__ = [
     "train",  # trains (or resumes) a detector model on simulated data sets
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.detection.training.config": ("TrainConfig",),
-        "fluoronav.detection.training.train": ("train",),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

@@ -25,15 +25,4 @@ __all__ = [
     "write_navigation_case",  # writes a case as files navigate reads back
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.navigation.case.model": (
-            "NavigationCase",
-            "VerificationViews",
-            "load_navigation_case",
-            "write_navigation_case",
-        ),
-        "fluoronav.navigation.case.view": ("CaseView",),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

@@ -22,11 +22,4 @@ __all__ = [
     "preflight",  # every input and plan check of a case, before registration
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.navigation.checks.preflight": ("PreflightFinding", "PreflightInputError", "preflight"),
-        "fluoronav.navigation.checks.preflight_config": ("PreflightConfig",),
-        "fluoronav.navigation.checks.safety": ("SafetyConfig",),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

@@ -22,12 +22,4 @@ __all__ = [
     "write_slicer_folder",  # the registered CM and femur, plan and landmarks as Slicer files
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.navigation.outputs.files": ("write_navigation_json", "write_outputs"),
-        "fluoronav.navigation.outputs.igtl": ("IGTLinkStreamer",),
-        "fluoronav.navigation.outputs.report": ("write_report",),
-        "fluoronav.navigation.outputs.slicer": ("write_slicer_folder",),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

@@ -102,46 +102,4 @@ __all__ = [
     "views_in_ct_frame",
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.registration.bone.checks": (
-            "BoneCheckConfig",
-            "BoneVerdict",
-            "BoneViewDiagnostics",
-            "bone_view_diagnostics",
-            "judge_bone_view",
-            "judge_pelvis_views",
-            "mirrored_view",
-            "pelvis_mirror_diagnosis",
-            "register_femur_checked",
-        ),
-        "fluoronav.registration.bone.levels": ("TISSUE_HU", "bone_excess_mu"),
-        "fluoronav.registration.bone.presets": (
-            "FEMUR_AUTHORS_PRESET",
-            "FEMUR_MULTI_VIEW_PRESET",
-            "FEMUR_ONE_VIEW_PRESET",
-            "FEMUR_TILT_START_DEG",
-            "FEMUR_TILT_STARTS",
-            "PELVIS_AUTHORS_PRESET",
-            "PELVIS_CMAES_PRESET",
-            "PELVIS_LINEARIZED_PRESET",
-            "PELVIS_PRESET",
-            "PELVIS_REFINE_PRESET",
-            "BoneLevel",
-            "BoneRegistrationConfig",
-            "femur_config",
-            "pelvis_config",
-        ),
-        "fluoronav.registration.bone.register": (
-            "BoneRegistrationResult",
-            "bone_footprints",
-            "register_femur",
-            "register_pelvis",
-            "register_pelvis_per_view",
-            "relative_view_poses",
-            "views_in_ct_frame",
-        ),
-        "fluoronav.registration.bone.views": ("BoneView", "static_view_composite", "views_from_images"),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

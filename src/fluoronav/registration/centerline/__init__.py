@@ -76,39 +76,4 @@ __all__ = [
     "turn_about_chord",
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.registration.centerline.cost": ("centerline_cost", "polyline_distance_cost"),
-        "fluoronav.registration.centerline.evaluate": (
-            "CenterlineScene",
-            "evaluate_centerline_init",
-            "synthetic_centerline_scene",
-        ),
-        "fluoronav.registration.centerline.geometry": (
-            "mirror_about_chord",
-            "poses_from_depth_theta",
-            "roll_about_axis_deg",
-            "turn_about_chord",
-        ),
-        "fluoronav.registration.centerline.joint_fit": ("JointFitConfig",),
-        "fluoronav.registration.centerline.multiview": (
-            "MultiViewInitConfig",
-            "MultiViewInitResult",
-            "centerline_initialize_multiview",
-            "multiview_start_poses",
-        ),
-        "fluoronav.registration.centerline.shaft_depth": (
-            "ShaftDepthCue",
-            "measure_shaft_depth",
-            "shaft_depth_residual",
-        ),
-        "fluoronav.registration.centerline.single": (
-            "ANATOMY_DEPTH_WINDOW_MM",
-            "CenterlineInitConfig",
-            "CenterlineInitResult",
-            "centerline_initialize",
-            "depth_range_about",
-        ),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

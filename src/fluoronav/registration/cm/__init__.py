@@ -76,31 +76,4 @@ __all__ = [
     "view_roi",
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.registration.cm.checks": (
-            "CMCheckConfig",
-            "PredictedCMPose",
-            "ViewVerdict",
-            "judge_cm_views",
-            "judge_motion",
-            "motion_agreement",
-            "register_cm_checked",
-        ),
-        "fluoronav.registration.cm.config": (
-            "CM_COARSE_LEVEL",
-            "CM_FINE_LEVEL",
-            "DEFAULT_CM_MU_PER_MM",
-            "CMRegistrationConfig",
-            "default_cm_levels",
-            "fbg_shape_prior",
-        ),
-        "fluoronav.registration.cm.multistart": ("register_cm_multistart",),
-        "fluoronav.registration.cm.overlays": ("edge_mask", "save_overlays", "to_uint8"),
-        "fluoronav.registration.cm.problem": ("CMProblem", "Workflow", "register_cm"),
-        "fluoronav.registration.cm.result": ("CMRegistrationResult", "cm_pose_errors"),
-        "fluoronav.registration.cm.roll_scan": ("RollScanResult", "roll_scan", "roll_scan_initialization"),
-        "fluoronav.registration.cm.views": ("BackgroundFn", "CMView", "ViewROI", "view_roi"),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

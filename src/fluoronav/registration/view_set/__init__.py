@@ -37,13 +37,4 @@ __all__ = [
     "register_view_set_cm",  # the CM in a set whose cameras are known in one frame
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.registration.view_set.bones": ("ViewSetBones", "register_view_set_bones"),
-        "fluoronav.registration.view_set.cm": ("register_view_set_cm",),
-        "fluoronav.registration.view_set.register": ("ViewSetRegistration", "register_view_set"),
-        "fluoronav.registration.view_set.settings": ("ViewSetPrior", "ViewSetSeeds", "ViewSetSettings"),
-        "fluoronav.registration.view_set.views": ("FluoroView", "ViewDetection", "bone_views"),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)

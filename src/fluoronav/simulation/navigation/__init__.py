@@ -22,11 +22,4 @@ __all__ = [
     "write_demo_outputs",  # the demo's results.json, navigation.json, slicer/ and report
 ]
 
-__getattr__, __dir__ = lazy_face(
-    __name__,
-    {
-        "fluoronav.simulation.navigation.demo": ("run_demo", "write_demo_outputs"),
-        "fluoronav.simulation.navigation.faults": ("get_fault",),
-        "fluoronav.simulation.navigation.loop": ("SimulatedNavigationConfig", "run_simulated_navigation"),
-    },
-)
+__getattr__, __dir__ = lazy_face(__name__)
