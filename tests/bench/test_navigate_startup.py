@@ -10,6 +10,7 @@ import pytest
 from fluoronav.bench.navigation import navigate_startup
 
 
+@pytest.mark.slow  # two navigate processes, ~15 s on 2 cores
 def test_navigate_startup_reports_its_figure_reference_and_speedup() -> None:
     figures = navigate_startup(quick=True)
     assert set(figures) == {
