@@ -57,10 +57,15 @@ class BoneLevel:
 class BoneRegistrationConfig:
     """Levels run in order, each warm-started from the previous.
 
-    ``starts``: more first-level starts in the parameters' units (deg, mm) relative to the initial
-    pose (multi-start: the first level runs from the initial pose and from each, the ``keep``
-    lowest go on through all levels and the lowest final cost wins; see :meth:`Registration.run`).
-    ``skip_empty``: the renderer skips the bone volume's empty space (the same DRRs, faster).
+    Attributes:
+        levels: the levels, coarse to fine.
+        device: torch device of the renderer and the similarity.
+        starts: more first-level starts in the parameters' units (deg, mm) relative to the initial
+            pose (multi-start: the first level runs from the initial pose and from each, the
+            ``keep`` lowest go on through all levels and the lowest final cost wins; see
+            :meth:`Registration.run`).
+        keep: how many of the first level's starts go on through all levels.
+        skip_empty: the renderer skips the bone volume's empty space (the same DRRs, faster).
     """
 
     levels: tuple[BoneLevel, ...]
