@@ -32,8 +32,13 @@ from fluoronav.calibration.handeye import transform_error
 from fluoronav.geometry.carm import orbit_camera
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.cm import CMView
-from fluoronav.studies import handeye_study as hs
-from fluoronav.studies.pipeline import _anatomy
+from fluoronav.simulation.articulated import anatomy_and_simulator
+from fluoronav.simulation.robot_scene import (
+    perturb_transform,
+    sample_handeye_scenario,
+    simulate_scenario_images,
+)
+from fluoronav.studies import handeye_trials as ht
 
 
 def main() -> None:
@@ -55,9 +60,9 @@ def main() -> None:
 
     torch.set_num_threads(2)
     size = args.image_size
-    volume, sim = _anatomy("phantom", 0, size, "cpu")
+    volume, sim = anatomy_and_simulator("phantom", 0, size, "cpu")
     rng = np.random.default_rng(args.seed)
-    sc = hs.sample_handeye_scenario(
+    sc = sample_handeye_scenario(
         volume, rng, n_poses=args.poses, rotation_spread_deg=args.spread_deg, bend_deg=args.bend_deg
     )
     kin = CMKinematics()
@@ -71,19 +76,19 @@ def main() -> None:
         )
         for k in range(1, args.views)
     ]
-    oracle = hs.HandEyeStudyConfig(workflow="hand-eye", trials=1, seed=args.seed, oracle_landmarks=True)
+    oracle = ht.HandEyeStudyConfig(workflow="hand-eye", trials=1, seed=args.seed, oracle_landmarks=True)
     views = []
     for k, cam in enumerate(cams):
-        images = hs.simulate_scenario_images(sc, sim, seed=5 + 50 * k, image_size=size, camera=cam)
+        images = simulate_scenario_images(sc, sim, seed=5 + 50 * k, image_size=size, camera=cam)
         true_full_px = np.stack([cam.project(ab @ T[:3, :3].T + T[:3, 3]) for T in sc.world_from_cm])
-        lms, _ = hs._landmarks(images, true_full_px, noise, oracle)  # the study's truth ± 3 px
+        lms, _ = ht._landmarks(images, true_full_px, noise, oracle)  # the study's truth ± 3 px
         views += [
             CMView(s.image, s.camera, landmarks_px=lm, name=f"v{k}p{i}")
             for i, (s, lm) in enumerate(zip(images, lms, strict=True))
         ]
     A1 = sc.rbase_from_ee_reported if args.fk == "reported" else sc.true_robot.rbase_from_ee(sc.q_actual_deg)
     A = np.concatenate([A1] * args.views)
-    X0 = sc.ee_from_cm if args.start == "truth" else hs._perturb(sc.ee_from_cm, noise, 10.0, 10.0)
+    X0 = sc.ee_from_cm if args.start == "truth" else perturb_transform(sc.ee_from_cm, noise, 10.0, 10.0)
     cp_fbg = sc.control_points_deg + (0.0 if args.exact_shape else noise.uniform(-0.5, 0.5, 5))
     W0 = (
         sc.world_from_rbase
@@ -110,14 +115,14 @@ def main() -> None:
         raise SystemExit(f"calibration failed: {res.reason}")
     assert isinstance(res, ih.ImageHandEyeResult)
     rot, trans = transform_error(res.ee_from_cm, sc.ee_from_cm)
-    tip_true = hs._tip_rbase(
+    tip_true = ht.tip_rbase(
         sc.true_robot.rbase_from_ee(sc.q_actual_deg), sc.ee_from_cm, sc.control_points_deg, kin
     )
-    tip10 = hs._tip_rbase(sc.rbase_from_ee_reported, res.ee_from_cm, res.control_points_deg, kin)
+    tip10 = ht.tip_rbase(sc.rbase_from_ee_reported, res.ee_from_cm, res.control_points_deg, kin)
     out = {
         "args": vars(args),
         "rotation_deg": rot,
-        **hs._axis_and_roll_deg(res.ee_from_cm, sc.ee_from_cm),
+        **ht.axis_and_roll_deg(res.ee_from_cm, sc.ee_from_cm),
         "translation_mm": trans,
         "tip_mm": float(np.linalg.norm(tip10 - tip_true, axis=1).mean()),
         "shape_error_deg": np.round(res.control_points_deg - sc.control_points_deg, 3).tolist(),
