@@ -1,14 +1,13 @@
 """Navigation benchmarks (``fluoronav bench``): the pelvis on one view and the ``navigate`` pipeline.
 
-The case is a simulated phantom case as ``fluoronav demo`` makes it (seed :data:`BENCH_SEED`, 768²
-views, the shipped detector). Keys: ``register_bone_view_s`` (the pelvis on the first view with the
-navigation's preset), ``navigate_s`` (:func:`~fluoronav.navigation.pipeline.navigate`, detection to
-robot command, three views), ``navigate_verify_s`` and ``navigate_verify2_s`` (the case run to its
-end with three or two verification views: the pipeline's stages summed, each run simulating its own
-verification images where its own command took the robot). Each has a ``_reference``, the same work
-with the reference settings (the CMA-ES presets without empty-space skipping,
-:data:`~fluoronav.bench.registration.REFERENCE_CONFIG`, the shipped settings ``reference-0.4.1``), a
-``_speedup`` and its errors against the truth (``*_pelvis_mm``, ``*_tip_mm``,
+The case is a simulated phantom case as ``fluoronav demo`` makes it (seed :data:`BENCH_SEED`, 768² views, the
+shipped detector). Keys: ``register_bone_view_s`` (the pelvis on the first view with the navigation's preset),
+``navigate_s`` (:func:`~fluoronav.navigation.pipeline.navigate`, detection to robot command, three views),
+``navigate_verify_s`` and ``navigate_verify2_s`` (the case run to its end with three or two verification
+views: the pipeline's stages summed, each run simulating its own verification images where its own command
+took the robot). Each has a ``_reference``, the same work with the reference settings (the CMA-ES presets
+without empty-space skipping, :data:`~fluoronav.bench.registration.REFERENCE_CONFIG`, the shipped settings
+``reference-0.4.1``), a ``_speedup`` and its errors against the truth (``*_pelvis_mm``, ``*_tip_mm``,
 ``*_corrected_tip_mm``), so that a faster setting that got worse shows (docs/validation.md, "Speed").
 """
 

@@ -1,8 +1,7 @@
 """Hand-eye calibration of the CM on the robot (the hand-eye matrix ``ee_from_cm``), and its baselines.
 
-- :mod:`~fluoronav.calibration.image_handeye`: the image-based calibration of the paper (§II-D,
-  eqs. 5–6): the multiple-CM registration of M images of one static C-arm, with the hand-eye
-  matrix, the robot base and the CM shape as unknowns;
+- :mod:`~fluoronav.calibration.image_handeye`: the paper's image-based calibration (§II-D, eqs. 5–6): a
+  multiple-CM registration of M images of one static C-arm, unknowns the hand-eye, robot base and CM shape;
 - :mod:`~fluoronav.calibration.handeye`: tracker-based AX = XB / AX = YB baselines (OpenCV) and the
   paper's tip validation (eqs. 9, 10);
 - :mod:`~fluoronav.calibration.tracker`: a simulated optical tracker (marker bodies, Kabsch poses);

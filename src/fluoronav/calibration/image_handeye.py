@@ -1,8 +1,7 @@
 """Image-based hand-eye calibration inside the multiple-CM registration (Gao et al. 2022, §II-D, eqs. 5–6).
 
-Data: M X-ray images of the CM taken by one static C-arm (the world frame of the views' cameras),
-each at a robot pose ``rbase_from_ee_m`` (the controller's forward kinematics). Unknowns: the robot
-base ``world_from_rbase``, the hand-eye matrix ``ee_from_cm`` and one shape (five control points):
+Data: M X-ray images of the CM from one static C-arm (the world frame), each at a robot pose
+``rbase_from_ee_m``. Unknowns: ``world_from_rbase``, ``ee_from_cm``, one shape:
 
     world_from_cm_m = world_from_rbase · rbase_from_ee_m · ee_from_cm
 

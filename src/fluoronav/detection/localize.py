@@ -1,15 +1,14 @@
 """The view stages: the coarse stage finds the CM in the whole image, the fine stage reads its
 landmarks and mask from regions of interest around it.
 
-The coarse stage (:class:`CoarseStage`) runs its network once on the whole image at its working
-resolution (:class:`~fluoronav.detection.config.WholeViewSampler`). The fine stage
-(:class:`FineStage`) runs on a square region of interest around the coarse mask and landmarks,
-resampled from the *input* image, so its precision is set by the ROI's pixel size (≈ the CM's
-extent / 128 × 1.5), not by the coarse grid: each pass but the last refits the ROI to its result,
-the last runs on the ROI at several scales; its heatmaps are decoded with a sub-pixel fit and its
-mask mapped back to the input grid (:mod:`fluoronav.detection.decoder`). It also weighs other
-hypotheses: other parts of the coarse mask (:meth:`FineStage.hypotheses`) and a wider view of an
-unsure result (:meth:`FineStage.second_look`).
+The coarse stage (:class:`CoarseStage`) runs its network once on the whole image at its working resolution
+(:class:`~fluoronav.detection.config.WholeViewSampler`). The fine stage (:class:`FineStage`) runs on a square
+region of interest around the coarse mask and landmarks, resampled from the *input* image, so its precision is
+set by the ROI's pixel size (≈ the CM's extent / 128 × 1.5), not by the coarse grid: each pass but the last
+refits the ROI to its result, the last runs on the ROI at several scales; its heatmaps are decoded with a
+sub-pixel fit and its mask mapped back to the input grid (:mod:`fluoronav.detection.decoder`). It also weighs
+other hypotheses: other parts of the coarse mask (:meth:`FineStage.hypotheses`) and a wider view of an unsure
+result (:meth:`FineStage.second_look`).
 """
 
 from __future__ import annotations

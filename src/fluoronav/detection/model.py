@@ -1,15 +1,14 @@
 """The detector's networks and its model files.
 
-Every network stage is a 2-D MONAI ``UNet``: the coarse and fine stages output 3 channels (a
-segmentation logit of the CM's notched region and the heatmaps of A = CM base origin and B = distal
-end of the last notch, as in Gao et al., IEEE TBME 69(1), 2022), the refinement stage 2 (heatmaps
-of A and B on tube-aligned patches), the tube-mask, mask-end and shaft stages 1 (a mask logit).
-:class:`DetectorNet` holds the networks of a :class:`~fluoronav.detection.config.DetectorConfig`'s
-stages; for inference each float32 network gets its batch norms folded into its convolutions
-(:func:`fold_batch_norm`) and, on a CPU, each convolution and its activation packed into one oneDNN
-call (:func:`pack_for_cpu`). A model file (``torch.save`` of a dict) holds ``format_version``,
-``config``, ``normalization``, ``parameters``, the training record and ``state_dict``; its JSON
-sidecar holds the same without the weights.
+Every network stage is a 2-D MONAI ``UNet``: the coarse and fine stages output 3 channels (a segmentation
+logit of the CM's notched region and the heatmaps of A = CM base origin and B = distal end of the last notch,
+as in Gao et al., IEEE TBME 69(1), 2022), the refinement stage 2 (heatmaps of A and B on tube-aligned
+patches), the tube-mask, mask-end and shaft stages 1 (a mask logit). :class:`DetectorNet` holds the networks
+of a :class:`~fluoronav.detection.config.DetectorConfig`'s stages; for inference each float32 network gets its
+batch norms folded into its convolutions (:func:`fold_batch_norm`) and, on a CPU, each convolution and its
+activation packed into one oneDNN call (:func:`pack_for_cpu`). A model file (``torch.save`` of a dict) holds
+``format_version``, ``config``, ``normalization``, ``parameters``, the training record and ``state_dict``; its
+JSON sidecar holds the same without the weights.
 """
 
 from __future__ import annotations

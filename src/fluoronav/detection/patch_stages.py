@@ -5,8 +5,7 @@
   twice the training images' sampling (a spatial-softmax heatmap), with a Gaussian prior around the
   fine landmark (a patch alone can take the tube's end beyond B, or the base before A, for it), from
   several patches moved along the tube, and takes the mean.
-- Tube mask (:class:`TubeStage`): patches every ``spacing_px`` along the centreline; each decides
-  the mask in a band around its centre.
+- Tube mask (:class:`TubeStage`): a patch every ``spacing_px`` on the centreline decides the mask near it.
 - Mask ends (:class:`EndsStage`): each end of the label mask is half the ellipse the tube's
   cross-section projects to there, bulging beyond the landmark; a patch at each refined landmark
   redraws the mask from ``inner_px`` inside the landmark outwards.

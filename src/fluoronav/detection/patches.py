@@ -6,10 +6,9 @@ along the tube and normal ``n = (−t_v, t_u)``, patch pixel (col k, row j) samp
 
     c + s·((k − (cols − 1)/2)·t + (j − (rows − 1)/2)·n)
 
-so the patch's centre ``c`` is the point of interest and flipping the rows mirrors the patch exactly
-about the tube's axis (the mirror test-time augmentation). At a landmark ``t`` points into the CM,
-towards the mean of the mask's pixels in a ring around it (:func:`landmark_direction`); along a
-centreline from A towards B (:func:`tube_frames`).
+so the patch's centre ``c`` is the point of interest and flipping the rows mirrors it exactly about the tube's
+axis (the mirror test-time augmentation). At a landmark ``t`` points into the CM, to the mean of the mask's
+pixels in a ring around it (:func:`landmark_direction`); on a centreline, A to B (:func:`tube_frames`).
 """
 
 from __future__ import annotations

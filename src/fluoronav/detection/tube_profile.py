@@ -1,15 +1,14 @@
 """Cross-section profile of a tube (the CM's shaft) in an X-ray image: its scale and the image's response.
 
-Across a tube of outer radius ``R`` and inner radius ``Rᵢ`` (mm) the line integral is ``μ·c(x)``
-with the annulus chord ``c(x) = 2·(√(R² − x²)₊ − √(Rᵢ² − x²)₊)`` (x: distance from the axis, mm at
-the tube). The fitted image model, blurred by a Gaussian on a quadratic background ``b``, is
-``y(x) = b(x) − ln((1 − f)·exp(−μ·c(x)) + f)``: the veil ``f`` (the fraction of the flat field that
-passes unattenuated) captures scatter, glare and beam hardening (docs/registration.md, "The
-image's response to the CM"). Fitted to the median of profiles normal to the tube's projected axis
-(re-centred on the model and refitted), it gives the tube's scale (``px_per_mm`` at the tube; its
-depth is ``focal_px / px_per_mm``) when it is not given, and the response ``(μ, f)`` the CM
-registration applies to its DRR. The shaft is used, not the notched CM: notches cut one side of the
-tube at a time and change the profile's shape with the viewing angle.
+Across a tube of outer radius ``R`` and inner radius ``Rᵢ`` (mm) the line integral is ``μ·c(x)`` with the
+annulus chord ``c(x) = 2·(√(R² − x²)₊ − √(Rᵢ² − x²)₊)`` (x: distance from the axis, mm at the tube). The
+fitted image model, blurred by a Gaussian on a quadratic background ``b``, is ``y(x) = b(x) − ln((1 −
+f)·exp(−μ·c(x)) + f)``: the veil ``f`` (the fraction of the flat field that passes unattenuated) captures
+scatter, glare and beam hardening (docs/registration.md, "The image's response to the CM"). Fitted to the
+median of profiles normal to the tube's projected axis (re-centred on the model and refitted), it gives the
+tube's scale (``px_per_mm`` at the tube; its depth is ``focal_px / px_per_mm``) when it is not given, and the
+response ``(μ, f)`` the CM registration applies to its DRR. The shaft is used, not the notched CM: notches cut
+one side of the tube at a time and change the profile's shape with the viewing angle.
 """
 
 from __future__ import annotations

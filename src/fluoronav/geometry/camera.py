@@ -8,8 +8,7 @@ Conventions (see docs/conventions.md):
 - ``K`` maps camera coordinates to homogeneous pixels: ``[u, v, 1]ᵀ ∝ K · [x, y, z]ᵀ``; for a flat
   panel at source-to-detector distance ``sdd_mm`` with square pixels of ``pixel_spacing_mm``,
   ``fx = fy = sdd_mm / pixel_spacing_mm``.
-- ``camera_from_world`` (4×4, mm) maps world coordinates (the CT's LPS frame, or a scene frame)
-  into the camera frame.
+- ``camera_from_world`` (4×4, mm) maps world (the CT's LPS frame, or a scene frame) to camera coordinates.
 """
 
 from __future__ import annotations

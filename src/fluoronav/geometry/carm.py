@@ -7,9 +7,8 @@ The source sits on a sphere of radius ``source_to_isocenter_mm`` about the isoce
 
 with α = LAO/RAO angle (about the patient's long axis, 0 = source posterior) and β = CRAN/CAUD polar
 angle from the superior axis (90° = perpendicular to the long axis): α = 0°, β = 90° is AP with the
-source under the table. The camera +z points from the source towards the isocentre (−s); +y (image
-rows) is the patient's inferior direction projected on the image plane, so the head is at the top of
-the image; +x = y × z completes a right-handed frame.
+source under the table. The camera +z points from the source to the isocentre (−s); +y (image rows) is the
+patient's inferior direction projected on the image plane, the head at the top; +x = y × z.
 """
 
 from __future__ import annotations

@@ -7,9 +7,8 @@ docs/data-formats.md, "X-ray images"): Imager Pixel Spacing (0018,1164) else Pix
 
 World frame of the returned camera: the C-arm's isocentre frame, patient LPS axes for a supine
 patient (the frame of :func:`~fluoronav.geometry.carm.carm_camera`). The DICOM angles give the
-detector's position (LAO: detector towards the patient's left; CRA: towards the head), hence
-``lao_rao_deg = −primary`` and ``cran_caud_deg = 90 + secondary``. The principal point is the image
-centre; a calibrated camera file is more accurate where it exists.
+detector's position (LAO: to the patient's left; CRA: to the head), hence ``lao_rao_deg = −primary`` and
+``cran_caud_deg = 90 + secondary``. Principal point: the image centre (a camera file is more accurate).
 """
 
 from __future__ import annotations

@@ -7,9 +7,8 @@ femur frame; a free roll is the one whose command turns the joints least) and ``
 inverse kinematics, the command measured and bounded: :mod:`fluoronav.navigation.commands`). With
 verification views (:func:`verify`): the same on the images after the move, with the first
 registration and the robot's kinematics as the prior, then ``correct`` (one corrective command).
-A stage that cannot go on ends the run with status ``"refused"`` and a reason naming the stage, the
-view and the check; no robot command is given then. docs/navigation.md ("Stages") describes each.
-Frames: ``ct`` (LPS, mm); ``femur`` is the CT frame moved with the femur (``ct_from_femur``).
+A stage that cannot go on ends the run ``"refused"``, naming the stage, view and check, with no robot command
+(docs/navigation.md, "Stages"). Frames: ``ct`` (LPS, mm); ``femur``: the CT frame moved with the femur.
 """
 
 from __future__ import annotations

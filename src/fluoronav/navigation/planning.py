@@ -6,10 +6,9 @@ optional ``insertion_depth_mm`` (default 0), ``bending_direction`` and ``control
 (docs/robot-and-calibration.md, "Plan file"). The planned CM base frame has +z along ``direction``
 and +y along the part of ``bending_direction`` orthogonal to it; without it the CM's roll is free
 and the navigation chooses it (:func:`fluoronav.navigation.targeting.least_motion_target`). The CM
-**tip** is placed at ``entry_point + insertion_depth · direction``. A 3D Slicer markups file is a
-plan too (:func:`plan_from_markups`: a Line, or points labelled ``entry`` and ``target``).
-Femur frame: the CT world frame the plan is drawn in (the femur registration estimates
-``carm_from_femur`` for it); another can be passed as ``femur_from_world``.
+**tip** is placed at ``entry_point + insertion_depth · direction``. A 3D Slicer markups file is a plan too
+(:func:`plan_from_markups`: a Line, or points labelled ``entry`` and ``target``). Femur frame: the plan's CT
+world frame (the femur registration estimates ``carm_from_femur``), or ``femur_from_world``.
 """
 
 from __future__ import annotations

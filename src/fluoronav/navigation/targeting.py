@@ -8,8 +8,7 @@ registration and navigation. In our naming (docs/robot-and-calibration.md, "Navi
     rbase_from_ee_tar = rbase_from_ee_regi · ee_from_cm · inv(femur_from_cm_regi)
                         · femur_from_cm_tar · inv(ee_from_cm)                            (eq. 8)
 
-The paper prints these with T_A^B, which chain when read as ``a_from_b``; eq. 8 above is then
-exactly the inverse of the paper's printed eq. 8 (docs/robot-and-calibration.md and the tests).
+The paper prints T_A^B, which chain read as ``a_from_b``; eq. 8 above is then the inverse of its eq. 8.
 """
 
 from __future__ import annotations

@@ -5,8 +5,7 @@ prior(x)`` with the optimiser the level names (CMA-ES by default), each level wa
 previous one's best parameters. The workflow supplies the parts:
 
 - ``render(params (P, D) float64, level) -> (P, V, h, w)``: the whole population in one call;
-- ``fixed``: (V, H, W) full-resolution images, binned per level by area averaging, or a callable
-  ``level -> (V, h, w)`` when the workflow prepares them itself (e.g. an ROI);
+- ``fixed``: (V, H, W) full-resolution images, area-binned per level, or a callable ``level -> (V, h, w)``;
 - ``similarity``: factory ``(fixed_level (V, h, w), level, mask_level) -> module`` mapping
   (P, V, h, w) to (P, V) or (P,) costs, built once per level (default :class:`PatchGradNCC`);
 - ``priors``: callables ``params (P, D) -> (P,)`` (e.g. :class:`LandmarkPrior` at full resolution).

@@ -1,15 +1,14 @@
 """Local refinement on the linearised DRR (a Gauss–Newton-type level behind the optimiser interface).
 
-Near the optimum a few image Jacobians replace hundreds of CMA-ES samples. Each outer iteration
-renders, in one batch, ``x`` and ``x + h_k e_k`` for every parameter ``k`` (``h_k = fd_step_sigma ·
-σ_k``): the moving images ``I(x)`` and their forward-difference Jacobian ``J_k``. The step ``δ``
-lowers the cost of the linear model ``S(I(x) + Σ_k δ_k J_k) + priors(x + δ)`` (a quadratic fit of
-its cost, damped Newton directions and a line search, all from batched similarity evaluations, no
-render) within a trust region of ``trust_sigma · σ`` per parameter. ``x + δ`` is rendered: the step
-is kept when the true cost went down, else the region halves and the step is solved again. It stops
-when a step gains less than ``tolfun``, after ``max_iters`` accepted steps, or when the model sees
-no better point even in a region of ``tolx / 0.1``. One outer iteration costs ``D + 1`` renders
-(docs/registration.md, "Bones: CMA-ES to find the basin, the linearised DRR to finish").
+Near the optimum a few image Jacobians replace hundreds of CMA-ES samples. Each outer iteration renders, in
+one batch, ``x`` and ``x + h_k e_k`` for every parameter ``k`` (``h_k = fd_step_sigma · σ_k``): the moving
+images ``I(x)`` and their forward-difference Jacobian ``J_k``. The step ``δ`` lowers the cost of the linear
+model ``S(I(x) + Σ_k δ_k J_k) + priors(x + δ)`` (a quadratic fit of its cost, damped Newton directions and a
+line search, all from batched similarity evaluations, no render) within a trust region of ``trust_sigma · σ``
+per parameter. ``x + δ`` is rendered: the step is kept when the true cost went down, else the region halves
+and the step is solved again. It stops when a step gains less than ``tolfun``, after ``max_iters`` accepted
+steps, or when the model sees no better point even in a region of ``tolx / 0.1``. One outer iteration costs
+``D + 1`` renders (docs/registration.md, "Bones: CMA-ES to find the basin, the linearised DRR to finish").
 """
 
 from __future__ import annotations

@@ -1,15 +1,14 @@
 """Parameterisations: flat optimiser vectors (P, D) → scene quantities (torch, float64 inside).
 
 A rigid block has 6 parameters ``(rx, ry, rz, tx, ty, tz)``: a rotation vector in **degrees** and a
-translation in **mm**, a perturbation ``δ = [R(r) | t]`` of a reference pose (zero parameters give
-it exactly). :class:`CMPoseShape`, :class:`MultiCMReference` and :class:`HandEye` perturb in the
-*object* frame (CM base frame, reference frame), right-multiplied: ``camera_from_cm =
-camera_from_cm0 @ δ``, rotating about the CM base origin A (the paper's perturbations are "about a
-random axis in the CM base frame"). :class:`RigidAboutPoint` and :class:`RotationAboutPoint` rotate
-about a given centre (pelvis centre, femoral head) with the camera's axes (``axes="camera"``, the
-default: the authors' pelvis σ is larger along the camera's z) or the object's (``axes="object"``).
-Control points are absolute values in degrees; ``initial()`` gives the start vector. All outputs
-are float64 tensors on the parameterisation's device.
+translation in **mm**, a perturbation ``δ = [R(r) | t]`` of a reference pose (zero parameters give it
+exactly). :class:`CMPoseShape`, :class:`MultiCMReference` and :class:`HandEye` perturb in the *object* frame
+(CM base frame, reference frame), right-multiplied: ``camera_from_cm = camera_from_cm0 @ δ``, rotating about
+the CM base origin A (the paper's perturbations are "about a random axis in the CM base frame").
+:class:`RigidAboutPoint` and :class:`RotationAboutPoint` rotate about a given centre (pelvis centre, femoral
+head) with the camera's axes (``axes="camera"``, the default: the authors' pelvis σ is larger along the
+camera's z) or the object's (``axes="object"``). Control points are absolute values in degrees; ``initial()``
+gives the start vector. All outputs are float64 tensors on the parameterisation's device.
 """
 
 from __future__ import annotations

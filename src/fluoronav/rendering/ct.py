@@ -1,15 +1,14 @@
 """Digitally reconstructed radiographs (DRRs) of a CT: line integrals ∫ μ dl through a voxel volume.
 
 The volume holds μ (1/mm) at voxel centres, interpolated trilinearly with 0 outside the grid (the
-interpolant's support is the open index box ``(-1, n)`` per axis). A ray from the X-ray source
-(camera origin, OpenCV pinhole) through a pixel centre is clipped to that box and integrated with
-the midpoint rule at an even step no longer than ``step_mm``, weighted in mm: the result is the
-dimensionless ∫ μ dl, and an axis-aligned integral equals the voxel sum times the spacing.
-Backends: ``"numba"`` (a parallel CPU kernel, :mod:`fluoronav.rendering._ct_numba`) and
-``"torch"`` (a batched :func:`torch.nn.functional.grid_sample` march, used on CUDA). With
-``mipmap=True`` a camera whose pixel footprint at the volume's nearest point is at least two voxels
-along an axis renders the volume box-downsampled 2× along it (the box average keeps every line
-integral along the grid axes), which removes the aliasing of coarse pixels on a fine volume.
+interpolant's support is the open index box ``(-1, n)`` per axis). A ray from the X-ray source (camera origin,
+OpenCV pinhole) through a pixel centre is clipped to that box and integrated with the midpoint rule at an even
+step no longer than ``step_mm``, weighted in mm: the result is the dimensionless ∫ μ dl, and an axis-aligned
+integral equals the voxel sum times the spacing. Backends: ``"numba"`` (a parallel CPU kernel,
+:mod:`fluoronav.rendering._ct_numba`) and ``"torch"`` (a batched :func:`torch.nn.functional.grid_sample`
+march, used on CUDA). With ``mipmap=True`` a camera whose pixel footprint at the volume's nearest point is at
+least two voxels along an axis renders the volume box-downsampled 2× along it (the box average keeps every
+line integral along the grid axes), which removes the aliasing of coarse pixels on a fine volume.
 """
 
 from __future__ import annotations

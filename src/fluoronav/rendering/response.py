@@ -8,8 +8,7 @@ thick metal. With a veil ``f`` (the fraction of the flat field that passes unatt
     y = −ln((1 − f)·exp(−g·L) + f)
 
 ``f = 0`` is the linear DRR ``g·L``; ``y`` saturates at ``−ln f`` for thick objects. The CM registration
-measures ``(g, f)`` per view on the CM's shaft (:func:`fluoronav.detection.tube_profile.fit_tube_profile`)
-and applies them to its DRR.
+measures ``(g, f)`` per view on the CM's shaft (:func:`~fluoronav.detection.tube_profile.fit_tube_profile`).
 """
 
 from __future__ import annotations

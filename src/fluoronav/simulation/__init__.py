@@ -6,9 +6,8 @@ the detector and quantum noise (docs/simulation.md), so that no test commits an 
 - :mod:`~fluoronav.simulation.xray`: :class:`XraySimulator`, one C-arm image of a CT and a CM;
 - :mod:`~fluoronav.simulation.articulated`: pelvis and a moving femur, the navigation's images;
 - ``physics``, ``materials``, ``spectrum``, ``noise``: the physics;
-- :mod:`~fluoronav.simulation.scene`, :mod:`~fluoronav.simulation.protocol`,
-  :mod:`~fluoronav.simulation.robot_scene`, :mod:`~fluoronav.simulation.cm_case`: ground truths
-  sampled as the paper's studies, the hand-eye study and the CM registration cases sample them;
+- ``scene``, ``protocol``, ``robot_scene``, ``cm_case``: ground truths sampled as the paper's studies, the
+  hand-eye study and the CM registration cases sample them;
 - :mod:`~fluoronav.simulation.dataset`: the detector's training data sets.
 """
 

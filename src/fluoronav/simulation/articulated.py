@@ -1,15 +1,14 @@
 """Physics X-ray simulation of an articulated hip: the patient and one femur move independently.
 
-The CT is split once, by its labels, into two rigid bodies: ``rest``, the CT with the chosen femur's
-voxels (its label dilated by one voxel, minus other bones') replaced by soft tissue
-(:data:`FILLER_HU`), so that the femur can turn inside tissue; and ``femur``, the femur's
-per-material partial densities *minus* the filler's on the same voxels, cropped to their bounding
-box (with identity motions ``rest + femur`` is exactly the CT's material decomposition). Each body
-is rendered at its own pose (``world_from_patient`` moves both; ``world_from_femur`` is the femur's
-total motion) and the per-material areal densities are summed and clamped at 0. The drilled path,
-the voxelised CM, the labels and the detector physics are those of
-:class:`~fluoronav.simulation.xray.XraySimulator`, reused through a subclass that drills once per
-body, each in its own frame.
+The CT is split once, by its labels, into two rigid bodies: ``rest``, the CT with the chosen femur's voxels
+(its label dilated by one voxel, minus other bones') replaced by soft tissue (:data:`FILLER_HU`), so that the
+femur can turn inside tissue; and ``femur``, the femur's per-material partial densities *minus* the filler's
+on the same voxels, cropped to their bounding box (with identity motions ``rest + femur`` is exactly the CT's
+material decomposition). Each body is rendered at its own pose (``world_from_patient`` moves both;
+``world_from_femur`` is the femur's total motion) and the per-material areal densities are summed and clamped
+at 0. The drilled path, the voxelised CM, the labels and the detector physics are those of
+:class:`~fluoronav.simulation.xray.XraySimulator`, reused through a subclass that drills once per body, each
+in its own frame.
 """
 
 from __future__ import annotations

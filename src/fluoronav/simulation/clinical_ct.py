@@ -1,15 +1,14 @@
 """The case's CT as a clinical scan of a finer patient volume (:class:`~fluoronav.simulation.world.CTWorld`).
 
 Steps, each off when its magnitude is zero (or None), in this order: (1) partial volume, the patient
-box-averaged onto a coarser grid of ``ct_spacing_mm`` offset by a random fraction of a CT voxel
-(exact overlaps, separable per axis: HU × volume is kept; labels by nearest neighbour); (2) scale,
-HU × (1 ± ``hu_scale_error``); (3) noise, Gaussian white noise smoothed by a 0.7-voxel Gaussian (as
-a reconstruction kernel correlates it) and rescaled to SD ``hu_noise_sd``; (4) label boundaries,
-each bone's boundary moved along its normal by a smooth random field of SD
-``label_boundary_voxels`` (a voxel claimed by two bones goes to the nearer one; the field fades to
-zero around the landmarks). The geometry (direction, LPS world frame) and the landmarks (world
-points) are the patient's. Memory: the partial volume works on slabs of the patient, the label
-step on each bone's bounding box.
+box-averaged onto a coarser grid of ``ct_spacing_mm`` offset by a random fraction of a CT voxel (exact
+overlaps, separable per axis: HU × volume is kept; labels by nearest neighbour); (2) scale, HU × (1 ±
+``hu_scale_error``); (3) noise, Gaussian white noise smoothed by a 0.7-voxel Gaussian (as a reconstruction
+kernel correlates it) and rescaled to SD ``hu_noise_sd``; (4) label boundaries, each bone's boundary moved
+along its normal by a smooth random field of SD ``label_boundary_voxels`` (a voxel claimed by two bones goes
+to the nearer one; the field fades to zero around the landmarks). The geometry (direction, LPS world frame)
+and the landmarks (world points) are the patient's. Memory: the partial volume works on slabs of the patient,
+the label step on each bone's bounding box.
 """
 
 from __future__ import annotations

@@ -1,15 +1,14 @@
 """The instrument as built: a CM that deviates from the model the registration fits, for the images.
 
-The registration models the CM as a perfect tube whose notch angles lie on a cubic spline through
-the control points. A real one does not: each notch is cut where the machine put it, as wide and
-deep as it cut it; each bends by its own amount for the same actuation (the spline's angle times
-``1 + ε_j`` plus an offset ``δ_j``); the tube's diameters are the drawn tube's, within tolerance
-(magnitudes: docs/simulation.md, "Simulated worlds"). :func:`build_instrument` draws one
-(:class:`BuiltCM`) from an :class:`InstrumentWorld`; the simulator draws it in the images
-(``ArticulatedSimulator.simulate(..., built_cm=)``) and the functions here give the truth to
-measure errors against (joint angles, link poses, tip, landmarks for commanded control points).
-:func:`spline_fit_control_points_deg` is the best the model can do: the control points whose
-spline is nearest (least squares) to the built angles.
+The registration models the CM as a perfect tube whose notch angles lie on a cubic spline through the control
+points. A real one does not: each notch is cut where the machine put it, as wide and deep as it cut it; each
+bends by its own amount for the same actuation (the spline's angle times ``1 + ε_j`` plus an offset ``δ_j``);
+the tube's diameters are the drawn tube's, within tolerance (magnitudes: docs/simulation.md, "Simulated
+worlds"). :func:`build_instrument` draws one (:class:`BuiltCM`) from an :class:`InstrumentWorld`; the
+simulator draws it in the images (``ArticulatedSimulator.simulate(..., built_cm=)``) and the functions here
+give the truth to measure errors against (joint angles, link poses, tip, landmarks for commanded control
+points). :func:`spline_fit_control_points_deg` is the best the model can do: the control points whose spline
+is nearest (least squares) to the built angles.
 """
 
 from __future__ import annotations

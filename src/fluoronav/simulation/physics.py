@@ -1,15 +1,14 @@
 """Polychromatic X-ray transport through per-material areal densities, and the detector model.
 
-Interface units: areal densities ``A_m = ∫ρ_m dl`` in g/cm² (convert a renderer's mm-based
-integral with :func:`fluoronav.simulation.materials.areal_density_g_cm2`), energies in keV, μ/ρ in
-cm²/g, intensities relative to the unattenuated flat field I0, images after the log transform
-``−ln(I/I0)`` (bone and metal bright). Model (after DeepDRR, Unberath et al. 2018)::
+Units: areal densities ``A_m = ∫ρ_m dl`` in g/cm² (from mm: ``materials.areal_density_g_cm2``), keV,
+μ/ρ in cm²/g, intensities relative to the flat field I0, images after ``−ln(I/I0)`` (bone and metal
+bright). Model (after DeepDRR, Unberath et al. 2018)::
 
     I/I0 = Σ_E w(E) · exp(−Σ_m (μ/ρ)_m(E) · A_m),   w(E) ∝ Φ(E) · E · η(E)   (energy integrating)
                                                      w(E) ∝ Φ(E) · η(E)       (photon counting)
 
-with Φ the tube spectrum, η(E) = 1 − exp(−(μ/ρ)_CsI ρ_CsI t) the CsI scintillator absorption and
-Σ w = 1; then scatter, noise and blur (docs/simulation.md, "Image formation").
+with Φ the tube spectrum, η(E) = 1 − exp(−(μ/ρ)_CsI ρ_CsI t) the CsI absorption and Σ w = 1; then
+scatter, noise and blur (docs/simulation.md, "Image formation").
 """
 
 from __future__ import annotations

@@ -1,14 +1,13 @@
 """A robot holding the CM over the hip phantom: the simulated scene of the navigation and hand-eye studies.
 
-World = the CT frame of the phantom before the patient moved (LPS, mm). The robot is a UR-10 whose
-physical kinematics differ from the controller's nominal model by
-:class:`~fluoronav.manipulator.robot.RobotErrorModel` defaults (seeded per scene), with encoder
-noise per reading: the controller sees the *nominal* forward kinematics of the commanded joints,
-the truth is the true robot at the actual joints (:meth:`HandEyeScenario.execute`). The mount
-``ee_from_cm`` is a plausible hand-made one; the C-arm and the working CM pose follow the paper's
-protocol (:func:`~fluoronav.simulation.protocol.sample_trial`, "navigation"), the robot base placed
-so that a working joint configuration holds the CM there. Hand-eye poses move the working pose
-(CM frame), reached through the nominal IK and kept in the image. Images:
+World = the CT frame of the phantom before the patient moved (LPS, mm). The robot is a UR-10 whose physical
+kinematics differ from the controller's nominal model by :class:`~fluoronav.manipulator.robot.RobotErrorModel`
+defaults (seeded per scene), with encoder noise per reading: the controller sees the *nominal* forward
+kinematics of the commanded joints, the truth is the true robot at the actual joints
+(:meth:`HandEyeScenario.execute`). The mount ``ee_from_cm`` is a plausible hand-made one; the C-arm and the
+working CM pose follow the paper's protocol (:func:`~fluoronav.simulation.protocol.sample_trial`,
+"navigation"), the robot base placed so that a working joint configuration holds the CM there. Hand-eye poses
+move the working pose (CM frame), reached through the nominal IK and kept in the image. Images:
 :class:`~fluoronav.simulation.articulated.ArticulatedSimulator`; magnitudes: docs/robot-and-calibration.md.
 """
 

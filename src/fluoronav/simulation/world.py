@@ -1,15 +1,14 @@
 """The simulated world of a navigation study: how far the inputs the method is given are from the truth.
 
 In the ideal world (:data:`IDEAL`, the default) the X-ray images are rendered from the very CT the
-registration uses, the case's cameras are the imaging cameras, the FBG reading is almost exact and
-the patient keeps still. :data:`REALISTIC` switches on one source of error per input, each a
-sub-config that is off when its magnitudes are zero (or None): :class:`CTWorld` (a clinical CT of a
-finer patient, :mod:`fluoronav.simulation.clinical_ct`), :class:`CArmWorld` (calibration error,
-:func:`case_camera`, and detector flex, :func:`flexed_camera`), :class:`FBGWorld` (noise and bias,
-:func:`fbg_reading`) and :class:`MotionWorld` (:func:`patient_motion`). Every function takes a
-``np.random.Generator`` and returns its input unchanged when its source is off, so the ideal world
-draws nothing and changes nothing. The magnitudes and where they come from: docs/simulation.md
-("Simulated worlds").
+registration uses, the case's cameras are the imaging cameras, the FBG reading is almost exact and the patient
+keeps still. :data:`REALISTIC` switches on one source of error per input, each a sub-config that is off when
+its magnitudes are zero (or None): :class:`CTWorld` (a clinical CT of a finer patient,
+:mod:`fluoronav.simulation.clinical_ct`), :class:`CArmWorld` (calibration error, :func:`case_camera`, and
+detector flex, :func:`flexed_camera`), :class:`FBGWorld` (noise and bias, :func:`fbg_reading`) and
+:class:`MotionWorld` (:func:`patient_motion`). Every function takes a ``np.random.Generator`` and returns its
+input unchanged when its source is off, so the ideal world draws nothing and changes nothing. The magnitudes
+and where they come from: docs/simulation.md ("Simulated worlds").
 """
 
 from __future__ import annotations

@@ -4,9 +4,8 @@ In the ideal world the X-ray images are rendered from the very CT the case gives
 With a :class:`~fluoronav.simulation.world.CTWorld` that is on, the images are rendered from the
 *patient*, and the case gets a clinical CT of it (:func:`~fluoronav.simulation.clinical_ct.clinical_ct`):
 
-- ``"phantom"``: the patient is the procedural hip phantom sampled at
-  ``patient_spacing_mm`` (finer than a clinical CT), the CT its partial-volume average on the
-  clinical grid with noise, an HU scale error and label boundaries off by about a voxel;
+- ``"phantom"``: the patient is the procedural hip phantom sampled at ``patient_spacing_mm`` (finer than a
+  clinical CT), the CT its average on the clinical grid with noise, HU scale error and labels off by a voxel;
 - a CT file: the patient is that CT (it cannot be sampled finer), the case's CT its degraded copy.
 
 Frames: both volumes share the world frame (LPS, mm): the CT frame of the patient before it moved.

@@ -1,15 +1,14 @@
 """Realistic X-ray images of a scene: CT material decomposition + voxelised CM + physics.
 
-For each scene the simulator (docs/simulation.md, "Image assembly") integrates the CT's
-per-material partial densities along every detector ray (g/cm³·mm → g/cm²); removes the CT inside
-the CM's envelope (the drilled path: a solid cylinder of the CM's outer radius along its bent axis,
-sampled on a ``drill_voxel_mm`` grid); voxelises the bent CM at ``cm_voxel_mm`` (partial volumes)
-as nitinol (or the authors' 2000 HU material), integrates it at ``cm_oversample``× the stored
-resolution inside its projected box and area-bins it; and forms the detector image with
-:class:`~fluoronav.simulation.physics.XrayPhysics`. The registration's analytic CM renderer is *not*
-used for the image (no inverse crime); it only gives the label mask, the projection of the CM
-envelope between landmarks A and B. A scene with an instrument as built (``Scene.built_cm``) is
-drawn, drilled and labelled with that instrument's notches, joint angles and diameters.
+For each scene the simulator (docs/simulation.md, "Image assembly") integrates the CT's per-material partial
+densities along every detector ray (g/cm³·mm → g/cm²); removes the CT inside the CM's envelope (the drilled
+path: a solid cylinder of the CM's outer radius along its bent axis, sampled on a ``drill_voxel_mm`` grid);
+voxelises the bent CM at ``cm_voxel_mm`` (partial volumes) as nitinol (or the authors' 2000 HU material),
+integrates it at ``cm_oversample``× the stored resolution inside its projected box and area-bins it; and forms
+the detector image with :class:`~fluoronav.simulation.physics.XrayPhysics`. The registration's analytic CM
+renderer is *not* used for the image (no inverse crime); it only gives the label mask, the projection of the
+CM envelope between landmarks A and B. A scene with an instrument as built (``Scene.built_cm``) is drawn,
+drilled and labelled with that instrument's notches, joint angles and diameters.
 """
 
 from __future__ import annotations

@@ -1,15 +1,13 @@
 """``fluoronav study deepfluoro``: the pelvis registration on the DeepFluoro cadaver images.
 
-Per trial one real image of the user's DeepFluoro file (:mod:`fluoronav.anatomy.deepfluoro`; trial
-``i`` takes image ``i mod n`` of the selected specimens): its collimator border cropped,
-log-transformed, registered with the navigation's pelvis preset
-(:data:`~fluoronav.registration.bone.PELVIS_LINEARIZED_PRESET`) from the ground truth perturbed as
-in Gao et al. 2022 (3° about a random axis through the pelvis centre, 10 mm in a random direction).
-Frames: the world is the specimen's CT (LPS), the camera the ground-truth one, so the truth is
-``world_from_patient`` = identity. The metrics (:func:`pelvis_errors`), the check
-(:func:`pelvis_edge_ncc`, passed at :attr:`DeepFluoroStudyConfig.min_edge_ncc`), the frames' check
-``gt_landmark_residual_px`` and the published figures on the same data (:data:`ANCHORS`):
-docs/real-data.md.
+Per trial one real image of the user's DeepFluoro file (:mod:`fluoronav.anatomy.deepfluoro`; trial ``i`` takes
+image ``i mod n`` of the selected specimens): its collimator border cropped, log-transformed, registered with
+the navigation's pelvis preset (:data:`~fluoronav.registration.bone.PELVIS_LINEARIZED_PRESET`) from the ground
+truth perturbed as in Gao et al. 2022 (3° about a random axis through the pelvis centre, 10 mm in a random
+direction). Frames: the world is the specimen's CT (LPS), the camera the ground-truth one, so the truth is
+``world_from_patient`` = identity. The metrics (:func:`pelvis_errors`), the check (:func:`pelvis_edge_ncc`,
+passed at :attr:`DeepFluoroStudyConfig.min_edge_ncc`), the frames' check ``gt_landmark_residual_px`` and the
+published figures on the same data (:data:`ANCHORS`): docs/real-data.md.
 """
 
 from __future__ import annotations

@@ -1,15 +1,14 @@
 """Trials of the ``hand-eye`` and ``navigation`` studies: config, metrics, one trial each.
 
-Both work in the simulated robot scene of :mod:`fluoronav.simulation.robot_scene`. Hand-eye trial:
-M CM poses about the working pose with one shape for all, bent in one plane by
-``calibration_bend_deg`` (the roll of the hand-eye about the CM axis shows only through the bend);
-the image-based calibration (:func:`~fluoronav.calibration.image_handeye.calibrate_hand_eye_from_images`)
-for each M of ``poses`` (nested), and the tracker baseline (AX = XB, Tsai) with its eq. 9 tip on the
-same poses. Navigation trial: the simulated navigation loop
-(:mod:`fluoronav.simulation.navigation.loop`) with a hand-eye of documented error; rows
-``reposition_open_loop_mm`` (the first move's tip error against the plan), ``reposition_tip_mm``
-(the final one) and ``reposition_registered_mm`` (what the verification images say). The trials'
-settings and rows: docs/robot-and-calibration.md ("Hand-eye and navigation studies").
+Both work in the simulated robot scene of :mod:`fluoronav.simulation.robot_scene`. Hand-eye trial: M CM poses
+about the working pose with one shape for all, bent in one plane by ``calibration_bend_deg`` (the roll of the
+hand-eye about the CM axis shows only through the bend); the image-based calibration
+(:func:`~fluoronav.calibration.image_handeye.calibrate_hand_eye_from_images`) for each M of ``poses``
+(nested), and the tracker baseline (AX = XB, Tsai) with its eq. 9 tip on the same poses. Navigation trial: the
+simulated navigation loop (:mod:`fluoronav.simulation.navigation.loop`) with a hand-eye of documented error;
+rows ``reposition_open_loop_mm`` (the first move's tip error against the plan), ``reposition_tip_mm`` (the
+final one) and ``reposition_registered_mm`` (what the verification images say). The trials' settings and rows:
+docs/robot-and-calibration.md ("Hand-eye and navigation studies").
 """
 
 from __future__ import annotations

@@ -1,14 +1,13 @@
 """A registration-study trial in a simulated world (``fluoronav study WORKFLOW --world``).
 
-The registration studies (:mod:`fluoronav.studies.pipeline`) take each source of the simulated
-world (:mod:`fluoronav.simulation.world`) as the simulated navigation does: the images rendered
-from the *patient* and the case's CT given to the registration (``world.ct``); each image taken
-with its C-arm position's camera flexed and the registration given the nominal camera with a
-calibration error (``world.carm``; intrinsics only, so errors stay in the imaging C-arm's frame);
-the FBG reading as the initial control points and prior (``world.fbg``); the CM as built in the
-images, its tip the truth (``world.instrument``); the patient moved between the images of one set
-(``world.motion.within_set_*``; none between sets). The world draws from its own generator
-(:func:`world_rng`, from the trial's seed) in the navigation's order, the protocol from the trial's,
+The registration studies (:mod:`fluoronav.studies.pipeline`) take each source of the simulated world
+(:mod:`fluoronav.simulation.world`) as the simulated navigation does: the images rendered from the *patient*
+and the case's CT given to the registration (``world.ct``); each image taken with its C-arm position's camera
+flexed and the registration given the nominal camera with a calibration error (``world.carm``; intrinsics
+only, so errors stay in the imaging C-arm's frame); the FBG reading as the initial control points and prior
+(``world.fbg``); the CM as built in the images, its tip the truth (``world.instrument``); the patient moved
+between the images of one set (``world.motion.within_set_*``; none between sets). The world draws from its own
+generator (:func:`world_rng`, from the trial's seed) in the navigation's order, the protocol from the trial's,
 so the ideal world, which draws nothing, gives the same trials as a study without a world.
 """
 

@@ -1,15 +1,14 @@
 """The training losses of the detector's stages.
 
-View stages (coarse, fine; :func:`stage_loss`): MONAI ``DiceLoss`` (sigmoid, batch-wise, so that
-negatives' false positives count) on the segmentation logit, plus by default a binary cross-entropy
-term (the paper, Gao et al., IEEE TBME 69(1), 2022, uses Dice alone, which converges much more
-slowly from random weights), plus the heatmap loss: the cross-entropy of spatial-softmax heatmaps
-(:func:`~fluoronav.detection.heatmaps.heatmap_cross_entropy`), or for peak-1 Gaussian heatmaps the
-paper's L2 error ``Σ (1 + fg·t)(h − t)² / (B · 2 · π σ²)``, a sum of squares scaled by the
-Gaussian's energy πσ² so that it stays comparable to the Dice term, with pixels near the landmark
-weighted up (fg) so the peaks are learned before the network settles on predicting zeros.
-Refinement (:func:`refine_loss`): the cross-entropy of its heatmaps. Patch-mask stages
-(:func:`ends_loss`): binary cross-entropy + Dice on the patch masks.
+View stages (coarse, fine; :func:`stage_loss`): MONAI ``DiceLoss`` (sigmoid, batch-wise, so that negatives'
+false positives count) on the segmentation logit, plus by default a binary cross-entropy term (the paper, Gao
+et al., IEEE TBME 69(1), 2022, uses Dice alone, which converges much more slowly from random weights), plus
+the heatmap loss: the cross-entropy of spatial-softmax heatmaps
+(:func:`~fluoronav.detection.heatmaps.heatmap_cross_entropy`), or for peak-1 Gaussian heatmaps the paper's L2
+error ``Σ (1 + fg·t)(h − t)² / (B · 2 · π σ²)``, a sum of squares scaled by the Gaussian's energy πσ² so that
+it stays comparable to the Dice term, with pixels near the landmark weighted up (fg) so the peaks are learned
+before the network settles on predicting zeros. Refinement (:func:`refine_loss`): the cross-entropy of its
+heatmaps. Patch-mask stages (:func:`ends_loss`): binary cross-entropy + Dice on the patch masks.
 """
 
 from __future__ import annotations

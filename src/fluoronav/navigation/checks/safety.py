@@ -1,15 +1,14 @@
 """The checks a registration must pass before the robot may act on it: their thresholds.
 
-Each CM registration is checked per view (:mod:`fluoronav.registration.cm.checks`); a view that
-fails is left out while enough views remain, otherwise the navigation refuses. The robot's
-commands are bounded: no joint turns more than ``max_joint_motion_deg``; the first move carries
-the CM tip and turns the CM only so far (``max_move_mm``, ``max_move_deg``); the correction, a
-translation, stays small (``max_correction_mm``, ``max_correction_deg``) and within what the
-agreement of the kinematics and the verification images can vouch for (``max_motion_tip_mm``),
-unless unambiguous images overrule the kinematics (``overrule_min_views``,
-``overrule_max_landmark_residual_mm``). A command beyond a bound is refused naming the plan, the
-value and the bound. The thresholds live in :class:`SafetyConfig`; docs/navigation.md ("Checks")
-says what each does and docs/validation.md ("The checks' thresholds") what data they rest on.
+Each CM registration is checked per view (:mod:`fluoronav.registration.cm.checks`); a view that fails is left
+out while enough views remain, otherwise the navigation refuses. The robot's commands are bounded: no joint
+turns more than ``max_joint_motion_deg``; the first move carries the CM tip and turns the CM only so far
+(``max_move_mm``, ``max_move_deg``); the correction, a translation, stays small (``max_correction_mm``,
+``max_correction_deg``) and within what the agreement of the kinematics and the verification images can vouch
+for (``max_motion_tip_mm``), unless unambiguous images overrule the kinematics (``overrule_min_views``,
+``overrule_max_landmark_residual_mm``). A command beyond a bound is refused naming the plan, the value and the
+bound. The thresholds live in :class:`SafetyConfig`; docs/navigation.md ("Checks") says what each does and
+docs/validation.md ("The checks' thresholds") what data they rest on.
 """
 
 from __future__ import annotations

@@ -1,14 +1,13 @@
 """The navigation, live in 3D Slicer over OpenIGTLink (``fluoronav navigate --igtl HOST:PORT``).
 
-:class:`IGTLinkStreamer` is an OpenIGTLink client of 3D Slicer's OpenIGTLinkIF server. It takes the
-pipeline's callbacks (``on_stage``, ``on_event``: :data:`fluoronav.navigation.pipeline.EventCallback`)
-and sends each result as soon as it is known: STRING ``Status``, an IMAGE per view (the detector
-plane in the CT, :func:`image_ijk_to_ras`, named by :func:`device_name`) and the TRANSFORMs
-``CMToCT``, ``FemurToCT`` and ``PlanToCT`` (docs/navigation.md, "Live view in 3D Slicer"). Slicer's
-scene is RAS, the CT frame LPS: every pose and image geometry is sent in RAS
-(:func:`ras_from_lps_transform`), a TRANSFORM as its node's "to parent" matrix. The link never
-changes the navigation: if no server answers within ``timeout_s`` at the start, or the connection is
-lost, the streamer logs one warning and does nothing more. Each message is sent synchronously
+:class:`IGTLinkStreamer` is an OpenIGTLink client of 3D Slicer's OpenIGTLinkIF server. It takes the pipeline's
+callbacks (``on_stage``, ``on_event``: :data:`fluoronav.navigation.pipeline.EventCallback`) and sends each
+result as soon as it is known: STRING ``Status``, an IMAGE per view (the detector plane in the CT,
+:func:`image_ijk_to_ras`, named by :func:`device_name`) and the TRANSFORMs ``CMToCT``, ``FemurToCT`` and
+``PlanToCT`` (docs/navigation.md, "Live view in 3D Slicer"). Slicer's scene is RAS, the CT frame LPS: every
+pose and image geometry is sent in RAS (:func:`ras_from_lps_transform`), a TRANSFORM as its node's "to parent"
+matrix. The link never changes the navigation: if no server answers within ``timeout_s`` at the start, or the
+connection is lost, the streamer logs one warning and does nothing more. Each message is sent synchronously
 (bounded by ``timeout_s``), in the order the pipeline reports.
 """
 

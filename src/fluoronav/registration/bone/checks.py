@@ -1,15 +1,14 @@
 """Whether a bone registration can be trusted in a view: per-view diagnostics, verdicts, the mirror.
 
-Two measures per view, computable without the truth, from one DRR of the registered bone at a
-working resolution (:attr:`BoneCheckConfig.image_px`, the registration's excess-μ volume):
-``edge_ncc``, the gradient NCC of the image and the DRR on the DRR's dilated outline (near 1 where
-the registered outline lies on the bone, lower where it settled beside it), and ``grad_ncc``, the
-gradient NCC over the whole used image (how much of the image's structure the bone explains;
-independent of the registration's levels, so one bound serves every preset). A view whose pelvis
-fails is registered once more on its left–right mirrored image at a coarse level
-(:attr:`BoneCheckConfig.mirror_level`): where the mirror fits clearly better and passes, the view
-is named as mirrored (the detector's orientation is wrong). The thresholds are
-:class:`BoneCheckConfig`; docs/validation.md ("Per-view bone checks") gives the data they rest on.
+Two measures per view, computable without the truth, from one DRR of the registered bone at a working
+resolution (:attr:`BoneCheckConfig.image_px`, the registration's excess-μ volume): ``edge_ncc``, the gradient
+NCC of the image and the DRR on the DRR's dilated outline (near 1 where the registered outline lies on the
+bone, lower where it settled beside it), and ``grad_ncc``, the gradient NCC over the whole used image (how
+much of the image's structure the bone explains; independent of the registration's levels, so one bound serves
+every preset). A view whose pelvis fails is registered once more on its left–right mirrored image at a coarse
+level (:attr:`BoneCheckConfig.mirror_level`): where the mirror fits clearly better and passes, the view is
+named as mirrored (the detector's orientation is wrong). The thresholds are :class:`BoneCheckConfig`;
+docs/validation.md ("Per-view bone checks") gives the data they rest on.
 """
 
 from __future__ import annotations

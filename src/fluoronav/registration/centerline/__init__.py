@@ -1,15 +1,14 @@
 """Centreline-based initialisation of the CM pose (Gao et al., IEEE TBME 69(1), 2022, sec. II-B).
 
-Two detected landmarks (A = CM base origin, B = centre of the distal plane of the last notch) fix 4
-of the 6 DoF of ``camera_from_cm``. The search covers the other two, A's depth ``depth_mm`` (d_A,
-camera-frame z) and the roll ``theta_deg`` (θ) about the chord A→B, on both roots (``near``,
-``far``) of B's ray at the model's chord length, scored by the distance of the projected model
-centreline to the detected one (px), then refines the best minima jointly with the shape.
-docs/registration.md ("One view's search") gives the geometry, the search and the cost. The parts
-(all names importable from here): ``geometry`` (poses from (d_A, θ, branch)), ``cost``,
-``shaft_depth`` (a depth cue from the shaft's width), ``joint_fit`` (the 11-DoF refinement),
-``single`` (:class:`CenterlineInitConfig`, :func:`centerline_initialize`), ``multiview`` and
-``evaluate`` (synthetic scenes).
+Two detected landmarks (A = CM base origin, B = centre of the distal plane of the last notch) fix 4 of the 6
+DoF of ``camera_from_cm``. The search covers the other two, A's depth ``depth_mm`` (d_A, camera-frame z) and
+the roll ``theta_deg`` (θ) about the chord A→B, on both roots (``near``, ``far``) of B's ray at the model's
+chord length, scored by the distance of the projected model centreline to the detected one (px), then refines
+the best minima jointly with the shape. docs/registration.md ("One view's search") gives the geometry, the
+search and the cost. The parts (all names importable from here): ``geometry`` (poses from (d_A, θ, branch)),
+``cost``, ``shaft_depth`` (a depth cue from the shaft's width), ``joint_fit`` (the 11-DoF refinement),
+``single`` (:class:`CenterlineInitConfig`, :func:`centerline_initialize`), ``multiview`` and ``evaluate``
+(synthetic scenes).
 """
 
 from __future__ import annotations

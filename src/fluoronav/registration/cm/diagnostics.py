@@ -2,9 +2,8 @@
 
 Two measures per view, both computable without the truth:
 
-- ``landmark_residual_mm``: the distance, at the detector, between the registered CM's landmarks A
-  and B projected into the view and the detected ones (the larger of the two). A registration that
-  slid along the CM or settled on another structure leaves them apart.
+- ``landmark_residual_mm``: the larger detector distance between the registered CM's landmarks A and B,
+  projected, and the detected ones: large if the registration slid along the CM or onto another structure.
 - ``edge_ncc``: the gradient NCC between the view's ROI and the registered CM's DRR, over the pixels
   where the DRR has an edge (the CM's outline, dilated by 2 px): near 1 where the outline lies on
   the CM in the image, lower where it lies beside it.

@@ -5,11 +5,10 @@ the move) and the multi-view study share: ``pelvis`` (each view alone, the CM an
 out; each view's ``camera_from_ct`` follows, and a view that fails its checks is left out of every
 later stage), ``femur`` (rotation about its head → ``ct_from_femur``, checked view by view) and
 ``cm`` (landmarks triangulated, roll scanned against the centrelines, the CM registered and checked
-view by view). What differs in a later registration of the same anatomy is data
-(:class:`ViewSetPrior`: the kinematic prediction, the earlier bones), not code; docs/navigation.md
-("Stages") describes both. Modules: ``views``, ``settings``, ``bones`` (stages 1–2), ``cm`` (stage
-3), ``fusion`` (the tip from images and kinematics), ``unmoved`` (views of unmoved C-arm positions),
-``register`` (the chain; :func:`register_view_set_bones` and :func:`register_view_set_cm` its halves).
+view by view). A later registration of the same anatomy differs in data (:class:`ViewSetPrior`: the kinematic
+prediction, the earlier bones), not code; docs/navigation.md ("Stages") describes both. Modules: ``views``,
+``settings``, ``bones`` (stages 1–2), ``cm`` (stage 3), ``fusion`` (tip from images and kinematics),
+``unmoved`` (views of unmoved C-arm positions), ``register`` (the chain and its two halves).
 """
 
 from typing import TYPE_CHECKING

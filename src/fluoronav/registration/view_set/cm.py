@@ -6,10 +6,9 @@ from the best roll minima and checked view by view (:mod:`fluoronav.registration
 After a move (:class:`ViewSetPrior`) it is first registered from the kinematic prediction with the
 local levels, the views' checks judging it (one view only where its landmarks agree with the
 prediction); otherwise the images' own starts are screened with the prediction, the plan's pose
-the fallback. The result is compared with the prediction and, where consistent, its tip fused
-with the predicted one (:func:`~fluoronav.registration.view_set.fusion.fuse_tip`). Frames: the
-given cameras' world (the CT frame, LPS, mm); the prior's poses are relative to the femur
-(``femur_from_cm``), placed through the registered ``ct_from_femur``.
+the fallback. The result is compared with the prediction and, where consistent, its tip fused with the
+predicted one (:func:`~fluoronav.registration.view_set.fusion.fuse_tip`). Frames: the cameras' world (CT, LPS,
+mm); the prior's poses are the femur's (``femur_from_cm``), placed via the registered ``ct_from_femur``.
 """
 
 from __future__ import annotations

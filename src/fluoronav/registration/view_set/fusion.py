@@ -1,5 +1,4 @@
-"""The reached CM's tip from the images and the robot's kinematics together: each weighted by what
-it can see (:func:`fuse_tip`).
+"""The reached CM tip from images and robot kinematics, weighted by what each sees (:func:`fuse_tip`).
 
 A C-arm view measures the tip across its ray well (about ``inplane_sigma_mm``) and along it
 poorly (``depth_sigma_mm``): its information is ``P/σ_in² + r rᵀ/σ_depth²`` with ``r`` the unit

@@ -1,15 +1,14 @@
 """The navigation loop in simulation, as ``fluoronav demo`` and ``fluoronav study navigation`` run it.
 
-Stages: ``scene`` (:mod:`fluoronav.simulation.navigation.scenario`: the patient, a UR-10 with
-errors holding the CM, three C-arm views); ``simulate`` (physics X-rays → a
-:class:`~fluoronav.navigation.case.model.NavigationCase`, optionally written to files and read back
-so that the pipeline sees only what a user's files give); :func:`~fluoronav.navigation.pipeline.navigate`;
-``move`` (the *true* robot to the commanded joints: the repositioning error); ``verify_simulate``
-(the C-arm slid to centre the femoral head and the planned CM as registered, ± ``aim_error_mm``,
-images of the CM where the robot took it), :func:`~fluoronav.navigation.pipeline.verify` and
-``correct_move``. Frames: ``world`` is the simulation's (the CT frame before the patient moved),
-``ct`` the pipeline's. CM and femur errors are measured in the AP view's C-arm frame (as the
-paper's), repositioning in the world frame.
+Stages: ``scene`` (:mod:`fluoronav.simulation.navigation.scenario`: the patient, a UR-10 with errors holding
+the CM, three C-arm views); ``simulate`` (physics X-rays → a
+:class:`~fluoronav.navigation.case.model.NavigationCase`, optionally written to files and read back so that
+the pipeline sees only what a user's files give); :func:`~fluoronav.navigation.pipeline.navigate`; ``move``
+(the *true* robot to the commanded joints: the repositioning error); ``verify_simulate`` (the C-arm slid to
+centre the femoral head and the planned CM as registered, ± ``aim_error_mm``, images of the CM where the robot
+took it), :func:`~fluoronav.navigation.pipeline.verify` and ``correct_move``. Frames: ``world`` is the
+simulation's (the CT frame before the patient moved), ``ct`` the pipeline's. CM and femur errors are measured
+in the AP view's C-arm frame (as the paper's), repositioning in the world frame.
 """
 
 from __future__ import annotations
