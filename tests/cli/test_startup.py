@@ -46,6 +46,25 @@ def test_navigate_loads_no_simulation_studies_training_or_bench(tmp_path: Path, 
     assert not loaded, f"fluoronav navigate imported {loaded}"
 
 
+#: libraries that no stage before the registrations uses; ``navigate`` imports them at first use
+NOT_BEFORE_REGISTRATION = ("roma", "cma", "matplotlib", "scipy.optimize", "scipy.interpolate", "scipy.stats")
+
+
+def test_navigate_reaches_its_case_without_the_registrations_libraries(tmp_path: Path) -> None:
+    """Up to reading the case (here missing: exit status 2), ``navigate`` has not imported the
+    libraries of later stages (``navigate_startup_s`` in ``fluoronav bench`` times this path)."""
+    argv = ["navigate", str(tmp_path / "no_case" / "navigation.json"), "--out", str(tmp_path / "out")]
+    proc = subprocess.run(
+        [sys.executable, "-c", _RUN_AND_LIST, *argv], capture_output=True, encoding="utf-8", timeout=300
+    )
+    assert "exit status 2" in proc.stdout and "navigation case not found" in proc.stderr, proc.stderr
+    modules = proc.stdout.split("modules:", 1)[1].split()
+    assert "fluoronav.navigation.pipeline" in modules and "torch" in modules  # the listing is the command's
+    later = NOT_BEFORE_REGISTRATION
+    loaded = [m for m in modules if m in later or m.startswith(tuple(f"{name}." for name in later))]
+    assert not loaded, f"fluoronav navigate imported {loaded} before its first stage"
+
+
 def test_the_cli_names_the_benchmark_stages_as_the_benchmarks_do() -> None:
     """``fluoronav bench`` names its stages without importing the benchmarks."""
     from fluoronav.bench import BENCH_STAGES

@@ -146,9 +146,10 @@ except SystemExit as exc:
     sys.exit(0 if exc.code == 2 else 1)
 """
 
-#: the reference's start: every module of the package imported, as fluoronav 0.9.0 effectively did
+#: the reference's start: what fluoronav 0.9.0's navigate loaded, every module of the package and
+#: the libraries those imported at the top (now imported at their first use: cma, roma)
 _IMPORT_EVERY_MODULE = """
-import importlib, pkgutil, fluoronav
+import importlib, pkgutil, fluoronav, cma, roma
 for module in pkgutil.walk_packages(fluoronav.__path__, "fluoronav."):
     importlib.import_module(module.name)
 """

@@ -15,11 +15,15 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import ndimage, optimize
+from scipy import ndimage
 
 from fluoronav.detection.centerline import end_direction, resample_polyline
+
+if TYPE_CHECKING:
+    from scipy import optimize
 
 __all__ = ["TubeProfileFit", "annulus_chord", "fit_tube_profile", "shaft_axis_px"]
 
@@ -126,10 +130,10 @@ def _fit(
     if fixed_scale:
         hi[0] = s_lo * (1.0 + 1e-9)
     p0 = np.clip(np.asarray(start, dtype=np.float64), lo + 1e-12, hi - 1e-12)
+    from scipy.optimize import least_squares  # here: a slow import, not needed at start-up
+
     try:
-        return optimize.least_squares(
-            lambda p: _model(p, x_px, fine, R, Ri) - y, p0, bounds=(lo, hi), x_scale="jac"
-        )
+        return least_squares(lambda p: _model(p, x_px, fine, R, Ri) - y, p0, bounds=(lo, hi), x_scale="jac")
     except (ValueError, np.linalg.LinAlgError) as exc:  # pragma: no cover - defensive
         logger.debug("tube profile fit failed: %s", exc)
         return None

@@ -7,8 +7,8 @@ as roma. Euler angles follow scipy's convention strings (upper case = intrinsic)
 from __future__ import annotations
 
 import math
+from types import ModuleType
 
-import roma
 import torch
 
 __all__ = [
@@ -26,30 +26,37 @@ __all__ = [
 ]
 
 
+def _roma() -> ModuleType:
+    """roma, imported at first use: its import loads ``torch._dynamo``, slower than ``torch`` itself."""
+    import roma
+
+    return roma
+
+
 def rotvec_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     """(..., 3) rotation vectors in rad → (..., 3, 3) rotation matrices."""
-    return roma.rotvec_to_rotmat(rotvec)
+    return _roma().rotvec_to_rotmat(rotvec)
 
 
 def matrix_to_rotvec(R: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) rotation matrices → (..., 3) rotation vectors in rad, angle in [0, π]."""
-    return roma.rotmat_to_rotvec(R)
+    return _roma().rotmat_to_rotvec(R)
 
 
 def quat_to_matrix(q_xyzw: torch.Tensor) -> torch.Tensor:
     """(..., 4) quaternions (x, y, z, w), normalised here → (..., 3, 3)."""
-    return roma.unitquat_to_rotmat(q_xyzw / q_xyzw.norm(dim=-1, keepdim=True))
+    return _roma().unitquat_to_rotmat(q_xyzw / q_xyzw.norm(dim=-1, keepdim=True))
 
 
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) → (..., 4) unit quaternions (x, y, z, w) with w ≥ 0."""
-    q = roma.rotmat_to_unitquat(R)
+    q = _roma().rotmat_to_unitquat(R)
     return torch.where(q[..., 3:4] < 0, -q, q)
 
 
 def euler_to_matrix(convention: str, angles_deg: torch.Tensor) -> torch.Tensor:
     """Euler angles in degrees (..., len(convention)) → (..., 3, 3), scipy's convention strings."""
-    return roma.euler_to_rotmat(convention, angles_deg, degrees=True)
+    return _roma().euler_to_rotmat(convention, angles_deg, degrees=True)
 
 
 def axis_angle_to_matrix(axis: torch.Tensor, angle_rad: torch.Tensor) -> torch.Tensor:

@@ -17,7 +17,6 @@ import functools
 
 import numpy as np
 import torch
-from scipy.interpolate import CubicSpline
 
 from fluoronav.manipulator.config import CMConfig
 
@@ -26,6 +25,8 @@ __all__ = ["CMKinematics"]
 
 @functools.lru_cache(maxsize=32)
 def _spline_weights(config: CMConfig) -> np.ndarray:
+    from scipy.interpolate import CubicSpline  # at first use: its import loads scipy.optimize
+
     knots = np.asarray(config.knot_positions())
     eye = np.eye(config.n_control_points)
     spline = CubicSpline(knots, eye, axis=0, bc_type="natural", extrapolate=True)

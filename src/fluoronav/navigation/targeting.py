@@ -18,7 +18,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from fluoronav.errors import FluoronavError
 from fluoronav.geometry import se3
@@ -287,20 +286,28 @@ def least_motion_target(
         sol = solve(roll)
         return 1e6 if sol is None else sol[0][0]  # unreachable: worse than any motion
 
+    roll, sol = best_roll, solve(best_roll)
+    refined_roll = _refine_roll(cost, best_roll, cfg)
+    refined = solve(refined_roll)
+    assert sol is not None
+    if refined is not None and refined[0] < sol[0]:  # the refinement keeps only what it improves
+        roll, sol = refined_roll, refined
+    (motion, _), F, T, q = sol
+    logger.debug("least-motion roll %.3f deg: joint motion %.3f deg", roll, motion)
+    return LeastMotionTarget(float(wrap_deg(roll)), F, T, q, motion, len(scored))
+
+
+def _refine_roll(cost: Callable[[float], float], best_roll: float, cfg: RollSearchConfig) -> float:
+    """The bounded Brent search about the scan's best roll (degrees) → the refined roll (degrees)."""
+    from scipy.optimize import minimize_scalar  # here: a slow import, not needed at start-up
+
     opt = minimize_scalar(
         cost,
         bounds=(best_roll - cfg.scan_step_deg, best_roll + cfg.scan_step_deg),
         method="bounded",
         options={"xatol": cfg.refine_xatol_deg, "maxiter": cfg.refine_maxiter},
     )
-    roll, sol = best_roll, solve(best_roll)
-    refined = solve(float(opt.x))
-    assert sol is not None
-    if refined is not None and refined[0] < sol[0]:  # the refinement keeps only what it improves
-        roll, sol = float(opt.x), refined
-    (motion, _), F, T, q = sol
-    logger.debug("least-motion roll %.3f deg: joint motion %.3f deg", roll, motion)
-    return LeastMotionTarget(float(wrap_deg(roll)), F, T, q, motion, len(scored))
+    return float(opt.x)
 
 
 @dataclass(frozen=True)

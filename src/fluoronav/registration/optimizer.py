@@ -15,9 +15,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-import cma
 import numpy as np
-from scipy import optimize
 
 __all__ = [
     "CMAES",
@@ -185,6 +183,8 @@ class CMAES:
             if evals_left < popsize:
                 reason = reason or "maxfevals"
                 break
+            import cma  # here, not at the top: its import loads scipy.stats and pyplot
+
             es = cma.CMAEvolutionStrategy(
                 start, 1.0, self._options(dim, popsize, self.seed + restart, evals_left)
             )
@@ -281,6 +281,8 @@ class NelderMead:
             state["n"] += 1
             state["nonfinite"] += int(not np.isfinite(raw[0]))
             return float(safe[0])
+
+        from scipy import optimize  # here: a slow import, not needed at start-up
 
         def cb(intermediate_result: optimize.OptimizeResult) -> None:
             # scipy reports only the best vertex per iteration: no simplex size (σ = NaN)

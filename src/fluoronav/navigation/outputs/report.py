@@ -15,7 +15,6 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib.pyplot as plt
 import numpy as np
 import torch
 from scipy import ndimage
@@ -34,6 +33,13 @@ from fluoronav.rendering.ct import render_line_integrals
 log = logging.getLogger(__name__)
 
 __all__ = ["navigation_figures", "write_report"]
+
+
+def _pyplot() -> Any:
+    """matplotlib's pyplot, imported when a figure is drawn, not when the navigation starts."""
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def _gray(ax: Any, img: np.ndarray, extent: Any = None) -> None:
@@ -62,7 +68,7 @@ def _box(points: np.ndarray, shape: tuple[int, ...], margin: float) -> tuple[int
 
 def _detection_figure(reg: ViewSetRegistration, true_landmarks: Sequence[np.ndarray] | None) -> bytes:
     n = len(reg.views)
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.2), squeeze=False)
+    fig, axes = _pyplot().subplots(1, n, figsize=(4.2 * n, 4.2), squeeze=False)
     for k, (ax, view, det) in enumerate(zip(axes[0], reg.views, reg.detections, strict=True)):
         img = view.image
         if det is None:
@@ -101,7 +107,7 @@ def _cm_overlay_figure(reg: ViewSetRegistration, title: str) -> bytes:
     """Fig. 12 style: edges of the registered CM DRR (green) on each view's ROI."""
     cm = reg.cm
     k = len(cm.view_names)
-    fig, axes = plt.subplots(1, k, figsize=(4.2 * k, 4.4), squeeze=False)
+    fig, axes = _pyplot().subplots(1, k, figsize=(4.2 * k, 4.4), squeeze=False)
     for ax, name, img, drr in zip(axes[0], cm.view_names, cm.roi_images, cm.roi_drrs, strict=True):
         lo, hi = np.percentile(img, [1, 99.5])
         rgb = np.repeat(np.clip((img - lo) / max(hi - lo, 1e-9), 0, 1)[..., None], 3, axis=-1)
@@ -119,7 +125,7 @@ def _femur_overlay_figure(reg: ViewSetRegistration, case: NavigationCase) -> byt
     mu, w_idx = bone_excess_mu(case.volume, [f"femur_{case.side}"])
     size = 256
     n = len(reg.views)
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.4), squeeze=False)
+    fig, axes = _pyplot().subplots(1, n, figsize=(4.2 * n, 4.4), squeeze=False)
     for ax, view, cam in zip(axes[0], reg.views, reg.cameras_ct, strict=True):
         f = max(1, cam.cols // size)
         small = cam.downsample(f)
@@ -163,7 +169,7 @@ def _scene_figure(
     assert first is not None
     kin = CMKinematics(case.cm_config)
     rng = np.random.default_rng(0)
-    fig = plt.figure(figsize=(10, 8))
+    fig = _pyplot().figure(figsize=(10, 8))
     ax = fig.add_subplot(111, projection="3d")
     pel = _surface_points(case.volume, "pelvis", 2500, rng)
     fem = se3.apply(first.ct_from_femur, _surface_points(case.volume, f"femur_{case.side}", 1500, rng))
@@ -222,7 +228,7 @@ def _convergence_figure(result: NavigationResult) -> bytes:
             continue
         runs += [(f"pelvis {v.name}", p.trace) for v, p in zip(reg.views, reg.pelvis, strict=True)]
         runs += [(f"femur{tag}", reg.femur.trace), (f"CM{tag}", reg.cm.trace)]
-    fig, axes = plt.subplots(1, len(runs), figsize=(3.0 * len(runs), 3.0), squeeze=False)
+    fig, axes = _pyplot().subplots(1, len(runs), figsize=(3.0 * len(runs), 3.0), squeeze=False)
     for ax, (label, trace) in zip(axes[0], runs, strict=True):
         offset = 0
         for lv in trace.levels:
@@ -241,7 +247,7 @@ def _convergence_figure(result: NavigationResult) -> bytes:
 def _timing_figure(timings_s: Mapping[str, float]) -> bytes:
     names = list(timings_s)
     secs = [timings_s[s] for s in names]
-    fig, ax = plt.subplots(figsize=(7, 0.6 + 0.25 * len(names)))
+    fig, ax = _pyplot().subplots(figsize=(7, 0.6 + 0.25 * len(names)))
     ax.barh(names[::-1], secs[::-1], color="tab:blue")
     ax.set_xlabel("seconds")
     ax.set_title(f"time per stage (total {sum(secs):.0f} s)", fontsize=10)

@@ -13,16 +13,19 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
-from scipy.optimize import OptimizeResult, least_squares
 
 from fluoronav.geometry.camera import project_points
 from fluoronav.geometry.rotations import rotvec_to_matrix
 from fluoronav.manipulator import CMKinematics
 from fluoronav.registration.centerline.cost import fixed_points_to_polylines, point_to_fixed_polyline
 from fluoronav.registration.centerline.shaft_depth import ShaftDepthCue, shaft_depth_residual
+
+if TYPE_CHECKING:
+    from scipy.optimize import OptimizeResult
 
 __all__ = ["JointFitConfig", "joint_fit"]
 
@@ -170,6 +173,8 @@ def _solve(
     lo[5], hi[5] = depth_range_mm[0] - z0, depth_range_mm[1] - z0  # A's depth stays in the range
     x0 = np.zeros(6 + n_cp)
     x0[5] = np.clip(0.0, lo[5] + 1e-6, hi[5] - 1e-6)
+    from scipy.optimize import least_squares  # here: a slow import, not needed at start-up
+
     return least_squares(
         lambda x: both(x)[0], x0, jac=lambda x: both(x)[1], bounds=(lo, hi), method="trf",
         loss="soft_l1", f_scale=config.loss_scale, max_nfev=config.max_evaluations,
