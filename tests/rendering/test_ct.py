@@ -385,6 +385,24 @@ def test_empty_space_distance_matches_brute_force() -> None:
     assert np.all(empty_space_distance(np.zeros((3, 4, 5), np.float32)) == 255)
 
 
+@pytest.mark.parametrize(
+    ("shape", "fraction"), [((40, 31, 57), 1e-3), ((300, 3, 2), 1e-3), ((64, 64, 64), 1e-5), ((2, 2, 2), 0.2)]
+)
+def test_empty_space_distance_equals_scipys_chessboard_transform(
+    shape: tuple[int, ...], fraction: float
+) -> None:
+    """The in-place uint8 passes give scipy's chessboard distance clipped at 255, on volumes where
+    distances pass 255 and on thin ones whose voxels are all on a face."""
+    from scipy import ndimage
+
+    from fluoronav.rendering._ct_numba import empty_space_distance
+
+    vol = (np.random.default_rng(1).random(shape) < fraction).astype(np.float32)
+    vol.flat[0] = 1.0  # never all empty
+    expected = np.minimum(ndimage.distance_transform_cdt(vol == 0, metric="chessboard"), 255)
+    assert np.array_equal(empty_space_distance(vol), expected.astype(np.uint8))
+
+
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_empty_space_skipping_gives_the_same_integrals(seed: int) -> None:
     """Skipping leaves out only samples whose eight corners are zero: the same sums."""

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from fluoronav.anatomy.phantom import hip_phantom
+from fluoronav.anatomy.volume import Volume
 from fluoronav.geometry.carm import carm_camera
 from fluoronav.rendering.ct import render_line_integrals
 from fluoronav.simulation.articulated import ArticulatedSimulator
@@ -158,3 +160,29 @@ def test_femur_rotation_about_head_keeps_the_head(setup):
     assert f1[win].sum() == pytest.approx(f0[win].sum(), rel=0.02)
     assert np.abs(f1[win] - f0[win]).mean() < 0.05 * f0[win].mean()
     assert np.abs(f1 - f0).max() > 0.5 * f0.max()  # while the shaft and trochanter moved
+
+
+def test_drilling_bodies_read_the_filled_ct_without_copying_it() -> None:
+    """The rest body reads the filler on the femur's voxels, the femur body the filler outside its
+    mask, the filler body only filler: as the explicit arrays they replace."""
+    from fluoronav.simulation.articulated import FILLER_HU, _XrayHelpers
+
+    rng = np.random.default_rng(2)
+    hu = rng.normal(0.0, 500.0, (6, 7, 8)).astype(np.float32)
+    mask = rng.random(hu.shape) < 0.3
+    box = (slice(1, 5), slice(0, 7), slice(2, 6))
+    vol = Volume(data=hu, spacing_mm=(1.0, 1.0, 1.0))
+    expected = {
+        "rest": np.where(mask, np.float32(FILLER_HU), hu)[box],
+        "femur": np.where(mask, hu, np.float32(FILLER_HU))[box],
+        "filler": np.full_like(hu[box], FILLER_HU),
+    }
+    device = torch.device("cpu")
+    cfg = SimulationConfig()
+    helpers = {
+        "rest": _XrayHelpers(vol, hu, cfg, device, filled=mask),
+        "femur": _XrayHelpers(vol, hu, cfg, device, filled=~mask),
+        "filler": _XrayHelpers(vol, hu, cfg, device, filled=True),
+    }
+    for name, helper in helpers.items():
+        assert np.array_equal(helper._hu_box(box), expected[name]), name

@@ -109,3 +109,21 @@ def test_decompose_hu_partials_sum_to_total_and_are_physical() -> None:
     # Bone fraction grows with HU above the 350 HU threshold.
     bone = decompose_hu(np.array([300.0, 400.0, 800.0, 1200.0]))["bone_cortical"]
     assert bone[0] == 0.0 and np.all(np.diff(bone) > 0)
+
+
+def test_decompose_hu_in_chunks_gives_every_voxel_the_same_value() -> None:
+    """Chunks of any size, or a subset of the materials, change no value (bit for bit)."""
+    from fluoronav.simulation.materials import decompose_hu
+
+    rng = np.random.default_rng(3)
+    hu = rng.uniform(-1100.0, 3000.0, (7, 11, 13)).astype(np.float32)
+    hu.flat[:6] = [-1000.0, -800.0, -100.0, 350.0, 1600.0, 0.0]  # the ramps' nodes
+    whole = decompose_hu(hu, chunk_voxels=hu.size)
+    for chunk in (1, 97, 1000):
+        parts = decompose_hu(hu, ("bone_cortical", "adipose"), chunk_voxels=chunk)
+        assert set(parts) == {"bone_cortical", "adipose"}
+        for m, density in parts.items():
+            assert density.dtype == np.float32 and density.shape == hu.shape
+            assert np.array_equal(density, whole[m]), (m, chunk)
+    with pytest.raises(ValueError, match="unknown materials"):
+        decompose_hu(hu, ("bone",))

@@ -170,3 +170,20 @@ def test_downsampled_scatter_matches_full_resolution() -> None:
     flat = torch.full((64, 64), float(np.exp(-4.0)))
     spr = noise.scatter_estimate(flat, downsample=4, **kw) / flat
     np.testing.assert_allclose(spr.numpy(), 0.2, rtol=1e-5)
+
+
+def test_drilled_path_sampling_reads_a_box_with_the_whole_ct_values() -> None:
+    """``_sample_hu`` (a box of the CT) equals trilinear sampling of the whole CT, air outside,
+    bit for bit: points inside, across the faces and all outside."""
+    from scipy.ndimage import map_coordinates
+
+    rng = np.random.default_rng(4)
+    hu = rng.normal(0.0, 500.0, (12, 9, 15)).astype(np.float32)
+    sim = XraySimulator.__new__(XraySimulator)  # only the sampler: no renderers needed
+    sim._hu = hu
+    shape = np.array(hu.shape, dtype=np.float64)[:, None]
+    for lo, hi in ((2.0, 6.0), (-3.0, 4.0), (5.0, 20.0), (-30.0, -2.0), (-1.5, 40.0)):
+        zyx = lo + (hi - lo) * rng.random((3, 200)) * (shape / shape.max())
+        whole = map_coordinates(hu, zyx, order=1, mode="constant", cval=-1000.0)
+        got = sim._sample_hu(zyx).astype(np.float32)
+        assert np.array_equal(got, whole), (lo, hi)

@@ -24,7 +24,13 @@ import torch.nn.functional as F  # noqa: N812
 from fluoronav.anatomy.volume import MU_WATER_PER_MM, Volume, hu_to_mu
 from fluoronav.device import resolve_device
 from fluoronav.geometry.camera import Camera
-from fluoronav.rendering._ct_numba import MARCH_RAYS_ARGS, empty_space_distance, march_rays
+from fluoronav.rendering._ct_numba import (
+    CHESSBOARD_ARGS,
+    MARCH_RAYS_ARGS,
+    _chessboard_passes,
+    empty_space_distance,
+    march_rays,
+)
 
 __all__ = ["DEFAULT_STEP_VOXELS", "CTRenderer", "compile_kernels", "mipmap_factors", "render_line_integrals"]
 
@@ -217,6 +223,7 @@ def compile_kernels() -> None:
     cache, so that a new process's first render loads the machine code instead of compiling it."""
     for args in MARCH_RAYS_ARGS:
         march_rays.compile(args)
+    _chessboard_passes.compile(CHESSBOARD_ARGS)
 
 
 class _Pyramid:

@@ -37,8 +37,6 @@ log = logging.getLogger(__name__)
 
 #: HU of the soft tissue that fills the femur's place in the ``rest`` body
 FILLER_HU = 40.0
-#: HU outside the CT (air) for the drilling samplers
-_AIR_HU = -1000.0
 
 
 def split_femur(volume: Volume, side: str, *, dilate_voxels: int = 1) -> tuple[np.ndarray, tuple[slice, ...]]:
@@ -68,18 +66,34 @@ def split_femur(volume: Volume, side: str, *, dilate_voxels: int = 1) -> tuple[n
 class _XrayHelpers(XraySimulator):
     """XraySimulator's CM, drilling, label and physics helpers without its whole-CT renderers.
 
-    ``hu`` is the CT the drilled path is sampled from (in the frame of ``volume``'s grid).
+    The drilled path is sampled from ``hu`` (in the frame of ``volume``'s grid) with the voxels of
+    ``filled`` read as :data:`FILLER_HU` (all of them where ``filled`` is True): the bodies' CTs
+    without a copy of the patient's.
     """
 
     def __init__(
-        self, volume: Volume, hu: np.ndarray, config: SimulationConfig, device: torch.device
+        self,
+        volume: Volume,
+        hu: np.ndarray,
+        config: SimulationConfig,
+        device: torch.device,
+        *,
+        filled: np.ndarray | bool = False,
     ) -> None:
         # deliberately not calling super().__init__: it decomposes and uploads the whole CT
         self.volume = volume
         self.config = config
         self.device = device
         self._hu = hu
+        self._filled = filled
         self._renderers = {}
+
+    def _hu_box(self, box: tuple[slice, ...]) -> np.ndarray:
+        """The body's HU in ``box``: the CT's, :data:`FILLER_HU` on the filled voxels."""
+        hu = np.asarray(self._hu[box])
+        if isinstance(self._filled, bool):
+            return np.full_like(hu, FILLER_HU) if self._filled else hu
+        return np.where(self._filled[box], np.float32(FILLER_HU), hu)
 
 
 def _body_renderers(
@@ -95,8 +109,18 @@ def _body_renderers(
             skip_empty=True,
         )
         for m in RENDERED_CT_MATERIALS
-        if np.any(parts[m] != 0)
+        if parts[m].any()
     }
+
+
+def _rest_densities(hu: np.ndarray, mask: np.ndarray) -> dict[str, np.ndarray]:
+    """The ``rest`` body's material densities: the CT's with the femur's voxels (``mask``) filled
+    with :data:`FILLER_HU`'s, set in place (no filled copy of a fine patient's CT)."""
+    rest = decompose_hu(hu, RENDERED_CT_MATERIALS)
+    filler = decompose_hu(np.array([FILLER_HU], dtype=np.float32), RENDERED_CT_MATERIALS)
+    for m, density in rest.items():
+        np.putmask(density, mask, filler[m][0])
+    return rest
 
 
 class ArticulatedSimulator:
@@ -123,14 +147,13 @@ class ArticulatedSimulator:
         self.device = resolve_device(device)
         mask, box = split_femur(volume, femur_side)
         hu = np.asarray(volume.data, dtype=np.float32)
-        rest_hu = np.where(mask, np.float32(FILLER_HU), hu)
         self.rest_world_from_index = np.asarray(volume.world_from_index, dtype=np.float64)
-        self._rest = _body_renderers(decompose_hu(rest_hu), self.rest_world_from_index, self.device)
+        self._rest = _body_renderers(_rest_densities(hu, mask), self.rest_world_from_index, self.device)
         # femur body: own densities minus the filler's, on the mask, cropped to the box
         crop_hu = hu[box]
         crop_mask = mask[box]
-        own = decompose_hu(crop_hu)
-        filler = decompose_hu(np.array([FILLER_HU], dtype=np.float32))
+        own = decompose_hu(crop_hu, RENDERED_CT_MATERIALS)
+        filler = decompose_hu(np.array([FILLER_HU], dtype=np.float32), RENDERED_CT_MATERIALS)
         delta = {m: np.where(crop_mask, own[m] - filler[m][0], 0.0).astype(np.float32) for m in own}
         offset = np.eye(4)
         offset[:3, 3] = [box[2].start, box[1].start, box[0].start]
@@ -142,12 +165,9 @@ class ArticulatedSimulator:
         box_volume = volume.replace(
             data=crop_hu, labels=None, origin_mm=tuple(self.femur_world_from_index[:3, 3])
         )
-        femur_hu = np.where(crop_mask, crop_hu, np.float32(FILLER_HU))
-        self._drill_rest = _XrayHelpers(volume, rest_hu, self.config, self.device)
-        self._drill_femur = _XrayHelpers(box_volume, femur_hu, self.config, self.device)
-        self._drill_filler = _XrayHelpers(
-            box_volume, np.full_like(crop_hu, FILLER_HU), self.config, self.device
-        )
+        self._drill_rest = _XrayHelpers(volume, hu, self.config, self.device, filled=mask)
+        self._drill_femur = _XrayHelpers(box_volume, crop_hu, self.config, self.device, filled=~crop_mask)
+        self._drill_filler = _XrayHelpers(box_volume, crop_hu, self.config, self.device, filled=True)
         log.debug("articulated split: femur box %s, %d femur voxels", box, int(mask.sum()))
 
     # ----- geometry ------------------------------------------------------------------------

@@ -178,6 +178,8 @@ AIR_MAX_HU = -800.0
 BONE_MIN_HU = 350.0
 CORTICAL_HU = 1600.0
 ADIPOSE_HU = -100.0
+#: voxels :func:`decompose_hu` splits at a time (its float64 temporaries: ~0.1 GB)
+DECOMPOSE_CHUNK_VOXELS = 1 << 22
 
 
 def hu_to_density(hu: np.ndarray) -> np.ndarray:
@@ -199,7 +201,9 @@ def hu_to_density(hu: np.ndarray) -> np.ndarray:
     return rho.astype(np.float32)
 
 
-def decompose_hu(hu: np.ndarray) -> dict[str, np.ndarray]:
+def decompose_hu(
+    hu: np.ndarray, materials: Sequence[str] = CT_MATERIALS, *, chunk_voxels: int = DECOMPOSE_CHUNK_VOXELS
+) -> dict[str, np.ndarray]:
     """Split a CT into per-material partial densities (DeepDRR-style, with soft mixing ramps).
 
     With ρ = :func:`hu_to_density` (HU):
@@ -212,15 +216,32 @@ def decompose_hu(hu: np.ndarray) -> dict[str, np.ndarray]:
       the rest ``soft_tissue`` (so spongiosa is a soft-tissue/bone mixture).
 
     The partial densities sum to ρ in every voxel (total density is continuous and non-decreasing in
-    HU); only the air/adipose switch at −800 HU changes composition abruptly.
+    HU); only the air/adipose switch at −800 HU changes composition abruptly. The volume is split in
+    chunks of ``chunk_voxels`` so that a fine patient's float64 temporaries stay small; every voxel
+    gets the same value as in one piece.
 
     Args:
         hu: (…) array of Hounsfield units.
+        materials: the materials to return (a subset of :data:`CT_MATERIALS`).
+        chunk_voxels: voxels decomposed at a time.
 
     Returns:
-        material name → (…) float32 partial density in g/cm³, keys :data:`CT_MATERIALS`.
+        material name → (…) float32 partial density in g/cm³.
     """
-    hu = np.asarray(hu, dtype=np.float32)
+    unknown = set(materials) - set(CT_MATERIALS)
+    if unknown:
+        raise ValueError(f"unknown materials {sorted(unknown)}; known: {CT_MATERIALS}")
+    flat = np.asarray(hu, dtype=np.float32).reshape(-1)
+    out = {m: np.empty(flat.shape, dtype=np.float32) for m in materials}
+    for lo in range(0, flat.size, max(int(chunk_voxels), 1)):
+        part = _decompose_chunk(flat[lo : lo + chunk_voxels])
+        for m in materials:
+            out[m][lo : lo + chunk_voxels] = part[m]
+    return {m: v.reshape(np.shape(hu)) for m, v in out.items()}
+
+
+def _decompose_chunk(hu: np.ndarray) -> dict[str, np.ndarray]:
+    """:func:`decompose_hu` of a float32 (N,) chunk, every material."""
     rho = hu_to_density(hu)
     is_air = hu < AIR_MAX_HU
     is_bone = hu > BONE_MIN_HU

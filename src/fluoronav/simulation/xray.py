@@ -46,6 +46,8 @@ __all__ = [
 
 #: CT materials rendered (air is left out: outside the body it is not in the CT, inside it is < 1 %)
 RENDERED_CT_MATERIALS = ("adipose", "soft_tissue", "bone_cortical")
+#: HU the drilled path samples outside the CT (air)
+_AIR_HU = -1000.0
 
 
 def envelope_config(config: CMConfig) -> CMConfig:
@@ -170,7 +172,7 @@ class XraySimulator:
         self.volume = volume
         self.config = config or SimulationConfig()
         self.device = resolve_device(device)
-        parts = decompose_hu(volume.data)
+        parts = decompose_hu(volume.data, RENDERED_CT_MATERIALS)
         self._renderers = {
             m: CTRenderer(volume.replace(data=parts[m], labels=None), device=self.device, mipmap=False)
             for m in RENDERED_CT_MATERIALS
@@ -190,6 +192,24 @@ class XraySimulator:
             parts = decompose_hu(np.array([cm.hu_value], dtype=np.float32))
             return {k: float(v[0]) for k, v in parts.items() if k in RENDERED_CT_MATERIALS and v[0] > 0}
         raise ValueError(f"unknown cm_material {self.config.cm_material!r}; use 'nitinol' or 'hu2000'")
+
+    def _hu_box(self, box: tuple[slice, ...]) -> np.ndarray:
+        """The CT's HU (z, y, x) in ``box``, as the drilled path samples it."""
+        return np.asarray(self._hu[box])
+
+    def _sample_hu(self, zyx: np.ndarray) -> np.ndarray:
+        """Trilinear HU at (3, n) voxel coordinates (z, y, x), air outside the CT.
+
+        Only the box of voxels the points need is read (:meth:`_hu_box`): the same values as
+        sampling the whole CT, as the box is shifted by whole voxels and keeps the CT's faces."""
+        shape = np.asarray(np.shape(self._hu))
+        lo = np.clip(np.floor(zyx.min(axis=1)).astype(np.int64) - 1, 0, shape)
+        hi = np.clip(np.floor(zyx.max(axis=1)).astype(np.int64) + 2, 0, shape)
+        if np.any(hi <= lo):  # every point beyond one of the CT's faces
+            return np.full(zyx.shape[1], _AIR_HU, dtype=np.float64)
+        box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+        shifted = zyx - lo[:, None].astype(np.float64)
+        return map_coordinates(self._hu_box(box), shifted, order=1, mode="constant", cval=_AIR_HU)
 
     def _drilled_densities(self, scene: Scene, camera: Camera) -> dict[str, torch.Tensor]:
         """Line integrals (g/cm³·mm) of the CT removed by the drilled path, per material.
@@ -216,9 +236,7 @@ class XraySimulator:
         world_from_index = scene.world_from_cm @ env.world_from_index
         ijk = np.stack([nz_idx[2], nz_idx[1], nz_idx[0], np.ones(len(nz_idx[0]))], axis=1).astype(np.float64)
         ct_index = (ijk @ world_from_index.T) @ self.volume.index_from_world.T  # (n, 4) as (i, j, k, 1)
-        hu = map_coordinates(
-            self._hu, [ct_index[:, 2], ct_index[:, 1], ct_index[:, 0]], order=1, mode="constant", cval=-1000.0
-        )
+        hu = self._sample_hu(np.stack([ct_index[:, 2], ct_index[:, 1], ct_index[:, 0]]))
         parts = decompose_hu(hu.astype(np.float32))
         out: dict[str, torch.Tensor] = {}
         box = _projected_box(camera, world_from_index, occ.shape)
