@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from fluoronav.anatomy.io import load_ct, save_volume
 from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.cli.main import main
-from fluoronav.simulation.dataset import check_dataset
+from fluoronav.simulation.dataset_check import check_dataset
 from fluoronav.simulation.scene import BONE_HU
 
 
@@ -35,6 +35,9 @@ def test_help_documents_every_option() -> None:
         "--max-shaft-mm",
         "--max-shaft-angle-deg",
         "--shaft-length-mm",
+        "--world",
+        "--scenes",
+        "--navigation-fraction",
         "--device",
     ):
         assert opt in result.output

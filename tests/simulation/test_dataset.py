@@ -11,7 +11,8 @@ import pytest
 
 import fluoronav.simulation.dataset as ds
 from fluoronav.errors import InputError
-from fluoronav.simulation.dataset import DatasetSpec, check_dataset, simulate_dataset
+from fluoronav.simulation.dataset import DatasetSpec, simulate_dataset
+from fluoronav.simulation.dataset_check import check_dataset
 
 SPEC = DatasetSpec(n_phantoms=2, image_size=96, seed=424242, phantom_spacing_mm=2.0)
 

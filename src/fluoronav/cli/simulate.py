@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from fluoronav.cli.common import DEVICE_OPTION, SEED_OPTION
+
+if TYPE_CHECKING:
+    from fluoronav.simulation.sample_variation import SampleVariation
 
 _MAX_PROJECTED_AB_OPTION = typer.Option(
     None,
@@ -43,6 +47,71 @@ _SHAFT_LENGTH_OPTION = typer.Option(
     "ends in the field; a robot's shaft that leaves the field is ~200 mm or more.",
 )
 
+_WORLD_OPTION = typer.Option(
+    "ideal",
+    "--world",
+    help="The simulated world's error sources: ideal, realistic, or a JSON file of magnitudes "
+    "(docs/simulation.md). Its patient, the CM as built and the C-arm's flex reach the images; "
+    "the labels are the true ones.",
+)
+
+_SCENES_OPTION = typer.Option(
+    "paper",
+    "--scenes",
+    help="paper: the paper's random views; navigation: the navigation's own views (the CM at the "
+    "working pose, approaching the femur along the plan, inserted); mixed: each sample one or the other.",
+)
+
+_NAVIGATION_FRACTION_OPTION = typer.Option(
+    0.5,
+    "--navigation-fraction",
+    min=0.0,
+    max=1.0,
+    help="With --scenes mixed: the share of navigation scenes.",
+)
+
+
+_RANDOMISE_OPTION = typer.Option(
+    "off",
+    "--randomise",
+    help="Domain randomisation per sample: off, or realistic (spectrum, dose, blur, scatter, "
+    "collimation, wedge, detector response, partial field of view, rotation and transpose; "
+    "docs/simulation.md). Each draw is recorded in the manifest row.",
+)
+
+_DISTRACTORS_OPTION = typer.Option(
+    "off",
+    "--distractors",
+    help="Distractor metal (K-wires, screws, a second tube, cables) near the CM: off or realistic.",
+)
+
+_DISTRACTOR_FRACTION_OPTION = typer.Option(
+    0.5,
+    "--distractor-fraction",
+    min=0.0,
+    max=1.0,
+    help="With --distractors: the share of samples that get distractor metal.",
+)
+
+
+def _variation(randomise: str, distractors: str, fraction: float) -> SampleVariation:
+    """The data set's :class:`SampleVariation` from the presets' names (a one-line error for another)."""
+    from fluoronav.simulation.distractors import DISTRACTOR_PRESETS
+    from fluoronav.simulation.randomisation import RANDOMISATION_PRESETS
+    from fluoronav.simulation.sample_variation import SampleVariation
+
+    for name, presets, option in (
+        (randomise, RANDOMISATION_PRESETS, "--randomise"),
+        (distractors, DISTRACTOR_PRESETS, "--distractors"),
+    ):
+        if name not in presets:
+            raise typer.BadParameter(f"{name!r}; use one of {', '.join(presets)}", param_hint=option)
+    return SampleVariation(
+        randomisation=RANDOMISATION_PRESETS[randomise],
+        distractors=DISTRACTOR_PRESETS[distractors],
+        p_distractors=fraction,
+    )
+
 
 def register(app: typer.Typer) -> None:
     @app.command("simulate")
@@ -68,6 +137,12 @@ def register(app: typer.Typer) -> None:
         max_projected_shaft_mm: float = _MAX_SHAFT_OPTION,
         max_shaft_angle_deg: float = _MAX_SHAFT_ANGLE_OPTION,
         shaft_length_mm: float = _SHAFT_LENGTH_OPTION,
+        world: str = _WORLD_OPTION,
+        scenes: str = _SCENES_OPTION,
+        navigation_fraction: float = _NAVIGATION_FRACTION_OPTION,
+        randomise: str = _RANDOMISE_OPTION,
+        distractors: str = _DISTRACTORS_OPTION,
+        distractor_fraction: float = _DISTRACTOR_FRACTION_OPTION,
         device: str = DEVICE_OPTION,
     ) -> None:
         """Simulate a data set of X-ray images with labels (manifest.jsonl + samples/*.npz).
@@ -76,11 +151,17 @@ def register(app: typer.Typer) -> None:
         400-500 mm, LAO/RAO 0-360 deg, CRAN/CAUD 75-105 deg, +-20 mm translation), the CM in and
         around a femur (or the bone nearest the centre of an unlabelled CT). Images are stored at
         --size (the 1536 px detector binned; landmarks, camera and pixel spacing in the manifest
-        refer to the stored pixels). Samples are written as they finish; rerun to resume. The same
-        --seed gives the same samples for any number of workers.
+        refer to the stored pixels). --scenes navigation draws the navigation's own views instead,
+        --world the world they are imaged in, --randomise and --distractors what each sample varies
+        beyond it. Samples are written as they finish; rerun to resume.
+        The same --seed gives the same samples for any number of workers.
         """
         from fluoronav.device import resolve_device  # heavy: torch
         from fluoronav.simulation.dataset import DatasetSpec, simulate_dataset  # lazy: fast --help
+        from fluoronav.simulation.world import load_world  # lazy: fast --help
+
+        simulated_world = load_world(world)  # an unknown world or a bad file is bad input
+        variation = _variation(randomise, distractors, distractor_fraction)
 
         try:
             spec = DatasetSpec(
@@ -94,6 +175,10 @@ def register(app: typer.Typer) -> None:
                 shaft_length_mm=shaft_length_mm,
                 max_projected_shaft_mm=max_projected_shaft_mm,
                 max_shaft_angle_deg=max_shaft_angle_deg,
+                world=simulated_world,
+                scenes=scenes,
+                navigation_fraction=navigation_fraction,
+                variation=variation,
             )
         except ValueError as exc:  # settings that contradict each other
             raise typer.BadParameter(str(exc)) from exc

@@ -18,7 +18,8 @@ from fluoronav.lazy import lazy_face
 if TYPE_CHECKING:
     from fluoronav.simulation.articulated import ArticulatedSimulator, anatomy_and_simulator, split_femur
     from fluoronav.simulation.cm_case import SimulatedCMCase, simulate_cm_case
-    from fluoronav.simulation.dataset import DatasetSpec, check_dataset, simulate_dataset
+    from fluoronav.simulation.dataset import DatasetSpec, simulate_dataset
+    from fluoronav.simulation.dataset_check import check_dataset
     from fluoronav.simulation.materials import decompose_hu, hu_to_density, linear_attenuation_per_mm
     from fluoronav.simulation.physics import XrayPhysics
     from fluoronav.simulation.protocol import ProtocolConfig, Trial, sample_trial, simulate_trial_images

@@ -29,7 +29,14 @@ from fluoronav.rendering.ct import CTRenderer
 from fluoronav.simulation.instrument import BuiltCM
 from fluoronav.simulation.materials import MM_PER_CM, decompose_hu
 from fluoronav.simulation.scene import Scene
-from fluoronav.simulation.xray import RENDERED_CT_MATERIALS, SimulatedImage, SimulationConfig, XraySimulator
+from fluoronav.simulation.xray import (
+    RENDERED_CT_MATERIALS,
+    SimulatedImage,
+    SimulationConfig,
+    VaryImage,
+    XraySimulator,
+    imaged,
+)
 
 __all__ = ["FILLER_HU", "ArticulatedSimulator", "split_femur"]
 
@@ -277,6 +284,7 @@ class ArticulatedSimulator:
         image_size: int | None = None,
         cm_config: CMConfig | None = None,
         built_cm: BuiltCM | None = None,
+        vary: VaryImage | None = None,
     ) -> SimulatedImage:
         """A realistic image (reproducible for a seed) with its CM labels.
 
@@ -289,6 +297,8 @@ class ArticulatedSimulator:
             cm_config: CM geometry (default :class:`CMConfig`).
             built_cm: the instrument as built, drawn and labelled (mask, landmarks) instead of the
                 model (see :meth:`areal_densities`); None: the model.
+            vary: decides the sample's :class:`~fluoronav.simulation.xray.ImageVariation` from its
+                stored camera and landmarks; None: none.
 
         Returns:
             :class:`SimulatedImage` whose ``scene`` holds the full camera, the CM pose and
@@ -305,10 +315,10 @@ class ArticulatedSimulator:
             cm_config=cm_config,
             built_cm=built_cm,
         )
-        physics = self.config.physics.with_pixel_scale(camera.cols / stored.cols)
-        image = physics.apply(dens, seed=seed).float().cpu().numpy()
         scene = self._scene(camera, cm, cm_config, built_cm)
         mask, lm = self._drill_rest.labels(scene, stored)
+        variation = vary(stored, lm) if vary is not None else None
+        image = imaged(dens, self.config.physics, variation, pixel_scale=camera.cols / stored.cols, seed=seed)
         return SimulatedImage(image=image, mask=mask, landmarks_px=lm, camera=stored, scene=scene)
 
 

@@ -14,6 +14,7 @@ drilled and labelled with that instrument's notches, joint angles and diameters.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -119,6 +120,45 @@ def compile_kernels() -> None:
     on-disk cache, so that a new process's first image loads the machine code instead of compiling it."""
     for args in BINNED_TUBE_CHORDS_ARGS:
         binned_tube_chords.compile(args)
+
+
+@dataclass(frozen=True, eq=False)
+class ImageVariation:
+    """What a sample varies beyond its scene, decided once its labels are known (domain randomisation).
+
+    Attributes:
+        physics: the detector-pixel physics instead of the simulator's, scaled to the stored pixels
+            as the simulator's is; None: the simulator's.
+        densities: material → (H, W) areal densities in g/cm² at the stored camera, added to the
+            scene's before the physics (collimator blades, a wedge, distractor metal).
+    """
+
+    physics: XrayPhysics | None = None
+    densities: Mapping[str, torch.Tensor] = field(default_factory=dict)
+
+
+#: a sample's variation from its stored camera and its landmarks (2, 2) (None without a CM)
+VaryImage = Callable[[Camera, "np.ndarray | None"], ImageVariation]
+
+
+def imaged(
+    densities: Mapping[str, torch.Tensor],
+    physics: XrayPhysics,
+    variation: ImageVariation | None,
+    *,
+    pixel_scale: float,
+    seed: int,
+) -> np.ndarray:
+    """The stored image (H, W) float32 of areal densities (g/cm²): ``physics`` (or the variation's)
+    at ``pixel_scale`` detector pixels per stored pixel, the variation's densities added first."""
+    dens = dict(densities)
+    if variation is not None:
+        ref = next(iter(dens.values()))
+        for m, extra in variation.densities.items():
+            extra = extra.to(device=ref.device, dtype=ref.dtype)
+            dens[m] = dens[m] + extra if m in dens else extra
+        physics = variation.physics or physics
+    return physics.with_pixel_scale(pixel_scale).apply(dens, seed=seed).float().cpu().numpy()
 
 
 @dataclass(frozen=True, eq=False)
@@ -368,14 +408,19 @@ class XraySimulator:
         lm = env.landmarks_px(T, cp, K)[0, 0].cpu().numpy()
         return mask, lm
 
-    def simulate(self, scene: Scene, *, seed: int, camera: Camera | None = None) -> SimulatedImage:
-        """A realistic image of ``scene`` (reproducible for a seed) with its labels."""
+    def simulate(
+        self, scene: Scene, *, seed: int, camera: Camera | None = None, vary: VaryImage | None = None
+    ) -> SimulatedImage:
+        """A realistic image of ``scene`` (reproducible for a seed) with its labels; ``vary`` decides
+        the sample's :class:`ImageVariation` from its stored camera and landmarks."""
         camera = camera or self.stored_camera(scene)
         dens = self.areal_densities(scene, camera)
-        # blur/scatter widths are given in detector pixels: scale them to the stored pixels
-        physics = self.config.physics.with_pixel_scale(scene.camera.cols / camera.cols)
-        image = physics.apply(dens, seed=seed).float().cpu().numpy()
         mask, lm = self.labels(scene, camera)
+        variation = vary(camera, lm) if vary is not None else None
+        # blur/scatter widths are given in detector pixels: scale them to the stored pixels
+        image = imaged(
+            dens, self.config.physics, variation, pixel_scale=scene.camera.cols / camera.cols, seed=seed
+        )
         return SimulatedImage(image=image, mask=mask, landmarks_px=lm, camera=camera, scene=scene)
 
 
