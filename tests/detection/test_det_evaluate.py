@@ -10,6 +10,7 @@ import pytest
 from det_synthetic import write_dataset
 from test_det_detector import empty_net
 
+from fluoronav.cli.evaluate import _model_files
 from fluoronav.cli.main import main
 from fluoronav.detection.detector import Detection, Detector
 from fluoronav.detection.training.dataset import load_sample, read_manifest, shaft_length_of
@@ -17,14 +18,17 @@ from fluoronav.detection.training.evaluate import (
     OVER_SHAFT_MAX_DEG,
     VIEW_KINDS,
     _confidence_classes,
+    comparison_markdown,
     dice_score,
     evaluate,
+    evaluate_models,
     evaluate_sets,
     projected_shaft_mm,
     shaft_angle_deg,
     view_kind,
 )
 from fluoronav.detection.training.train import save_model
+from fluoronav.errors import InputError
 
 
 def test_dice_score() -> None:
@@ -203,13 +207,122 @@ def test_evaluate_command_pools_repeated_data(tmp_path: Path, capsys: pytest.Cap
     assert json.loads(capsys.readouterr().out)["data"] == str(a)
 
 
+def _without_times(summary: dict) -> dict:
+    """A summary without its ``detect_ms`` figures (timings differ from run to run)."""
+    if isinstance(summary, dict):
+        return {k: _without_times(v) for k, v in summary.items() if k != "detect_ms"}
+    return [_without_times(v) for v in summary] if isinstance(summary, list) else summary
+
+
+def test_evaluate_models_scores_every_model_on_the_same_images(tmp_path: Path) -> None:
+    a = write_dataset(tmp_path / "a", 9, size=64, seed=3, negative_every=3)
+    b = write_dataset(tmp_path / "b", 4, size=64, seed=5, negative_every=2)
+    per_sample = tmp_path / "rows.jsonl"
+    # "old" misses image 1 (a positive of set a); "new" and its twin "same" miss nothing
+    models = {
+        "old": _KnownErrors([a, b], miss={1}),
+        "new": _KnownErrors([a, b], miss=set()),
+        "same": _KnownErrors([a, b], miss=set()),
+    }
+    got = evaluate_models(models, [a, b], split="all", progress=False, per_sample=per_sample)
+    assert all(m.calls == 13 for m in models.values())  # every image once to each model
+    assert list(got["models"]) == ["old", "new", "same"]
+    # each model's summary is what evaluate_sets gives for it alone
+    alone = evaluate_sets(_KnownErrors([a, b], miss={1}), [a, b], split="all", progress=False)
+    assert _without_times(got["models"]["old"]) == _without_times(alone)
+    assert _without_times(got["models"]["new"]) == _without_times(got["models"]["same"])
+    rows = got["comparison"]
+    assert [(r["data"], r["model"]) for r in rows] == [
+        (d, m) for d in (str(a), str(b), "pooled") for m in ("old", "new", "same")
+    ]
+    old, new, same = rows[-3:]  # pooled
+    assert old["found_rate"] == pytest.approx(7 / 8) and new["found_rate"] == 1.0
+    # every found A is 5 mm off (gross), every B exact
+    assert (old["landmark_gross"], old["landmarks"], old["landmark_gross_rate"]) == (7, 14, 0.5)
+    assert (new["landmark_gross"], new["landmarks"]) == (8, 16)
+    assert old["false_positive_rate"] == 0.0 and old["landmark_mm_median"] == pytest.approx(2.5)
+    assert {k: v for k, v in new.items() if k != "model"} == {k: v for k, v in same.items() if k != "model"}
+    assert got["models"]["old"]["pooled"]["landmark_gross_rate"] == 0.5
+    records = [json.loads(line) for line in per_sample.read_text().splitlines()]
+    assert [(r["model"], r["data"]) for r in records[:3]] == [
+        ("old", str(a)),
+        ("new", str(a)),
+        ("same", str(a)),
+    ]
+    assert len(records) == 3 * 13
+    # one set: each model's summary is evaluate's, and no pooled rows
+    one = evaluate_models(
+        {"x": _KnownErrors(b, miss=set()), "y": _KnownErrors(b, miss={0})}, [b], split="all", progress=False
+    )
+    assert one["models"]["x"]["data"] == str(b) and [r["data"] for r in one["comparison"]] == [str(b)] * 2
+    table = comparison_markdown(rows).splitlines()
+    assert len(table) == 2 + 9 and table[0].startswith("| data set | model |")
+    assert table[2].startswith(
+        "| a | old | 6 | 3 | 83.3% | 0.0% | 5/10 | 50.00% | 2.50 |"
+    )  # names below tmp_path
+    assert table[-3].startswith("| pooled | old | 8 | 5 | 87.5% | 0.0% | 7/14 | 50.00% | 2.50 |")
+
+
+def test_evaluate_command_compares_labelled_models(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    a = write_dataset(tmp_path / "a", 3, size=64, seed=3, negative_every=3)
+    b = write_dataset(tmp_path / "b", 2, size=64, seed=5, negative_every=2)
+    model = tmp_path / "m.pt"
+    save_model(model, empty_net(), extra={})
+    args = ["evaluate", "--split", "all", "--device", "cpu", "--no-progress", "--data", str(a)]
+    md = tmp_path / "docs" / "table.md"
+    main(
+        [*args, "--data", str(b), "--model", f"old={model}", "--model", f"new={model}", "--markdown", str(md)]
+    )
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out)
+    assert list(summary) == ["models", "comparison"] and list(summary["models"]) == ["old", "new"]
+    old, new = summary["models"]["old"], summary["models"]["new"]
+    assert old["pooled"]["samples"] == 5 and old["pooled"]["model"] == str(model)
+    assert _without_times(old) == _without_times(new)
+    assert [(r["data"], r["model"]) for r in summary["comparison"]] == [
+        (d, m) for d in (str(a), str(b), "pooled") for m in ("old", "new")
+    ]
+    assert "old" in captured.err and "new" in captured.err and "pooled" in captured.err  # the table
+    lines = md.read_text().splitlines()
+    assert len(lines) == 2 + 6 and all(line.startswith("| ") for line in lines[2:])
+    # one model: the summary as before (no comparison), the Markdown table still written
+    main([*args, "--model", str(model), "--markdown", str(md)])
+    captured = capsys.readouterr()
+    single = json.loads(captured.out)
+    assert single["data"] == str(a) and "comparison" not in single and "models" not in single
+    assert single["landmark_gross_rate"] is None  # nothing found: no landmark scored
+    assert md.read_text().splitlines()[2] == "| a | m | 2 | 1 | 0.0% | 0.0% | 0/0 | n/a | n/a | n/a | 0.000 |"
+    assert captured.err == ""  # the table is printed for several models only
+    with pytest.raises(SystemExit) as exc:  # two models under one label
+        main([*args, "--model", str(model), "--model", str(model)])
+    assert exc.value.code == 2 and "labelled 'm'" in capsys.readouterr().err
+
+
+def test_model_labels(tmp_path: Path) -> None:
+    odd = tmp_path / "lr=0.1.pt"  # a file whose name holds "=" is taken as a file
+    odd.write_text("")
+    assert _model_files([]) == {"shipped": None}
+    assert _model_files(["shipped", "new=x/new.pt", "x/old.pt", str(odd)]) == {
+        "shipped": None,
+        "new": Path("x/new.pt"),
+        "old": Path("x/old.pt"),
+        "lr=0.1": odd,
+    }
+    assert _model_files(["ref=shipped", "shipped"]) == {"ref": None, "shipped": None}
+    for values in (["a.pt", "b/a.pt"], ["=a.pt"], ["a="], ["shipped", "shipped"]):
+        with pytest.raises(InputError):
+            _model_files(values)
+
+
 def test_evaluate_refuses_an_unwritable_output_before_scoring(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     data = write_dataset(tmp_path / "d", 2, size=48, seed=1)
     blocker = tmp_path / "a_file"
     blocker.write_text("")
-    for option in ("--out", "--per-sample"):
+    for option in ("--out", "--per-sample", "--markdown"):
         with pytest.raises(SystemExit) as exc:
             main(
                 [

@@ -1,19 +1,21 @@
 """Benchmark of the data set simulation (``fluoronav bench`` key ``simulate_samples_per_s``).
 
-At the default settings (the 1 mm hip phantom, 512² images binned from the 1536² detector, noise
-on), after a warm-up (phantom build, numba compilation): ``_in_process``
-(:meth:`XraySimulator.simulate` in this process), ``_workers`` (the ``simulate`` data set path,
-:func:`run_tasks` on a Dask LocalCluster of 2 single-threaded workers, the rate after each worker's
-first sample), the headline (the higher of the two), ``_baseline`` (the same scenes with scatter
-convolved at full resolution and the spectrum in 1 keV bins, the accuracy reference of those two
-speed-ups) and ``_speedup``. ``simulate_cpu_s_per_sample`` (and ``_baseline``) is the CPU time per
-in-process sample, a load-independent cost: with C idle cores the data set path reaches at most
-about C / it samples per second. Keys: docs/simulation.md ("Speed"); figures: docs/validation.md.
+At the default settings (the 1 mm hip phantom, 512² images from the 1536² detector, noise on), after a
+warm-up: ``_in_process`` (:meth:`XraySimulator.simulate` here), ``_workers`` (the ``simulate`` path on a
+Dask LocalCluster of 2 single-threaded workers, after each one's first sample), the headline (the higher),
+``_baseline`` (scatter at full resolution, 1 keV spectrum bins: the accuracy reference) and ``_speedup``;
+``simulate_cpu_s_per_sample`` (and ``_baseline``): CPU time per in-process sample, load-independent.
+``simulate_realistic_samples_per_s``: the realistic world's data set (the 0.5 mm patient, navigation
+scenes, randomisation, distractors) on 2 workers; ``simulate_realistic_peak_rss_gb``: the peak memory of
+one such process. Keys: docs/simulation.md ("Speed"); figures: docs/validation.md.
 """
 
 from __future__ import annotations
 
 import logging
+import resource
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -62,6 +64,58 @@ def _workers_rate(n: int, workers: int, device: str) -> float:
     return (len(stamps) - workers) / (stamps[-1] - stamps[workers - 1])
 
 
+#: the realistic data set the bench times (``fluoronav simulate`` options)
+REALISTIC_OPTIONS = (
+    "--world", "realistic", "--phantoms", "1", "--scenes", "navigation",
+    "--randomise", "realistic", "--distractors", "realistic",
+)  # fmt: skip
+
+
+def _realistic_peak_rss_gb(n: int, device: str) -> float:
+    """Peak resident memory (GB) of a process that simulates ``n`` realistic samples in itself."""
+    with tempfile.TemporaryDirectory(prefix="fluoronav-bench-") as tmp:
+        argv = [
+            "simulate",
+            "--n",
+            str(n),
+            "--out",
+            tmp,
+            "--workers",
+            "0",
+            "--seed",
+            "4242",
+            "--device",
+            device,
+        ]
+        code = "import sys; from fluoronav.cli.main import main; main(sys.argv[1:])"
+        proc = subprocess.run([sys.executable, "-c", code, *argv, *REALISTIC_OPTIONS], capture_output=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"realistic simulate failed: {proc.stderr.decode()[-400:]}")
+    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1e6  # kB on Linux
+
+
+def _realistic_rate(n: int, workers: int, device: str) -> float:
+    from fluoronav.simulation.dataset import DatasetSpec, simulate_dataset
+    from fluoronav.simulation.distractors import DISTRACTORS_REALISTIC
+    from fluoronav.simulation.randomisation import RANDOMISATION_REALISTIC
+    from fluoronav.simulation.sample_variation import SampleVariation
+    from fluoronav.simulation.world import REALISTIC
+
+    stamps: list[float] = []
+    variation = SampleVariation(randomisation=RANDOMISATION_REALISTIC, distractors=DISTRACTORS_REALISTIC)
+    spec = DatasetSpec(
+        n_phantoms=1, seed=4243, device=device, world=REALISTIC, scenes="navigation", variation=variation
+    )
+    with tempfile.TemporaryDirectory(prefix="fluoronav-bench-") as tmp:
+        simulate_dataset(
+            Path(tmp), n, spec, workers=workers, on_result=lambda _row: stamps.append(time.perf_counter()),
+            contact_sheet_png=False,
+        )  # fmt: skip
+    if len(stamps) <= workers:
+        return float("nan")
+    return (len(stamps) - workers) / (stamps[-1] - stamps[workers - 1])
+
+
 def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
     """Measure the simulation throughput and its baseline on ``device`` (see the module docstring;
     on CUDA the workers share the one GPU)."""
@@ -74,7 +128,12 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
     workers = _workers_rate(6 if quick else 12, 2, device)
     headline = max(fast, workers) if np.isfinite(workers) else fast
     log.info("simulate: %.3f samples/s in process, %.3f with 2 workers, baseline %.3f", fast, workers, base)
+    peak_gb = _realistic_peak_rss_gb(2 if quick else 3, device)  # before any realistic worker ends
+    realistic = _realistic_rate(4 if quick else 12, 2, device)
+    log.info("simulate realistic: %.3f samples/s with 2 workers, %.2f GB per process", realistic, peak_gb)
     return {
+        "simulate_realistic_samples_per_s": realistic,
+        "simulate_realistic_peak_rss_gb": peak_gb,
         "simulate_samples_per_s": headline,
         "simulate_samples_per_s_in_process": fast,
         "simulate_samples_per_s_workers": workers,

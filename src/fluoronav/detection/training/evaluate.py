@@ -7,6 +7,7 @@ field of that fraction of its sides (a random place that keeps the whole CM; see
 The summary splits the positives by how long the CM and its mounting shaft project and by what the
 view shows of the CM (:func:`view_kind`: nearly end-on, over its own shaft, or clear), the views
 that hold most gross landmark errors; ``per_sample`` writes one JSON line per scored image.
+:func:`evaluate_models` scores several detectors on the same images and tabulates them side by side.
 docs/detector.md ("What ``evaluate`` reports") lists every figure.
 """
 
@@ -15,8 +16,9 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -25,6 +27,7 @@ from tqdm import tqdm
 
 from fluoronav.detection.detector import Detector
 from fluoronav.detection.training.dataset import (
+    Sample,
     collimate,
     load_sample,
     read_manifest,
@@ -187,8 +190,41 @@ def _group(sel: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def _row(
+    detector: Detector, s: Sample, rec: dict[str, Any], shaft_length_mm: float, tag: dict[str, Any] | None
+) -> dict[str, Any]:
+    """The record of one image ``s`` (manifest record ``rec``) scored by ``detector`` (see
+    :func:`evaluate`), ``tag``'s items first."""
+    t0 = time.perf_counter()
+    det = detector.detect(s.image, pixel_spacing_mm=s.pixel_spacing_mm)
+    seconds = time.perf_counter() - t0
+    sp = s.pixel_spacing_mm
+    row: dict[str, Any] = dict(tag or {}) | {
+        "id": s.id,
+        "positive": s.landmarks_px is not None,
+        "found": bool(det.found),
+        "usable": det.usable,
+        "confidence": [float(c) for c in det.landmark_confidence],
+        "detect_ms": 1e3 * seconds,
+    }
+    if s.landmarks_px is not None:
+        dice = dice_score(det.mask, s.mask) if det.found else 0.0
+        ab_px = float(np.linalg.norm(s.landmarks_px[1] - s.landmarks_px[0]))
+        row |= {"dice": dice, "ab_px": ab_px, "ab_mm": None if sp is None else ab_px * sp}
+        row["shaft_mm"] = projected_shaft_mm(rec, shaft_length_mm)
+        row["shaft_angle_deg"] = shaft_angle_deg(rec, s.landmarks_px, shaft_length_mm)
+        row["view"] = view_kind(row["ab_mm"], row["shaft_angle_deg"])
+        row |= {"landmark_px": None, "landmark_mm": None}
+        if det.found and det.landmarks_px is not None:
+            e = np.linalg.norm(det.landmarks_px - s.landmarks_px, axis=1)
+            row["landmark_px"] = e.tolist()
+            if sp is not None:
+                row["landmark_mm"] = (e * sp).tolist()
+    return row
+
+
 def _score(
-    detector: Detector,
+    detectors: Sequence[Detector],
     data_dir: str | Path,
     *,
     split: str,
@@ -197,49 +233,27 @@ def _score(
     field_frac: float | None,
     seed: int,
     sink: TextIO | None,
-    tag: dict[str, Any] | None = None,
-) -> list[dict[str, Any]]:
-    """One record per image of ``split`` (see :func:`evaluate`), each also written to ``sink`` with
-    ``tag``'s items first as it is scored."""
+    tags: Sequence[dict[str, Any] | None],
+) -> list[list[dict[str, Any]]]:
+    """One record per image of ``split`` (see :func:`evaluate`) for each detector (each image is read
+    and cropped once and handed to every detector in turn), each also written to ``sink`` with its
+    detector's ``tags`` items first as it is scored."""
     records = read_manifest(data_dir)
     shaft_length_mm = shaft_length_of(data_dir)
     if split != "all":
         records = [r for r in records if split_of(str(r["id"]), val_fraction) == split]
-    rows: list[dict[str, Any]] = []
+    rows: list[list[dict[str, Any]]] = [[] for _ in detectors]
     for i, rec in enumerate(tqdm(records, desc="evaluate", disable=not progress)):
         s = load_sample(data_dir, rec)
         if field_frac is not None:
             rng = np.random.default_rng([seed, i])
             s = collimate(s, rng, min_field_frac=field_frac, max_field_frac=field_frac)
-        t0 = time.perf_counter()
-        det = detector.detect(s.image, pixel_spacing_mm=s.pixel_spacing_mm)
-        seconds = time.perf_counter() - t0
-        sp = s.pixel_spacing_mm
-        row: dict[str, Any] = dict(tag or {}) | {
-            "id": s.id,
-            "positive": s.landmarks_px is not None,
-            "found": bool(det.found),
-            "usable": det.usable,
-            "confidence": [float(c) for c in det.landmark_confidence],
-            "detect_ms": 1e3 * seconds,
-        }
-        if s.landmarks_px is not None:
-            dice = dice_score(det.mask, s.mask) if det.found else 0.0
-            ab_px = float(np.linalg.norm(s.landmarks_px[1] - s.landmarks_px[0]))
-            row |= {"dice": dice, "ab_px": ab_px, "ab_mm": None if sp is None else ab_px * sp}
-            row["shaft_mm"] = projected_shaft_mm(rec, shaft_length_mm)
-            row["shaft_angle_deg"] = shaft_angle_deg(rec, s.landmarks_px, shaft_length_mm)
-            row["view"] = view_kind(row["ab_mm"], row["shaft_angle_deg"])
-            row |= {"landmark_px": None, "landmark_mm": None}
-            if det.found and det.landmarks_px is not None:
-                e = np.linalg.norm(det.landmarks_px - s.landmarks_px, axis=1)
-                row["landmark_px"] = e.tolist()
-                if sp is not None:
-                    row["landmark_mm"] = (e * sp).tolist()
-        rows.append(row)
-        if sink is not None:
-            sink.write(json.dumps(row) + "\n")
-            sink.flush()
+        for detector, tag, out in zip(detectors, tags, rows, strict=True):
+            row = _row(detector, s, rec, shaft_length_mm, tag)
+            out.append(row)
+            if sink is not None:
+                sink.write(json.dumps(row) + "\n")
+                sink.flush()
     return rows
 
 
@@ -262,6 +276,9 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "count": int(np.sum(np.asarray(err_mm) > GROSS_ERROR_MM)),
             "of": len(err_mm),
         },
+        "landmark_gross_rate": (
+            int(np.sum(np.asarray(err_mm) > GROSS_ERROR_MM)) / len(err_mm) if err_mm else None
+        ),
         "by_projected_ab": _classes(positives, "ab_mm", AB_CLASS_EDGES_MM),
         "by_projected_shaft": _classes(positives, "shaft_mm", SHAFT_CLASS_EDGES_MM),
         "by_landmark_confidence": _confidence_classes(positives, CONFIDENCE_CLASS_EDGES),
@@ -333,25 +350,94 @@ def evaluate_sets(
     the records are :func:`evaluate`'s. ``field_frac`` fields are placed per set, as evaluate places
     them.
     """
+    results = _evaluate(
+        {"": detector},
+        data_dirs,
+        split=split,
+        val_fraction=val_fraction,
+        progress=progress,
+        field_frac=field_frac,
+        seed=seed,
+        per_sample=per_sample,
+        tag_models=False,
+    )
+    return results[""]
+
+
+def evaluate_models(
+    detectors: Mapping[str, Detector],
+    data_dirs: Sequence[str | Path],
+    *,
+    split: str = "val",
+    val_fraction: float = 1 / 11,
+    progress: bool = True,
+    field_frac: float | None = None,
+    seed: int = 0,
+    per_sample: str | Path | None = None,
+) -> dict[str, Any]:
+    """Several detectors, each under its label, scored on the same images of one or more data sets
+    (each image read and cropped once): old and new models compared in one run.
+
+    Returns ``{"models": {label: summary}, "comparison": rows}``: each summary is what
+    :func:`evaluate` (one set) or :func:`evaluate_sets` (several) gives for that detector alone, and
+    ``rows`` are :func:`comparison_rows` of them. Each ``per_sample`` record starts with ``model``
+    (its detector's label), then is as :func:`evaluate_sets` writes it.
+    """
+    results = _evaluate(
+        detectors,
+        data_dirs,
+        split=split,
+        val_fraction=val_fraction,
+        progress=progress,
+        field_frac=field_frac,
+        seed=seed,
+        per_sample=per_sample,
+        tag_models=True,
+    )
+    models = {label: r if len(data_dirs) > 1 else r["sets"][0] for label, r in results.items()}
+    return {"models": models, "comparison": comparison_rows(models)}
+
+
+def _evaluate(
+    detectors: Mapping[str, Detector],
+    data_dirs: Sequence[str | Path],
+    *,
+    split: str,
+    val_fraction: float,
+    progress: bool,
+    field_frac: float | None,
+    seed: int,
+    per_sample: str | Path | None,
+    tag_models: bool,
+) -> dict[str, dict[str, Any]]:
+    """:func:`evaluate_sets` of each labelled detector on the same images: ``{label: {"sets": …,
+    "pooled": …}}``; with ``tag_models`` each ``per_sample`` record starts with ``model`` (its label)."""
     if field_frac is not None and not 0.0 < field_frac <= 1.0:
         raise ValueError(f"field_frac must be in (0, 1], got {field_frac}")
     if not data_dirs:
         raise ValueError("no data set to evaluate")
-    meta = {
-        "field_frac": field_frac,
-        "seed": seed if field_frac is not None else None,
-        "model": detector.source,
-        "precision": detector.precision,
+    if not detectors:
+        raise ValueError("no detector to evaluate")
+    metas: dict[str, dict[str, Any]] = {
+        label: {
+            "field_frac": field_frac,
+            "seed": seed if field_frac is not None else None,
+            "model": detector.source,
+            "precision": detector.precision,
+        }
+        for label, detector in detectors.items()
     }
     sink = None
     if per_sample is not None:
         Path(per_sample).parent.mkdir(parents=True, exist_ok=True)
         sink = open(per_sample, "w", encoding="utf-8")  # noqa: SIM115 (closed in the finally below)
-    sets, everything = [], []
+    sets: dict[str, list[dict[str, Any]]] = {label: [] for label in detectors}
+    everything: dict[str, list[dict[str, Any]]] = {label: [] for label in detectors}
     try:
         for data_dir in data_dirs:
+            tag = {"data": str(data_dir)} if len(data_dirs) > 1 else {}
             rows = _score(
-                detector,
+                list(detectors.values()),
                 data_dir,
                 split=split,
                 val_fraction=val_fraction,
@@ -359,13 +445,117 @@ def evaluate_sets(
                 field_frac=field_frac,
                 seed=seed,
                 sink=sink,
-                tag={"data": str(data_dir)} if len(data_dirs) > 1 else None,
+                tags=[({"model": label} if tag_models else {}) | tag for label in detectors],
             )
-            everything.extend(rows)
-            head = {"data": str(data_dir), "split": split, "samples": len(rows)}
-            sets.append(head | summarize(rows) | meta)
+            for label, model_rows in zip(detectors, rows, strict=True):
+                everything[label].extend(model_rows)
+                head = {"data": str(data_dir), "split": split, "samples": len(model_rows)}
+                sets[label].append(head | summarize(model_rows) | metas[label])
     finally:
         if sink is not None:
             sink.close()
-    pooled = {"data": [str(d) for d in data_dirs], "split": split, "samples": len(everything)}
-    return {"sets": sets, "pooled": pooled | summarize(everything) | meta}
+    results = {}
+    for label, every in everything.items():
+        pooled: dict[str, Any] = {"data": [str(d) for d in data_dirs], "split": split, "samples": len(every)}
+        results[label] = {"sets": sets[label], "pooled": pooled | summarize(every) | metas[label]}
+    return results
+
+
+#: the columns of the comparison table (:func:`comparison_table`, :func:`comparison_markdown`)
+COMPARISON_COLUMNS = (
+    "data set",
+    "model",
+    "positives",
+    "negatives",
+    "found",
+    "false positives",
+    f"gross > {GROSS_ERROR_MM:g} mm",
+    "gross rate",
+    "median mm",
+    "p95 mm",
+    "Dice",
+)
+
+
+def _comparison_row(label: str, summary: dict[str, Any]) -> dict[str, Any]:
+    """The row of :func:`comparison_rows` of one model's summary of one set (or of the pooled sets)."""
+    gross = summary["landmark_gross"]
+    return {
+        "data": summary["data"] if isinstance(summary["data"], str) else "pooled",
+        "model": label,
+        "samples": summary["samples"],
+        "positives": summary["positives"],
+        "negatives": summary["negatives"],
+        "found_rate": summary["found_rate"],
+        "false_positive_rate": summary["false_positive_rate"],
+        "landmark_gross": gross["count"],
+        "landmarks": gross["of"],
+        "landmark_gross_rate": gross["count"] / gross["of"] if gross["of"] else None,
+        "landmark_mm_median": summary["landmark_mm"]["median"],
+        "landmark_mm_p95": summary["landmark_mm"]["p95"],
+        "dice_mean": summary["dice"]["mean"],
+    }
+
+
+def comparison_rows(models: Mapping[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The figures a reader compares across models: one row per data set and model, set by set (the
+    pooled sets last, ``data`` "pooled", where the summaries hold several sets), the models in order.
+
+    ``models``: each label's summary, as :func:`evaluate` or :func:`evaluate_sets` gives it (all of
+    the same sets). A row holds ``data``, ``model``, ``samples``, ``positives``, ``negatives``,
+    ``found_rate``, ``false_positive_rate``, ``landmark_gross`` (count) of ``landmarks`` (scored),
+    ``landmark_gross_rate``, ``landmark_mm_median``, ``landmark_mm_p95`` and ``dice_mean``.
+    """
+    per_model = {
+        label: [s] if "sets" not in s else [*s["sets"], s["pooled"]] if len(s["sets"]) > 1 else s["sets"]
+        for label, s in models.items()
+    }
+    counts = {len(summaries) for summaries in per_model.values()}
+    if len(counts) > 1:
+        raise ValueError("the models' summaries are of different data sets")
+    return [
+        _comparison_row(label, summaries[i])
+        for i in range(counts.pop() if counts else 0)
+        for label, summaries in per_model.items()
+    ]
+
+
+def comparison_table(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
+    """The cells of :func:`comparison_rows` under :data:`COMPARISON_COLUMNS`: rates in %, landmark
+    errors in mm, each data set named by its path below the folder all the sets share."""
+
+    def pct(x: float | None, digits: int = 1) -> str:
+        return "n/a" if x is None else f"{100 * x:.{digits}f}%"
+
+    def num(x: float | None, digits: int) -> str:
+        return "n/a" if x is None else f"{x:.{digits}f}"
+
+    dirs = sorted({os.path.abspath(r["data"]) for r in rows if r["data"] != "pooled"})
+    top = os.path.commonpath(dirs) if len(dirs) > 1 else os.path.dirname(dirs[0]) if dirs else ""
+    return [
+        [
+            "pooled" if row["data"] == "pooled" else os.path.relpath(os.path.abspath(row["data"]), top),
+            str(row["model"]),
+            str(row["positives"]),
+            str(row["negatives"]),
+            pct(row["found_rate"]),
+            pct(row["false_positive_rate"]),
+            f"{row['landmark_gross']}/{row['landmarks']}",
+            pct(row["landmark_gross_rate"], 2),
+            num(row["landmark_mm_median"], 2),
+            num(row["landmark_mm_p95"], 2),
+            num(row["dice_mean"], 3),
+        ]
+        for row in rows
+    ]
+
+
+def comparison_markdown(rows: Sequence[dict[str, Any]]) -> str:
+    """A Markdown table of :func:`comparison_rows` (one line per data set and model)."""
+    lines = [
+        "| " + " | ".join(COMPARISON_COLUMNS) + " |",
+        "|" + "|".join(["---", "---"] + ["---:"] * (len(COMPARISON_COLUMNS) - 2)) + "|",
+    ]
+    for cells in comparison_table(rows):
+        lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+    return "\n".join(lines) + "\n"
