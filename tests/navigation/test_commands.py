@@ -13,6 +13,7 @@ from fluoronav.navigation.checks.safety import SafetyConfig
 from fluoronav.navigation.commands import (
     CommandMotion,
     KinematicsVerdict,
+    at_prediction_said,
     check_correction,
     check_first_move,
     check_joint_readings,
@@ -20,6 +21,9 @@ from fluoronav.navigation.commands import (
     judge_kinematics,
     measure_command,
     name_kinematics_disagreement,
+    name_one_view_disagreement,
+    refuse_wrong_detection,
+    wrong_detection_warning,
 )
 from fluoronav.navigation.result import NavigationRefused
 from fluoronav.navigation.targeting import SweptPath
@@ -220,10 +224,48 @@ def test_a_failed_verification_cm_far_from_the_kinematics_names_them(
     assert out.detail.endswith("(landmark_residual: registered landmarks 11.86 mm from the detected ones)")
 
 
-def test_one_view_that_disagrees_with_the_kinematics_says_it_may_be_the_wrong_one() -> None:
-    with pytest.raises(NavigationRefused, match="kinematics_disagree") as err:
+def test_one_view_that_disagrees_with_the_kinematics_says_it_cannot_tell_which_is_wrong() -> None:
+    with pytest.raises(NavigationRefused) as err:
         judge_kinematics(_cm_diag(5.0, [0.3]), {}, SAFETY)
-    assert "one image cannot tell whether it or the kinematics is wrong" in str(err.value)
+    assert err.value.check == "detection_or_kinematics"
+    assert "one image cannot tell whether its detection or the kinematics is wrong" in str(err.value)
     with pytest.raises(NavigationRefused) as err:
         judge_kinematics(_cm_diag(5.0, [0.3, 0.4]), {}, SAFETY)
-    assert "one image cannot tell" not in str(err.value)
+    assert err.value.check == "kinematics_disagree" and "one image cannot tell" not in str(err.value)
+
+
+def test_one_view_far_from_the_kinematics_refused_by_its_registration_says_it_cannot_tell() -> None:
+    exc = NavigationRefused("verify_cm", "edge_ncc", "NCC 0.31 (at least 0.7)", view="AP")
+    out = name_one_view_disagreement(exc, {"prediction_gap_mm": 8.4}, SAFETY)
+    assert (out.stage, out.check, out.view) == ("verify_cm", "detection_or_kinematics", "AP")
+    assert out.detail.startswith("the CM's landmarks in the one verification image are 8.4 mm")
+    assert "take a second verification view" in out.detail and out.detail.endswith(
+        "(edge_ncc: NCC 0.31 (at least 0.7))"
+    )
+    assert name_one_view_disagreement(exc, {"prediction_gap_mm": 2.0}, SAFETY) is exc
+    assert name_one_view_disagreement(exc, {}, SAFETY) is exc
+
+
+def test_a_wrong_detection_is_named_with_its_views_and_how_far_off() -> None:
+    off = {"AP (verify)": 14.23, "B (verify)": 12.0}
+    exc = refuse_wrong_detection(off, 10.2, SAFETY, why="the CM there fails the edge check in C (verify)")
+    assert (exc.stage, exc.check, exc.view) == ("verify_cm", "detection_disagrees", "AP (verify), B (verify)")
+    assert exc.detail.startswith("the landmarks detected in AP (verify) (14.2 mm), B (verify) (12.0 mm) lie")
+    assert "10.2 mm from the prediction" in exc.detail and exc.detail.endswith("edge check in C (verify)")
+    warning = wrong_detection_warning(off, 10.2, SAFETY)
+    assert warning.startswith("detection_disagrees: the landmarks detected in AP (verify) (14.2 mm)")
+    assert "Corrected from the CM registered at the prediction" in warning
+
+
+def test_what_the_images_showed_at_the_prediction_goes_into_the_kinematics_refusal() -> None:
+    at = {"views": {"AP": {"edge_ncc": 0.91}, "B": {"edge_ncc": 0.42}}, "motion_tip_mm": 0.8}
+    said = at_prediction_said(at, 0.7)
+    assert said == (
+        "registered from the kinematic prediction on the images alone, the CM's outline fits 1 of 2 views "
+        "(edge NCC 0.42 at worst, at least 0.7) and ends 0.8 mm from the prediction"
+    )
+    exc = NavigationRefused("verify_cm", "landmark_residual", "registered landmarks 11.86 mm off", view="AP")
+    out = name_kinematics_disagreement(
+        exc, {"prediction_gap_mm": 10.2, "init_cost_px": 0.9}, SAFETY, evidence=said
+    )
+    assert f"joint readings; {said}; the CM could not be registered there" in out.detail

@@ -6,8 +6,9 @@ from the straight segment), and how far the CM tip travels and the CM turns from
 pose to the target. The measurements go into the stage's diagnostics; a command beyond a bound of
 :class:`~fluoronav.navigation.checks.safety.SafetyConfig` is refused (:class:`NavigationRefused`)
 naming the plan, the measured value and the bound. The verification is judged here too: its joint
-readings against the command (:func:`check_joint_readings`) and the CM its images show against
-where the kinematics put it (:func:`judge_kinematics`: agree, overrule with a warning, or refuse).
+readings against the command (:func:`check_joint_readings`), the CM its images show against where
+the kinematics put it (:func:`judge_kinematics`: agree, overrule with a warning, or refuse) and a
+disagreement named for its cause: the kinematics, a wrong detection, or one view that cannot tell.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from fluoronav.navigation.targeting import SweptPath, joint_motion_deg, swept_ti
 __all__ = [
     "CommandMotion",
     "KinematicsVerdict",
+    "at_prediction_said",
     "check_correction",
     "check_first_move",
     "check_joint_readings",
@@ -34,6 +36,9 @@ __all__ = [
     "judge_kinematics",
     "measure_command",
     "name_kinematics_disagreement",
+    "name_one_view_disagreement",
+    "refuse_wrong_detection",
+    "wrong_detection_warning",
 ]
 
 
@@ -257,8 +262,9 @@ def judge_kinematics(
         kinematics.
 
     Raises:
-        NavigationRefused: (check ``kinematics_disagree``) they disagree and the images cannot
-            overrule the kinematics, or the disagreement is beyond a correction.
+        NavigationRefused: (check ``kinematics_disagree``; ``detection_or_kinematics`` where one
+            view was used: it cannot tell its detection from the kinematics) they disagree and the
+            images cannot overrule the kinematics, or the disagreement is beyond a correction.
     """
     tip_mm = float(cm_diagnostics["motion_tip_mm"])
     if tip_mm <= safety.max_motion_tip_mm:
@@ -267,20 +273,20 @@ def judge_kinematics(
         f"the CM the verification images show is {tip_mm:.1f} mm from where the robot's kinematics put "
         f"it (at most {safety.max_motion_tip_mm:g} mm): check the hand-eye matrix and the joint readings"
     )
+    check = "kinematics_disagree"
     if len(cm_diagnostics["views_used"]) == 1:  # one view's CM may be the one that is wrong
-        said += " (one image cannot tell whether it or the kinematics is wrong: a second view can)"
+        said += " (one image cannot tell whether its detection or the kinematics is wrong: a second view can)"
+        check = "detection_or_kinematics"
     if tip_mm > safety.max_correction_mm:
         raise NavigationRefused(
             stage,
-            "kinematics_disagree",
+            check,
             f"{said}, and that the images were taken after the move; more than a correction may "
             f"move ({safety.max_correction_mm:g} mm, max_correction_mm)",
         )
     why_not = _ambiguity(cm_diagnostics, left_out, safety)
     if why_not:
-        raise NavigationRefused(
-            stage, "kinematics_disagree", f"{said}; the images cannot overrule them: {why_not}"
-        )
+        raise NavigationRefused(stage, check, f"{said}; the images cannot overrule them: {why_not}")
     n = len(cm_diagnostics["views_used"])
     worst = max(float(v["landmark_residual_mm"] or 0.0) for v in cm_diagnostics["views"].values())
     return KinematicsVerdict(
@@ -291,7 +297,7 @@ def judge_kinematics(
 
 
 def name_kinematics_disagreement(
-    exc: NavigationRefused, cm_diagnostics: Mapping[str, Any], safety: SafetyConfig
+    exc: NavigationRefused, cm_diagnostics: Mapping[str, Any], safety: SafetyConfig, *, evidence: str = ""
 ) -> NavigationRefused:
     """A refusal of the verification's CM registration, named for its cause where that is the
     kinematics: the CM's landmarks triangulated from the verification images lie more than
@@ -306,6 +312,8 @@ def name_kinematics_disagreement(
         user must check then is the hand-eye matrix and the joint readings; the registration's
         failure stays in the reason. Views that disagree among themselves (a wrong
         detection) say nothing about the kinematics, and the refusal is left as it was.
+        ``evidence``: what the images showed at the prediction (:func:`at_prediction_said`), said
+        before the registration's failure.
 
     Returns:
         ``exc`` itself, or a refusal with check ``kinematics_disagree`` (same stage and view).
@@ -321,8 +329,88 @@ def name_kinematics_disagreement(
         "kinematics_disagree",
         f"the CM's landmarks in the verification images are {gap:.1f} mm from where the robot's "
         f"kinematics put them (at most {safety.max_motion_tip_mm:g} mm): check the hand-eye matrix "
-        f"and the joint readings; the CM could not be registered there ({exc.check}: {exc.detail})",
+        f"and the joint readings; {evidence + '; ' if evidence else ''}the CM could not be registered "
+        f"there ({exc.check}: {exc.detail})",
         view=exc.view,
+    )
+
+
+def name_one_view_disagreement(
+    exc: NavigationRefused, cm_diagnostics: Mapping[str, Any], safety: SafetyConfig
+) -> NavigationRefused:
+    """A refusal of a verification of one view whose CM's landmarks lie more than
+    ``max_motion_tip_mm`` from the kinematic prediction (``prediction_gap_mm``, the reprojection
+    distance at the CM's depth): one image cannot tell a detection that found another structure from
+    kinematics that are off, and says so (check ``detection_or_kinematics``, same stage and view);
+    ``exc`` itself where they agree."""
+    gap = float(cm_diagnostics.get("prediction_gap_mm", float("nan")))
+    if not gap > safety.max_motion_tip_mm:
+        return exc
+    return NavigationRefused(
+        exc.stage,
+        "detection_or_kinematics",
+        f"the CM's landmarks in the one verification image are {gap:.1f} mm from where the robot's "
+        f"kinematics put them (at most {safety.max_motion_tip_mm:g} mm): one image cannot tell whether "
+        "its detection (another structure found) or the kinematics (the hand-eye matrix, the joint "
+        f"readings) are wrong; take a second verification view; the CM could not be registered there "
+        f"({exc.check}: {exc.detail})",
+        view=exc.view,
+    )
+
+
+def _offsets_said(offsets_mm: Mapping[str, float]) -> str:
+    return ", ".join(f"{name} ({mm:.1f} mm)" for name, mm in offsets_mm.items())
+
+
+def at_prediction_said(at_prediction: Mapping[str, Any], min_edge_ncc: float) -> str:
+    """What the CM registered from the kinematic prediction on the images alone showed (the
+    ``verify_cm`` stage's ``at_prediction``: its views' ``edge_ncc``, its ``motion_tip_mm``)."""
+    ncc = {n: float(v["edge_ncc"]) for n, v in at_prediction["views"].items()}
+    fit = sum(v >= min_edge_ncc for v in ncc.values())
+    return (
+        f"registered from the kinematic prediction on the images alone, the CM's outline fits {fit} of "
+        f"{len(ncc)} views (edge NCC {min(ncc.values()):.2f} at worst, at least {min_edge_ncc:g}) and "
+        f"ends {float(at_prediction['motion_tip_mm']):.1f} mm from the prediction"
+    )
+
+
+def _wrong_detection_said(offsets_mm: Mapping[str, float], gap_mm: float, safety: SafetyConfig) -> str:
+    return (
+        f"the landmarks detected in {_offsets_said(offsets_mm)} lie elsewhere than the CM the images "
+        f"show where the robot's kinematics put it: the detections' CM is {gap_mm:.1f} mm from the "
+        f"prediction (at most {safety.max_motion_tip_mm:g} mm), while the CM registered there on the "
+        "images alone fits them; the detector found another structure, the hand-eye matrix and the "
+        "joint readings agree with the images"
+    )
+
+
+def refuse_wrong_detection(
+    offsets_mm: Mapping[str, float],
+    gap_mm: float,
+    safety: SafetyConfig,
+    *,
+    why: str,
+    stage: str = "verify_cm",
+) -> NavigationRefused:
+    """The refusal (check ``detection_disagrees``) of a verification whose detections are wrong
+    (:func:`~fluoronav.navigation.disagreement.images_side_with`): ``offsets_mm`` per view how far its
+    detected landmarks lie from the CM at the prediction (mm at the detector), ``gap_mm`` how far the
+    detections' CM lies from the prediction, ``why`` why it does not go on with the CM there."""
+    return NavigationRefused(
+        stage,
+        "detection_disagrees",
+        f"{_wrong_detection_said(offsets_mm, gap_mm, safety)}; not corrected from it: {why}",
+        view=", ".join(offsets_mm),
+    )
+
+
+def wrong_detection_warning(offsets_mm: Mapping[str, float], gap_mm: float, safety: SafetyConfig) -> str:
+    """The warning of a verification that goes on with the CM at the prediction where its
+    detections are wrong (check ``detection_disagrees``; arguments as :func:`refuse_wrong_detection`)."""
+    return (
+        f"detection_disagrees: {_wrong_detection_said(offsets_mm, gap_mm, safety)}. Corrected from the "
+        "CM registered at the prediction, which passed every view's check; check the detection in "
+        "those views"
     )
 
 

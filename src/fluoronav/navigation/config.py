@@ -74,6 +74,10 @@ class VerificationConfig:
         cm: the verification's CM registration from the images' own starts (its ``device`` and
             ``cm_config`` are the pipeline's and the case's); from the kinematic prediction it
             has its own local levels (``NavigationConfig.views.fusion_cm_levels``).
+        go_on_at_prediction: where the images show the CM at the kinematic prediction and a
+            view's detection elsewhere (:mod:`~fluoronav.navigation.disagreement`) and the CM
+            registered there passes every view's check, the verification goes on with that CM,
+            with a warning naming the detection; False: it refuses (``detection_disagrees``).
     """
 
     fuse_kinematics: bool = setting(
@@ -90,6 +94,9 @@ class VerificationConfig:
     cm: CMRegistrationConfig = setting(
         doc="the verification's CM registration from the images' own starts",
         default_factory=navigation_cm_config,
+    )
+    go_on_at_prediction: bool = setting(
+        True, "where the images show the CM at the prediction and a detection elsewhere, go on with it"
     )
 
     @classmethod

@@ -1,48 +1,66 @@
 """The verification's view set: the images after the move registered with the first registration
-and the robot's kinematics as their prior (stages ``verify_pelvis``, ``verify_femur``, ``verify_cm``
-of :mod:`fluoronav.navigation.pipeline`).
+and the robot's kinematics as their prior (stages ``verify_pelvis``, ``verify_femur``, ``verify_cm``).
 
 Where the case says which first view's C-arm position each verification view was taken from and how
 the C-arm moved since (``CaseView.moved_from``), each camera starts from that view's registered
 camera moved by it (:func:`moved_cameras`); with ``VerificationConfig.local_bones`` the bones then
 need only their local levels, and where no C-arm and no anatomy moved the first registration's
-bones are kept (:mod:`~fluoronav.registration.view_set.unmoved`). A refusal of the CM's registration
-whose cause is the robot's kinematics (the images agree on a CM far from the prediction) is named
-for them (:func:`~fluoronav.navigation.commands.name_kinematics_disagreement`).
+bones are kept (:mod:`~fluoronav.registration.view_set.unmoved`). Where the detections' CM lies far
+from the kinematic prediction, the images decide which is wrong (:mod:`~.disagreement`): a wrong
+detection is named (the CM registered at the prediction used where it passes every check), else the
+kinematics are; one view says it cannot tell (:mod:`~fluoronav.navigation.commands`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from fluoronav.errors import RegistrationRefused
+from fluoronav.geometry.camera import Camera
 from fluoronav.navigation.case.model import CaseView, NavigationCase
-from fluoronav.navigation.checks.safety import SafetyConfig
-from fluoronav.navigation.commands import name_kinematics_disagreement
+from fluoronav.navigation.commands import (
+    at_prediction_said,
+    name_kinematics_disagreement,
+    name_one_view_disagreement,
+    refuse_wrong_detection,
+    wrong_detection_warning,
+)
 from fluoronav.navigation.config import NavigationConfig
+from fluoronav.navigation.disagreement import ImagesAtPrediction, images_side_with, register_at_prediction
 from fluoronav.navigation.result import (
     NavigationRefused,
     NavigationResult,
-    StageRecord,
     navigation_refusals,
 )
+from fluoronav.registration.cm.checks import PredictedCMPose
 from fluoronav.registration.stages import StageRecorder
 from fluoronav.registration.view_set import (
     FluoroView,
     ViewSetBones,
     ViewSetPrior,
     ViewSetRegistration,
+    ViewSetSeeds,
+    ViewSetSettings,
+    bone_views,
     register_view_set,
+    register_view_set_bones,
 )
 from fluoronav.registration.view_set.unmoved import unmoved_bones
 
 log = logging.getLogger(__name__)
 
 __all__ = ["moved_cameras", "register_verification"]
+
+#: the refusals that name a cause no second registration of the bones changes
+_FINAL_CHECKS = ("kinematics_disagree", "detection_disagrees", "detection_or_kinematics")
+#: the CM registration's name of a verification view (``register_view_set``'s ``name``)
+_TAG = " (verify)"
 
 
 def register_verification(
@@ -63,8 +81,10 @@ def register_verification(
         The local levels trust the C-arm's nominal motion and the first registration. Where a
         view's camera started off by more than they can recover, the failure shows in the CM's
         checks (or the bones'), not before; the whole ladders then decide, as without ``local``.
-        A refusal that names the kinematics is final: no bone registration changes where the
-        robot put the CM. The first attempt's stages are kept as ``verify_local_*``.
+        A refusal that names a cause (the kinematics, a wrong detection, one view that cannot tell
+        them apart: :func:`_cause_named`) is final: no bone registration changes where the robot
+        put the CM or what the detector found. The first attempt's stages are kept as
+        ``verify_local_*``.
     """
     assert case.verification is not None and result.first is not None
     cfg, first = result.config, result.first
@@ -73,27 +93,33 @@ def register_verification(
     known = _unmoved(views, case.verification.views, first, cfg, result) if local else None
 
     def register(local_now: bool) -> ViewSetRegistration:
-        with _kinematics_named(result.stages, cfg.safety), navigation_refusals("verify_"):
-            return register_view_set(
-                views,
-                case.volume,
-                side=case.side,
-                cm_config=case.cm_config,
-                initial_control_points_deg=np.asarray(first.cm.control_points_deg),
-                settings=cfg.view_set_settings(verification=True, local=local_now, n_views=len(views)),
-                seed=seed,
-                prior=prior,
-                name="verify",
-                recorder=recorder,
-                known_bones=known if local_now else None,
-            )
+        settings = cfg.view_set_settings(verification=True, local=local_now, n_views=len(views))
+        attempt = _Attempt(views, case, result, prior, settings, seed, known if local_now else None)
+        try:
+            with navigation_refusals("verify_"):
+                reg = register_view_set(
+                    views,
+                    case.volume,
+                    side=case.side,
+                    cm_config=case.cm_config,
+                    initial_control_points_deg=np.asarray(first.cm.control_points_deg),
+                    settings=settings,
+                    seed=seed,
+                    prior=prior,
+                    name="verify",
+                    recorder=recorder,
+                    known_bones=attempt.known,
+                )
+        except NavigationRefused as exc:
+            return _cause_named(exc, attempt)
+        return _detections_judged(reg, attempt)
 
     if not local:
         return register(False)
     try:
         return register(True)
     except NavigationRefused as exc:
-        if exc.check == "kinematics_disagree":
+        if exc.check in _FINAL_CHECKS:
             raise
         log.warning("the verification with local bones refused (%s): the whole ladders", exc)
         diag["local_bones_refused"] = str(exc)
@@ -103,19 +129,183 @@ def register_verification(
         return register(False)
 
 
-@contextmanager
-def _kinematics_named(stages: dict[str, StageRecord], safety: SafetyConfig) -> Iterator[None]:
-    """The verification CM's refusal named for the kinematics where the images' CM is far from the
-    prediction (:func:`~fluoronav.navigation.commands.name_kinematics_disagreement`)."""
+@dataclass(frozen=True, eq=False)
+class _Attempt:
+    """One registration of the verification's views: what it was given (``known``: the bones kept
+    from the first registration, or None)."""
+
+    views: list[FluoroView]
+    case: NavigationCase
+    result: NavigationResult
+    prior: ViewSetPrior
+    settings: ViewSetSettings
+    seed: int
+    known: ViewSetBones | None
+
+    @property
+    def cm_diagnostics(self) -> dict[str, Any]:
+        return self.result.stages["verify_cm"].diagnostics
+
+    def predicted(self, ct_from_femur: np.ndarray) -> PredictedCMPose | None:
+        """The kinematic prediction placed by the verification's femur; None without one."""
+        p = self.prior
+        if p.femur_from_cm_predicted is None:
+            return None
+        return PredictedCMPose(ct_from_femur, p.femur_from_cm_predicted, p.max_motion_tip_mm)
+
+    def at_prediction(
+        self, views: Sequence[FluoroView], cameras: Sequence[Camera], predicted: PredictedCMPose
+    ) -> ImagesAtPrediction:
+        """The CM registered at the prediction on the images alone
+        (:func:`~fluoronav.navigation.disagreement.register_at_prediction`), recorded in the
+        ``verify_cm`` stage (``at_prediction``, with what the images side with)."""
+        assert self.result.first is not None and self.settings.cm_checks is not None
+        at = register_at_prediction(
+            [dataclasses.replace(v, name=v.name + _TAG) for v in views],
+            cameras,
+            predicted,
+            control_points_deg=np.asarray(self.result.first.cm.control_points_deg),
+            cm_config=self.case.cm_config,
+            settings=self.settings,
+            seed=ViewSetSeeds.from_seed(self.seed).cm,
+        )
+        side = images_side_with(at, self.settings.cm_checks, self.result.config.safety)
+        self.cm_diagnostics["at_prediction"] = {**at.to_dict(), "images_side_with": side}
+        log.info("the CM registered at the kinematic prediction: the images side with %s", side)
+        return at
+
+
+def _cause_named(exc: NavigationRefused, attempt: _Attempt) -> ViewSetRegistration:
+    """After the verification's CM refused where its detections lie more than ``max_motion_tip_mm``
+    from the kinematic prediction (``prediction_gap_mm``): one view cannot tell; otherwise the
+    bones again (the same views, settings and seeds: the same bones) and the CM registered at the
+    prediction decide. A wrong detection is refused naming it, or gone on with (the CM at the
+    prediction, where it passed every check); else the kinematics are named where the views agree
+    (:func:`~fluoronav.navigation.commands.name_kinematics_disagreement`) or ``exc`` stands.
+
+    Raises:
+        NavigationRefused: the refusal, named.
+    """
+    safety = attempt.result.config.safety
+    if exc.stage != "verify_cm" or "verify_cm" not in attempt.result.stages:
+        raise exc
+    diag = attempt.cm_diagnostics
+    if not float(diag.get("prediction_gap_mm", float("nan"))) > safety.max_motion_tip_mm:
+        raise exc
+    if len(attempt.views) == 1:
+        raise _named(name_one_view_disagreement(exc, diag, safety), exc)
+    bones = _bones(attempt)
+    predicted = None if bones is None else attempt.predicted(bones.femur.world_from_bone)
+    if bones is None or predicted is None:  # as without the images' decision
+        raise _named(name_kinematics_disagreement(exc, diag, safety), exc)
+    views = attempt.views if bones.kept is None else [attempt.views[k] for k in bones.kept]
+    if len(views) == 1:
+        raise _named(name_one_view_disagreement(exc, diag, safety), exc)
+    at = attempt.at_prediction(views, bones.cameras, predicted)
+    if diag["at_prediction"]["images_side_with"] == "detection":
+        gap = float(diag["prediction_gap_mm"])
+        registration = ViewSetRegistration(
+            views=tuple(views),
+            pelvis=bones.pelvis,
+            cameras_ct=bones.cameras,
+            femur=bones.femur,
+            cm=at.cm,
+            left_out=dict(bones.left_out),
+        )
+        return _go_on_at_prediction(registration, at, attempt, gap)
+    evidence = ""
+    if diag["at_prediction"]["images_side_with"] == "kinematics":
+        assert attempt.settings.cm_checks is not None
+        evidence = at_prediction_said(diag["at_prediction"], attempt.settings.cm_checks.min_edge_ncc)
+    raise _named(name_kinematics_disagreement(exc, diag, safety, evidence=evidence), exc)
+
+
+def _named(named: NavigationRefused, exc: NavigationRefused) -> NavigationRefused:
+    """``named``, raised from ``exc`` where it is another refusal."""
+    if named is not exc:
+        named.__cause__ = exc
+    return named
+
+
+def _bones(attempt: _Attempt) -> ViewSetBones | None:
+    """The bones the attempt's CM was registered in: the known ones, or registered again as
+    ``register_view_set`` registered them (None where they refuse now)."""
+    if attempt.known is not None:
+        return attempt.known
+    views = attempt.views
     try:
-        yield
-    except NavigationRefused as exc:
-        if exc.stage != "verify_cm" or "verify_cm" not in stages:
-            raise
-        named = name_kinematics_disagreement(exc, stages["verify_cm"].diagnostics, safety)
-        if named is exc:
-            raise
-        raise named from exc
+        return register_view_set_bones(
+            bone_views(views),
+            attempt.case.volume,
+            side=attempt.case.side,
+            names=[v.name for v in views],
+            settings=attempt.settings,
+            seeds=ViewSetSeeds.from_seed(attempt.seed),
+            prior_ct_from_femur=attempt.prior.ct_from_femur,
+        )
+    except RegistrationRefused as exc:
+        log.warning("the verification's bones registered again refused (%s)", exc)
+        return None
+
+
+def _detections_judged(reg: ViewSetRegistration, attempt: _Attempt) -> ViewSetRegistration:
+    """The verification's registration, where its CM lies more than ``max_motion_tip_mm`` from the
+    kinematic prediction in two or more views, judged against the CM registered at the prediction:
+    a wrong detection is refused naming it, or gone on with (:func:`_go_on_at_prediction`); ``reg``
+    otherwise (the kinematics are judged in the ``correct`` stage,
+    :func:`~fluoronav.navigation.commands.judge_kinematics`)."""
+    diag = attempt.cm_diagnostics
+    tip_mm = float(diag.get("motion_tip_mm", float("nan")))
+    predicted = attempt.predicted(reg.ct_from_femur)
+    if not tip_mm > attempt.result.config.safety.max_motion_tip_mm or len(reg.views) < 2 or predicted is None:
+        return reg
+    at = attempt.at_prediction(reg.views, reg.cameras_ct, predicted)
+    if diag["at_prediction"]["images_side_with"] != "detection":
+        return reg
+    return _go_on_at_prediction(dataclasses.replace(reg, cm=at.cm), at, attempt, tip_mm)
+
+
+def _go_on_at_prediction(
+    registration: ViewSetRegistration, at: ImagesAtPrediction, attempt: _Attempt, gap_mm: float
+) -> ViewSetRegistration:
+    """``registration`` (its CM the one at the prediction) where that CM passed every view's check
+    and the settings allow (``VerificationConfig.go_on_at_prediction``): the ``verify_cm`` stage
+    then records it (the detections' registration under ``from_detections``, the views whose
+    detections are off under ``detection_disagrees``) and the result warns. Otherwise refused.
+
+    Raises:
+        NavigationRefused: check ``detection_disagrees``, naming the views and how far off.
+    """
+    result, checks = attempt.result, attempt.settings.cm_checks
+    assert checks is not None
+    off = at.detections_off(checks)
+    diag = attempt.cm_diagnostics
+    diag["detection_disagrees"] = off
+    failed = [n for n in at.edge_ncc if n not in at.fitting(checks)]
+    why = ""
+    if failed:
+        why = f"the CM there fails the edge check in {', '.join(failed)}"
+    elif not result.config.verification.go_on_at_prediction:
+        why = "verification.go_on_at_prediction is off"
+    if why:
+        raise refuse_wrong_detection(off, gap_mm, result.config.safety, why=why)
+    moved = ("views", "views_used", "tries", "left_out", "cost", "converged", "reason", "motion_tip_mm",
+             "motion_rotation_deg", "image_motion_tip_mm")  # fmt: skip
+    diag["from_detections"] = {k: diag.pop(k) for k in moved if k in diag}
+    diag.update(
+        views={n: {"landmark_residual_mm": None, "edge_ncc": ncc} for n, ncc in at.edge_ncc.items()},
+        views_used=list(at.edge_ncc),
+        motion_tip_mm=at.motion_tip_mm,
+        motion_rotation_deg=at.motion_rotation_deg,
+        cost=float(at.cm.cost),
+        converged=bool(at.cm.converged),
+        reason=at.cm.reason,
+    )
+    result.stages["verify_cm"].passed = True
+    warning = wrong_detection_warning(off, gap_mm, result.config.safety)
+    log.warning("%s", warning)
+    result.warnings.append(warning)
+    return registration
 
 
 def moved_cameras(

@@ -29,6 +29,7 @@ from fluoronav.studies.figures import column, study_figures
 from fluoronav.studies.handeye_trials import (
     HANDEYE_DIAGNOSTICS,
     HANDEYE_METRICS,
+    NAVIGATION_CAUSES,
     NAVIGATION_CHECKS,
     NAVIGATION_DIAGNOSTICS,
     NAVIGATION_METRICS,
@@ -46,6 +47,7 @@ __all__ = [
     "NAVIGATION_METRICS",
     "HandEyeStudyConfig",
     "navigation_row",
+    "refusals_named_right",
     "run_handeye_or_navigation_study",
     "run_handeye_study",
     "run_handeye_trial",
@@ -72,6 +74,7 @@ def _columns(cfg: HandEyeStudyConfig) -> list[str]:
             *tail,
             "seconds_verification",
             *(("fault", "fault_outcome", "fault_handled", "left_out") if cfg.fault is not None else ()),
+            *NAVIGATION_CAUSES,  # last: a study resumed from before them keeps its columns aligned
         ]
     per_m = [
         f"{k}_m{m}"
@@ -212,6 +215,29 @@ def _navigation_outcomes(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "unflagged_first_move_failure_trials": first,
         "unflagged_first_move_failures_carm_frame": len(carm),
         "unflagged_first_move_failure_trials_carm_frame": carm,
+        "refusals_named_right": refusals_named_right(rows),
+    }
+
+
+def refusals_named_right(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """How many refusals (and bad inputs) named the cause the simulation knows (rows' ``true_cause``,
+    ``named_cause``, ``cause_named_right``): ``fraction`` of those with a known cause (None without
+    any), the counts ``named_right``, ``known_cause`` and ``refusals``, and per true cause the named
+    ones (``named_by_true_cause``: true → named → count)."""
+    refusals = [r for r in rows if str(r.get("true_cause") or "")]
+    known = [r for r in refusals if str(r.get("cause_named_right")) in ("True", "False")]
+    right = sum(str(r.get("cause_named_right")) == "True" for r in known)
+    table: dict[str, dict[str, int]] = {}
+    for r in refusals:
+        named = table.setdefault(str(r["true_cause"]), {})
+        key = str(r.get("named_cause") or "unnamed")
+        named[key] = named.get(key, 0) + 1
+    return {
+        "fraction": right / len(known) if known else None,
+        "named_right": right,
+        "known_cause": len(known),
+        "refusals": len(refusals),
+        "named_by_true_cause": table,
     }
 
 

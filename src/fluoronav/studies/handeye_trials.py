@@ -16,7 +16,6 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import re
 import time
 from dataclasses import dataclass, replace
 from typing import Any
@@ -45,6 +44,7 @@ from fluoronav.registration.cm import CMView
 from fluoronav.registration.metrics import cm_errors
 from fluoronav.runner import finish_row, mark_failed, new_row
 from fluoronav.simulation.articulated import anatomy_and_simulator
+from fluoronav.simulation.navigation.causes import refused_at
 from fluoronav.simulation.navigation.faults import fault_outcome, get_fault
 from fluoronav.simulation.navigation.loop import SimulatedNavigationConfig, run_simulated_navigation
 from fluoronav.simulation.robot_scene import (
@@ -60,6 +60,7 @@ __all__ = [
     "CM_METRICS",
     "HANDEYE_DIAGNOSTICS",
     "HANDEYE_METRICS",
+    "NAVIGATION_CAUSES",
     "NAVIGATION_CHECKS",
     "NAVIGATION_DIAGNOSTICS",
     "NAVIGATION_METRICS",
@@ -112,6 +113,9 @@ NAVIGATION_DIAGNOSTICS = (
     "verify_tip_mm",
     "verify_relative_mm",
 )
+#: navigation rows' causes of a refusal (or of bad input): the one the simulation knows, the one
+#: named, whether they agree (:mod:`fluoronav.simulation.navigation.causes`); empty where it went on
+NAVIGATION_CAUSES = ("true_cause", "named_cause", "cause_named_right")
 #: navigation rows' registration checks (no truth needed: what the navigation itself can see)
 NAVIGATION_CHECKS = (
     "cm_landmark_residual_mm",
@@ -436,14 +440,15 @@ def navigation_row(run: Any, cfg: HandEyeStudyConfig) -> dict[str, Any]:
         row["check"] = refusal_check(run.reason)[1]
     if cfg.fault is not None:
         row.update(_fault_fields(run, row, cfg.fault))
+    causes = getattr(run, "causes", None) or {}
+    row.update({k: causes[k] for k in NAVIGATION_CAUSES if k in causes})
     return row
 
 
 def refusal_check(reason: str) -> tuple[str, str]:
-    """(stage, check) of a refusal's reason (``stage X[, view V], check C: detail``); ("", "") else."""
-    stage = re.match(r"stage ([^,]+),", reason)
-    check = re.search(r", check (\w+):", reason)
-    return (stage.group(1) if stage else "", check.group(1) if check else "")
+    """(stage, check) of a refusal's reason (``stage X[, view V], check C: detail``); ("", "") else
+    (:func:`~fluoronav.simulation.navigation.causes.refused_at`)."""
+    return refused_at(reason)
 
 
 def _cm_axis_deg(E: dict[str, float]) -> float:

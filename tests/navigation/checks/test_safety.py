@@ -32,6 +32,7 @@ def test_safety_config_keeps_its_fields_and_defaults() -> None:
         "overrule_min_views": 3,
         "overrule_max_landmark_residual_mm": 1.0,
         "consistent_views_max_cost_px": 3.0,
+        "detection_check_min_views": 2,
         "max_fbg_departure_sigmas": 4.0,
     }
 

@@ -100,3 +100,33 @@ def test_demo_case_navigates_in_a_separate_process(tmp_path: Path) -> None:
         expected = _h(np.linalg.inv(v[key]), p_ct)
         got = np.array([tx.TransformPoint(tuple(float(c) for c in p)) for p in p_ct])
         np.testing.assert_allclose(got, expected, atol=1e-6)
+
+
+def test_a_refused_runs_results_carry_the_known_and_the_named_cause() -> None:
+    """``results.json`` of a refused run: its ``causes`` (none where the run went on)."""
+    from types import SimpleNamespace
+
+    from fluoronav.simulation.navigation import loop
+
+    res = NavigationResult(config=NavigationConfig())
+    lm = np.array([[100.0, 120.0], [160.0, 130.0]])
+    res.stages["verify_detect"] = StageRecord(
+        diagnostics={"views": {"AP": {"landmarks_px": (lm + 20.0).tolist()}}}
+    )
+    res.refuse(
+        NavigationRefused("verify_cm", "kinematics_disagree", "the CM's landmarks …", view="AP (verify)")
+    )
+    run = SimulatedNavigation(config=SimulatedNavigationConfig(seed=3), result=res)
+    assert "causes" not in results_json(run)
+    s = SimpleNamespace(config=run.config)
+    views = [SimpleNamespace(name="AP", landmarks_px=None)]
+    images = [SimpleNamespace(landmarks_px=lm, camera=SimpleNamespace(pixel_spacing_mm=0.388))]
+    loop._causes(s, run, "verify_cm", "kinematics_disagree", views, images, "verify_detect")  # type: ignore[arg-type]
+    d = results_json(run)["causes"]
+    assert (d["true_cause"], d["named_cause"], d["cause_named_right"]) == (
+        "wrong_detection",
+        "hand_eye_or_joints",
+        False,
+    )
+    assert d["wrong_detection_views"] == {"AP": pytest.approx(20.0 * np.sqrt(2.0) * 0.388)}
+    json.dumps(d)

@@ -71,6 +71,13 @@ class SafetyConfig:
             names the kinematics when the views agree on a CM (their multi-view centreline fit's
             mean cost within this, pixels at the detection's resolution) that lies more than
             ``max_motion_tip_mm`` from the prediction.
+        detection_check_min_views: where the verification's detections (or the CM registered from
+            them) lie more than ``max_motion_tip_mm`` from the kinematic prediction, the CM is
+            registered from the prediction on the images alone
+            (:mod:`~fluoronav.navigation.disagreement`); the refusal names the detection rather
+            than the kinematics where that CM stays at the prediction, its outline passes ``cm``'s
+            edge check in at least this many views, and a view's detected landmarks lie further
+            than ``cm.max_landmark_residual_mm`` from it. Fewer views cannot tell which is wrong.
         max_fbg_departure_sigmas: the first registration's CM shape may depart from the FBG reading
             by at most its prior's tolerance plus this many of its σ (the case's stated
             ``fbg_sigma_deg``, or the flat-bottomed default's walls): a shape pulled further has
@@ -110,6 +117,9 @@ class SafetyConfig:
     )
     consistent_views_max_cost_px: float = setting(
         3.0, "views agree on a CM where their centreline fit's mean cost is within this", unit="px", ge=0
+    )
+    detection_check_min_views: int = setting(
+        2, "views whose outline must fit the CM at the prediction for a detection to be named", ge=2
     )
     max_fbg_departure_sigmas: float | None = setting(
         4.0,

@@ -77,8 +77,9 @@ def run_demo(
 
 
 def results_json(run: SimulatedNavigation) -> dict[str, Any]:
-    """``results.json``: status, reason, errors against the truth, timings, config, the simulated
-    world, version."""
+    """``results.json``: status, reason, errors against the truth, where it refused the cause the
+    simulation knows against the one named (``causes``), timings, config, the simulated world,
+    version."""
     errors: dict[str, float | None] = {
         k: (float(v) if math.isfinite(v) else None) for k, v in run.errors.items()
     }
@@ -94,6 +95,7 @@ def results_json(run: SimulatedNavigation) -> dict[str, Any]:
         "config": dataclasses.asdict(run.config),
         "world": run.config.world.to_dict(),
         "errors": errors,
+        **({"causes": run.causes} if run.causes else {}),
         "timings_s": timings,
     }
 

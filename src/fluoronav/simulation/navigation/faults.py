@@ -6,9 +6,9 @@ readings that lie, verification images taken before the move). The navigation mu
 leave the faulty view out and land within 2 mm of the plan, or refuse naming the fault; it must
 never command the robot from a registration more than 2 mm off. :class:`Fault` says what a fault
 does and which outcomes handle it (:attr:`Fault.handled_by`: a check name, or ``"stage:check"``
-where the name alone is ambiguous); the functions here apply the case-level faults (pure: a new
-case). The faults that need other images, and the hand-eye fault, are driven by
-:mod:`fluoronav.simulation.navigation.loop` from the :class:`Fault` fields.
+where the name alone is ambiguous; one view's ``detection_or_kinematics`` names the kinematics
+among two causes); the functions here apply the case-level faults (pure: a new case). The faults
+that need other images, and the hand-eye fault, are driven by the loop from the :class:`Fault` fields.
 """
 
 from __future__ import annotations
@@ -128,14 +128,14 @@ FAULTS: dict[str, Fault] = {
             "verify_joints_3deg",
             "the verification's joint 2 reading 3° off; the robot is at the commanded joints",
             "verification",
-            handled_by=("joint_readings", "kinematics_disagree"),
+            handled_by=("joint_readings", "kinematics_disagree", "detection_or_kinematics"),
             verify_joint_offset_deg=(1, 3.0),
         ),
         Fault(
             "handeye_10mm",
             "the case's hand-eye matrix is the truth moved by 10 mm",
             "scene",
-            handled_by=("kinematics_disagree",),
+            handled_by=("kinematics_disagree", "detection_or_kinematics"),
             landing_counts=True,
             handeye_error_mm=10.0,
         ),
@@ -143,7 +143,7 @@ FAULTS: dict[str, Fault] = {
             "verify_no_move",
             "the verification images show the CM where it was before the move",
             "verification",
-            handled_by=("kinematics_disagree",),
+            handled_by=("kinematics_disagree", "detection_or_kinematics"),
             verify_images_before_move=True,
         ),
         Fault(

@@ -39,6 +39,7 @@ from fluoronav.navigation.case.model import (
 from fluoronav.navigation.pipeline import EventCallback, NavigationConfig, NavigationResult, navigate, verify
 from fluoronav.registration.metrics import axis_error_deg
 from fluoronav.registration.stages import StageRecord, StageTimer
+from fluoronav.simulation.navigation.causes import refusal_causes, refused_at
 from fluoronav.simulation.navigation.faults import (
     apply_case_fault,
     apply_first_fault,
@@ -78,8 +79,10 @@ class SimulatedNavigation:
     """What a simulated navigation measured.
 
     ``errors`` is a flat dict of floats (against the truth); ``truth`` holds the true poses with the
-    keys of ``navigation.json`` (JSON-ready); ``loop_stages`` the loop's own stages (the pipeline's
-    are ``result.stages``), their seconds in ``timings_s``;
+    keys of ``navigation.json`` (JSON-ready); ``causes``, where the navigation refused (or an
+    injected fault made the case bad input), the cause the simulation knows against the one the
+    refusal named (:func:`~fluoronav.simulation.navigation.causes.refusal_causes`); ``loop_stages``
+    the loop's own stages (the pipeline's are ``result.stages``), their seconds in ``timings_s``;
     ``artifacts`` holds arrays for the report (not serialised).
     """
 
@@ -87,6 +90,7 @@ class SimulatedNavigation:
     result: NavigationResult | None = None
     errors: dict[str, float] = field(default_factory=dict)
     truth: dict[str, Any] = field(default_factory=dict)
+    causes: dict[str, Any] = field(default_factory=dict)
     loop_stages: dict[str, StageRecord] = field(default_factory=dict)
     artifacts: dict[str, Any] = field(default_factory=dict)
 
@@ -299,8 +303,11 @@ def _navigate_first(
         if s.config.fault is None:
             raise
         run.artifacts["input_error"] = {"reason": str(exc), "check": getattr(exc, "check", "")}
+        _causes(s, run, "preflight", str(getattr(exc, "check", "")), case.views, images, "detect")
         return None
     run.result = res
+    if res.status == "refused":
+        _causes(s, run, *refused_at(res.reason), case.views, images, "detect")
     first_registration_errors(
         run.result,
         run.errors,
@@ -394,6 +401,8 @@ def run_simulated_navigation(
     A.update(images2=images2, case=case)
     verify(case, res, on_stage=on_stage, on_event=on_event)
     _verification_errors(s, run, case, images2, W_after, moved)
+    if res.status == "refused" and case.verification is not None:
+        _causes(s, run, *refused_at(res.reason), case.verification.views, images2, "verify_detect")
     if res.status != "ok" or res.joints_correction_deg is None:
         return run
     with T("correct_move"):
@@ -406,6 +415,30 @@ def run_simulated_navigation(
     run.truth["world_from_cm_corrected"] = W_final.tolist()
     A["W_final"] = W_final
     return run
+
+
+def _causes(
+    s: Scenario,
+    run: SimulatedNavigation,
+    stage: str,
+    check: str,
+    case_views: Any,
+    images: list[Any],
+    detect_stage: str,
+) -> None:
+    """``run.causes`` of a refusal at ``stage`` with ``check`` in the set of images ``images`` (the
+    case's ``case_views``, detected in ``detect_stage``)."""
+    st = {} if run.result is None else run.result.stages
+    run.causes = refusal_causes(
+        stage,
+        check,
+        fault=get_fault(s.config.fault),
+        handeye_error_mm=s.config.handeye_error_mm,
+        handeye_error_deg=s.config.handeye_error_deg,
+        case_views=list(case_views),
+        images=images,
+        detect_diagnostics=st[detect_stage].diagnostics if detect_stage in st else {},
+    )
 
 
 def _first_fault(s: Scenario, case: NavigationCase, seed: int) -> NavigationCase:
