@@ -24,11 +24,21 @@ import numpy as np
 import torch
 
 from fluoronav.anatomy.markups import read_markup_nodes
+from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import InputError
 from fluoronav.geometry import se3
 from fluoronav.manipulator.kinematics import CMKinematics
 
-__all__ = ["Plan", "load_plan", "plan_from_dict", "plan_from_markups", "planned_femur_from_cm", "save_plan"]
+__all__ = [
+    "Plan",
+    "PlanSide",
+    "load_plan",
+    "plan_from_dict",
+    "plan_from_markups",
+    "plan_side",
+    "planned_femur_from_cm",
+    "save_plan",
+]
 
 _KNOWN_KEYS = {
     "target_name",
@@ -228,6 +238,55 @@ def save_plan(plan: Plan, path: str | Path) -> Path:
     p = Path(path)
     p.write_text(json.dumps(plan.to_dict(), indent=2) + "\n", encoding="utf-8")
     return p
+
+
+@dataclass(frozen=True)
+class PlanSide:
+    """The femur a plan is on, and how that was told.
+
+    Attributes:
+        side: ``"left"`` or ``"right"``; None where the CT has neither femur label nor head landmark.
+        how: one phrase saying why (for messages and the log).
+        by_label: whether the plan's path runs through that femur's label (else: the nearest head).
+    """
+
+    side: str | None
+    how: str
+    by_label: bool = False
+
+
+#: the plan's path is sampled this far beyond its tip target, mm (into the femoral neck)
+_PATH_BEYOND_MM = 20.0
+
+
+def plan_side(plan: Plan, volume: Volume) -> PlanSide:
+    """Which femur ``plan`` is on: the ``femur_<side>`` label its path runs through, else the
+    ``femoral_head_<side>`` landmark nearest its entry point.
+
+    The path is sampled every millimetre from the entry point to
+    :data:`_PATH_BEYOND_MM` beyond the tip target along the insertion direction (a core
+    decompression's tip rests on the entry, its path goes on into the neck); the label that holds
+    most samples wins.
+    """
+    femurs = {s: volume.label_value(f"femur_{s}") for s in ("left", "right")}
+    if volume.labels is not None and any(v is not None for v in femurs.values()):
+        depth = float(plan.insertion_depth_mm) + _PATH_BEYOND_MM
+        t = np.arange(0.0, depth + 0.5, 1.0)
+        pts = plan.entry_point_world_mm + t[:, None] * plan.direction_world
+        ijk = np.rint(pts @ volume.index_from_world[:3, :3].T + volume.index_from_world[:3, 3]).astype(int)
+        kji = ijk[:, ::-1]
+        on = np.all((kji >= 0) & (kji < np.asarray(volume.labels.shape)), axis=1)
+        values = volume.labels[tuple(kji[on].T)]
+        hits = {s: int(np.count_nonzero(values == v)) for s, v in femurs.items() if v is not None}
+        best = max(hits, key=lambda s: hits[s])
+        if hits[best] > 0 and list(hits.values()).count(hits[best]) == 1:
+            return PlanSide(best, f"its path runs through the femur_{best} label", by_label=True)
+    lms = volume.landmarks_world
+    heads = {s: lms[f"femoral_head_{s}"] for s in ("left", "right") if f"femoral_head_{s}" in lms}
+    if not heads:
+        return PlanSide(None, "the CT has no femur label on the plan's path and no femoral head landmark")
+    near = min(heads, key=lambda s: float(np.linalg.norm(heads[s] - plan.entry_point_world_mm)))
+    return PlanSide(near, f"the femoral_head_{near} landmark is the nearest to its entry point")
 
 
 def _frame_axes(direction: np.ndarray, bending: np.ndarray | None) -> np.ndarray:

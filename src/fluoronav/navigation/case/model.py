@@ -47,7 +47,7 @@ from fluoronav.navigation.case.schema import (
     validate_case,
 )
 from fluoronav.navigation.case.view import CaseView
-from fluoronav.navigation.planning import Plan, load_plan, plan_from_dict, save_plan
+from fluoronav.navigation.planning import Plan, load_plan, plan_from_dict, plan_side, save_plan
 
 __all__ = [
     "CASE_KEYS",
@@ -86,7 +86,8 @@ class NavigationCase:
         volume: the CT in HU with labels ``pelvis`` and ``femur_<side>`` and landmark
             ``femoral_head_<side>`` (``pelvis_center`` optional).
         plan: the planned target in the CT frame.
-        side: the femur ("left" / "right") the plan is in.
+        side: the femur ("left" / "right") the plan is in: the case file's ``side``, else inferred
+            from the plan.
         cm_config: the CM's geometry.
         fbg_control_points_deg: (n_control_points,) the CM shape from its FBG sensor, or None (then
             straight).
@@ -100,6 +101,9 @@ class NavigationCase:
         views: the C-arm images taken with the robot at ``joints_deg``.
         verification: images after the move, or None.
         source: the case file (for messages), or None for a case built in memory.
+        side_inferred_from: where the case file gives no ``side``: how it was inferred from the plan
+            (:func:`~fluoronav.navigation.planning.plan_side`; the preflight records it); None where
+            given.
     """
 
     volume: Volume
@@ -114,6 +118,7 @@ class NavigationCase:
     verification: VerificationViews | None = None
     source: Path | None = None
     fbg_sigma_deg: float | None = None
+    side_inferred_from: str | None = None
 
 
 # ----- reading ---------------------------------------------------------------------------------
@@ -138,23 +143,25 @@ def _volume(spec: CaseFile, src: str, root: Path) -> tuple[Volume, str]:
     return volume, ct
 
 
-def _side(side: str | None, volume: Volume, plan: Plan, src: str, ct: str) -> str:
-    """The plan's side (given, or the femoral head nearest the entry point), its anatomy checked."""
+def _side(side: str | None, volume: Volume, plan: Plan, src: str, ct: str) -> tuple[str, str | None]:
+    """The plan's side (given, or the femur the plan is on: :func:`plan_side`), its anatomy checked
+    → (side, how it was inferred; None where given)."""
     lms = volume.landmarks_world
-    heads = {s: lms[f"femoral_head_{s}"] for s in ("left", "right") if f"femoral_head_{s}" in lms}
+    inferred = None
     if side is None:
-        if not heads:
+        found = plan_side(plan, volume)
+        if found.side is None:
             raise InputError(
                 src, f"'ct' {ct} has no landmark femoral_head_left or femoral_head_right (give 'landmarks')"
             )
-        side = min(heads, key=lambda s: float(np.linalg.norm(heads[s] - plan.entry_point_world_mm)))
-        logger.info("%s: side %s (femoral head nearest the plan's entry point)", src, side)
+        side, inferred = found.side, found.how
+        logger.info("%s: side %s inferred from the plan (%s)", src, side, inferred)
     missing = []
     for label in ("pelvis", f"femur_{side}"):
         value = volume.label_value(label)
         if volume.labels is None or value is None or not np.any(volume.labels == value):
             missing.append(f"label {label!r}")
-    if side not in heads:
+    if f"femoral_head_{side}" not in lms:
         missing.append(f"landmark 'femoral_head_{side}'")
     if missing:
         raise InputError(
@@ -162,7 +169,7 @@ def _side(side: str | None, volume: Volume, plan: Plan, src: str, ct: str) -> st
             f"'ct' {ct} lacks {', '.join(missing)} (navigating the {side} femur needs labels 'pelvis' "
             f"and 'femur_{side}' and landmark 'femoral_head_{side}')",
         )
-    return str(side)
+    return str(side), inferred
 
 
 def load_navigation_case(path: str | Path) -> NavigationCase:
@@ -197,7 +204,7 @@ def load_navigation_case(path: str | Path) -> NavigationCase:
             spec.fbg_control_points_deg, "fbg_control_points_deg", src, n=n_cp, why=f"the CM has {n_cp}"
         )
     fbg_sigma = None if spec.fbg_sigma_deg is None else float(spec.fbg_sigma_deg)
-    side = _side(spec.side, volume, plan, src, ct)
+    side, side_inferred_from = _side(spec.side, volume, plan, src, ct)
     robot, joints, ee_from_cm = parse_robot(spec.robot, src, root)
 
     if spec.isocenter_ct_mm is not None:
@@ -223,6 +230,7 @@ def load_navigation_case(path: str | Path) -> NavigationCase:
         verification=verification,
         source=p,
         fbg_sigma_deg=fbg_sigma,
+        side_inferred_from=side_inferred_from,
     )
 
 

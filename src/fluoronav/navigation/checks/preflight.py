@@ -3,12 +3,12 @@
 A registration cannot repair inputs that contradict each other, and some contradictions let the
 pipeline run to a confident robot command (a plan target in soft tissue, swapped pelvis and femur
 labels, one image given as two views). Each check is cheap and names the problem in one line: what
-is wrong, with which view, plan or label, and what to check (the list: docs/navigation.md). The
-checks of the images and cameras are :mod:`fluoronav.navigation.checks.preflight_images`'s; the
-thresholds and the findings :mod:`fluoronav.navigation.checks.preflight_config`'s. :func:`preflight`
-runs them all. A finding's ``kind`` is ``"input"`` (an :class:`~fluoronav.errors.InputError`, exit
-status 2, :func:`raise_for_input`) or ``"plan"`` (a refusal, exit status 3). Frames: the CT's world
-frame (LPS, mm); label distances are measured on the CT's voxel grid.
+is wrong, with which view, plan or label, and what to check (the list: docs/navigation.md). Other
+modules of :mod:`fluoronav.navigation.checks` hold the shared inputs' ranges (``inputs``), the
+labels' fit to the CT (``label_fit``), which femur (``side``), the images (``preflight_images``),
+the thresholds and findings (``preflight_config``); :func:`preflight` runs them all. A finding's
+``kind``: ``"input"`` (an :class:`~fluoronav.errors.InputError`, exit 2, :func:`raise_for_input`),
+``"plan"`` (a refusal, exit 3) or ``"note"``. Frames: the CT's world frame (LPS, mm).
 """
 
 from __future__ import annotations
@@ -23,8 +23,11 @@ from fluoronav.anatomy.volume import Volume
 from fluoronav.errors import InputError
 from fluoronav.manipulator.config import CMConfig
 from fluoronav.navigation.case.model import NavigationCase
+from fluoronav.navigation.checks.inputs import check_bone_hu, check_bone_size, check_ct_geometry, check_fbg
+from fluoronav.navigation.checks.label_fit import SampledCT, check_label_fit, label_depth_mm, sample_ct
 from fluoronav.navigation.checks.preflight_config import PreflightConfig, PreflightFinding, finding
 from fluoronav.navigation.checks.preflight_images import check_intensities, check_views
+from fluoronav.navigation.checks.side import check_side
 from fluoronav.navigation.planning import Plan
 
 __all__ = [
@@ -243,7 +246,10 @@ def _landmarkfinding(
     if found == "pelvis":
         text = f"lies in the 'pelvis' label, not in {femur!r}: are the pelvis and femur labels swapped?"
     elif found and found.startswith("femur_"):
-        text = f"lies in the {found!r} label, not in {femur!r}: check the side and the landmark names"
+        text = (
+            f"lies in the {found!r} label, not in {femur!r}: is the label map mirrored left–right against "
+            "the landmarks? Else check the side and the landmark names"
+        )
     else:
         where = "off the CT's grid" if found is None else "in no label"
         text = (
@@ -296,29 +302,67 @@ def check_labels(
 
 
 # ----- the case ----------------------------------------------------------------------------------
+def _largest_ball(s: SampledCT, names: dict[str, int], cfg: PreflightConfig) -> tuple[str, float] | None:
+    """(label, radius mm) of the largest ball inside the femur label, or inside the pelvis label where
+    that is larger and the femur's is implausible (swapped labels must not read as a wrong spacing)."""
+    best: tuple[str, float] | None = None
+    lo, hi = cfg.bone_ball_radius_mm
+    for name in sorted(names, key=lambda n: not n.startswith("femur_")):  # the femur first
+        depth = label_depth_mm(s, names[name])
+        if depth is not None and (best is None or depth > best[1]):
+            best = (name, depth)
+        if best is not None and lo <= best[1] <= hi:
+            break  # plausible: the pelvis's (a large label) is not needed
+    return best
+
+
+def _shared_inputs(case: NavigationCase, cfg: PreflightConfig) -> list[PreflightFinding]:
+    """The inputs every view shares against their ranges and each other (:mod:`.inputs`,
+    :mod:`.label_fit`): the FBG reading, the CT's geometry, the bone labels' size, HU and fit."""
+    volume, side = case.volume, case.side
+    fbg = check_fbg(case.fbg_control_points_deg, case.cm_config, case.fbg_sigma_deg, cfg)
+    geometry = check_ct_geometry(volume, cfg)
+    if geometry or volume.labels is None:
+        return fbg + geometry  # on a grid of the wrong size the labels' checks would mislead
+    sampled = sample_ct(volume, cfg.contrast_voxel_mm)
+    names = {n: v for n in ("pelvis", f"femur_{side}") if (v := volume.label_value(n)) is not None}
+    ball = _largest_ball(sampled, names, cfg)
+    size = [] if ball is None else check_bone_size(volume, ball[1], ball[0], cfg)
+    if size:
+        return fbg + size
+    hu = check_bone_hu(sampled.hu, sampled.labels, names, cfg)
+    # a label that is not bone at all needs no pairing hint
+    return fbg + (hu or check_label_fit(volume, side, cfg, sampled=sampled))
+
+
 def preflight(case: NavigationCase, config: PreflightConfig | None = None) -> list[PreflightFinding]:
     """Every pre-registration check of a case.
 
-    The label checks run first; the plan is checked against the femur label only when they pass
-    (a plan measured against swapped labels would be refused for the labels' fault).
+    The shared inputs' ranges and the labels' fit to the CT run first (:mod:`.inputs`,
+    :mod:`.label_fit`), then the label and landmark checks and which femur (:mod:`.side`); the plan
+    is checked against the femur label only when they pass (a plan measured against swapped labels
+    would be refused for the labels' fault).
 
     Returns:
         the findings (empty when the case passes): ``"input"`` findings (bad input, exit status 2)
-        before ``"plan"`` findings (refusal, exit status 3). ``config``: default
-        :class:`PreflightConfig`.
+        before ``"plan"`` findings (refusal, exit status 3), and ``"note"`` findings for the record
+        (the side inferred). ``config``: default :class:`PreflightConfig`.
     """
     cfg = config or PreflightConfig()
     volume, side = case.volume, case.side
     distance = _femur_distance(volume, side, cfg) if _has_label(volume, f"femur_{side}") else None
+    shared = _shared_inputs(case, cfg)
     labels = check_labels(volume, side, cfg, distance=distance)
+    sides = check_side(case)
     views = check_views(case.views, case.verification, cfg)
     images = check_intensities(case.views, volume, cfg)
     if case.verification is not None:
         images += check_intensities(case.verification.views, volume, cfg, what="verification view")
     plan: list[PreflightFinding] = []
-    if not labels and distance is not None:
+    bad_anatomy = [f for f in shared + labels + sides if f.kind == "input"]
+    if not bad_anatomy and distance is not None:
         plan = check_plan(case.plan, volume, side, case.cm_config, cfg, distance=distance)
-    findings = labels + views + images + plan
+    findings = shared + labels + sides + views + images + plan
     for f in findings:
         # the caller reports them (an input error, a refusal): logged here for the record only
         logger.info("preflight %s: %s", f.check, f.reason)

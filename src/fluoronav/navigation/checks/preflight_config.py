@@ -3,7 +3,8 @@
 :class:`PreflightConfig` holds every threshold of :mod:`fluoronav.navigation.checks.preflight` (the plan
 and the labels) and :mod:`fluoronav.navigation.checks.preflight_images` (the images and cameras);
 :class:`PreflightFinding` is one failed check, its ``kind`` saying how the navigation ends
-(``"input"``: bad input, exit status 2; ``"plan"``: a refusal, exit status 3).
+(``"input"``: bad input, exit status 2; ``"plan"``: a refusal, exit status 3; ``"note"``: recorded,
+nothing refused).
 """
 
 from __future__ import annotations
@@ -14,10 +15,14 @@ from typing import Literal
 from fluoronav.settings import setting
 
 __all__ = [
+    "FindingKind",
     "PreflightConfig",
     "PreflightFinding",
     "finding",
 ]
+
+#: how a finding ends the navigation: ``"input"`` exit 2, ``"plan"`` a refusal (exit 3), ``"note"`` not
+FindingKind = Literal["plan", "input", "note"]
 
 
 @dataclass(frozen=True)
@@ -67,6 +72,34 @@ class PreflightConfig:
             tissue), so the two are told apart by which repair explains the image better: on the
             demo's views the mirror of a mirrored image scored 0.80–0.97 against 0.05–0.66 for its
             inverse, and the mirror of an inverted image 0.05–0.63 against 0.80–0.97.
+        fbg_margin_deg: an FBG control point may exceed the angle at which the CM's notches close
+            (``CMConfig.max_bend_deg``) by at most this, or by 3 of the case's ``fbg_sigma_deg``
+            where that is more: the reading's error. Beyond it no CM of that config bends so far (a
+            reading in another unit, or of another CM).
+        ct_spacing_mm: plausible (low, high) voxel spacing of a pelvis CT along each axis: thin-slice
+            reconstructions reach ~0.3 mm, thick slices 5 mm. A spacing in cm reads 10× too small.
+        ct_extent_mm: plausible (low, high) extent of the CT along each axis: a femoral head with its
+            socket spans ~60 mm, a whole-body scan ~2 m.
+        bone_ball_radius_mm: plausible (low, high) radius of the largest ball inside the ``pelvis``
+            and ``femur_<side>`` labels: the femoral head's (adults 18–30 mm). A CT whose spacing is
+            off by a factor scales it by that factor, the label volumes by its cube.
+        bone_min_median_hu: a bone label whose median HU is below this does not look like bone:
+            cancellous bone is ~150–400 HU and the cortex ~1000–2000 HU, muscle ~40, fat ~−100.
+            Labels on soft tissue, or a CT whose values are not HU (μ, a normalised image).
+        contrast_voxel_mm: the label-fit check samples the CT and the labels every this many mm
+            (every k-th voxel along each axis, k the nearest whole number, at least 1).
+        min_bone_contrast: each of the ``pelvis`` and ``femur_<side>`` labels must sit on the CT's
+            bone: its bone contrast, (median HU of its outermost layer of sampled voxels − median HU
+            of the layer just outside it, other labels left out) over (its 95th percentile HU − that
+            outside median), must reach this; the best of the label as given and one sampled voxel
+            larger or smaller (a boundary drawn a voxel off). The figures that set it:
+            docs/validation.md.
+        mirror_margin: the label map mirrored left–right (its array flipped along the axis nearest
+            the world's x) must not fit the bone better than as given by this much: the worst
+            label's mean contrast (the layers' means of HU clipped to [outside median, 95th
+            percentile]), which falls with every part of the surface off the bone. Both maps share
+            the segmentation's quality; a correct pair fits worse mirrored (or as well, for a
+            symmetric anatomy).
     """
 
     target_margin_mm: float = setting(
@@ -116,27 +149,53 @@ class PreflightConfig:
     mirrored_ncc: float = setting(
         0.5, "an image whose mirror correlates with that DRR this well looks mirrored", ge=-1, le=1
     )
+    fbg_margin_deg: float = setting(
+        0.5, "an FBG control point at most this beyond the angle at which a notch closes", unit="deg", ge=0
+    )
+    ct_spacing_mm: tuple[float, float] = setting(
+        (0.2, 5.0), "plausible (low, high) voxel spacing of a pelvis CT, each axis", unit="mm", gt=0
+    )
+    ct_extent_mm: tuple[float, float] = setting(
+        (50.0, 2500.0), "plausible (low, high) extent of a pelvis CT, each axis", unit="mm", gt=0
+    )
+    bone_ball_radius_mm: tuple[float, float] = setting(
+        (14.0, 36.0),
+        "plausible (low, high) radius of the largest ball inside the bone labels",
+        unit="mm",
+        gt=0,
+    )
+    bone_min_median_hu: float = setting(100.0, "a bone label's median HU at least this", unit="HU")
+    contrast_voxel_mm: float = setting(
+        2.0, "the label-fit check samples the CT about this often", unit="mm", gt=0
+    )
+    min_bone_contrast: float = setting(
+        0.65, "each of the pelvis and femur labels sits on bone at least this well", ge=-1, le=1
+    )
+    mirror_margin: float = setting(
+        0.15, "the labels mirrored left–right fit the bone at most this much better", ge=0
+    )
 
 
 @dataclass(frozen=True)
 class PreflightFinding:
-    """One failed check.
+    """One failed check (or a note).
 
     Attributes:
-        kind: ``"plan"`` (the plan is refused, exit status 3) or ``"input"`` (bad input, exit 2).
+        kind: ``"plan"`` (the plan is refused, exit status 3), ``"input"`` (bad input, exit 2) or
+            ``"note"`` (recorded with the preflight, nothing refused: e.g. the side inferred).
         subject: what it is about: ``"plan 'entry'"``, ``"label 'femur_left'"``,
             ``"landmark 'femoral_head_left'"``, ``"view 'AP'"``, ``"verification view 'AP'"``.
         reason: one line that names the subject, says what is wrong and what to check.
         check: a short name of the check (``"target_in_femur"``, ``"identical_views"``, …).
     """
 
-    kind: Literal["plan", "input"]
+    kind: FindingKind
     subject: str
     reason: str
     check: str
 
 
-def finding(kind: Literal["plan", "input"], subject: str, text: str, check: str) -> PreflightFinding:
+def finding(kind: FindingKind, subject: str, text: str, check: str) -> PreflightFinding:
     """A finding whose reason is ``subject`` followed by ``text``, its whitespace runs made single
     spaces (one line)."""
     return PreflightFinding(kind, subject, " ".join(f"{subject}{text}".split()), check)
