@@ -123,6 +123,7 @@ def test_negatives_at_the_same_views(navigation: Path, tmp_path: Path) -> None:
         assert not _arrays(tmp_path, row)["mask"].any()
 
 
+@pytest.mark.slow  # a data set made twice (resume, mixed): the default run's budget
 def test_killed_navigation_run_resumes_to_identical_samples(
     navigation: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -150,6 +151,7 @@ def test_killed_navigation_run_resumes_to_identical_samples(
         simulate_dataset(tmp_path, 3, dataclasses.replace(NAV, scenes="mixed"), workers=0)
 
 
+@pytest.mark.slow  # a data set made twice (resume, mixed): the default run's budget
 def test_mixed_paper_samples_are_the_paper_data_sets(tmp_path: Path) -> None:
     paper = DatasetSpec(n_phantoms=1, image_size=64, seed=77, phantom_spacing_mm=2.0)
     mixed = dataclasses.replace(paper, scenes="mixed", navigation_fraction=0.5)
