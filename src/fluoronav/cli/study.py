@@ -85,7 +85,8 @@ _FAULT_OPTION = typer.Option(
     None,
     "--fault",
     help="Inject an input fault (mirror_one, mirror_all, focal_10pct, verify_joints_3deg, "
-    "handeye_10mm, verify_no_move, view_without_cm, labels_swapped, plan_inward_300, inverted, none).",
+    "handeye_10mm, verify_no_move, view_without_cm, labels_swapped, plan_inward_300, inverted, "
+    "labels_mirrored, labels_shifted_5mm, fbg_beyond_range, plan_other_femur, none).",
 )
 _HANDEYE_ERROR_MM_OPTION = typer.Option(
     None,

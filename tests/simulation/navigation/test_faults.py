@@ -19,6 +19,7 @@ from fluoronav.simulation.navigation.faults import (
     fault_outcome,
     get_fault,
     mirror_view,
+    names_fault,
     view_without_cm,
 )
 
@@ -131,7 +132,7 @@ def test_unknown_fault_name_is_an_input_error() -> None:
 
 
 def test_every_fault_but_the_baseline_is_named_by_some_check() -> None:
-    assert len(FAULTS) == 11
+    assert len(FAULTS) == 15
     assert all(f.handled_by for n, f in FAULTS.items() if n != "none")
     assert FAULTS["handeye_10mm"].handeye_error_mm == 10.0 and FAULTS["handeye_10mm"].landing_counts
 
@@ -174,3 +175,36 @@ def test_the_preflight_names_swapped_labels_and_a_plan_in_soft_tissue(case: Navi
     deep = apply_case_fault(case, FAULTS["plan_inward_300"])
     plan_checks = {f.check for f in preflight(deep) if f.kind == "plan"}
     assert plan_checks and plan_checks <= set(FAULTS["plan_inward_300"].handled_by)
+
+
+@pytest.fixture
+def phantom_case(case: NavigationCase) -> NavigationCase:
+    """The small case on the hip phantom of seed 3 (its femurs 11° from mirror images), the plan from
+    the left entry landmark to the left femoral head."""
+    from fluoronav.anatomy.phantom import hip_phantom
+    from fluoronav.navigation.planning import Plan
+
+    volume = hip_phantom(seed=3, spacing_mm=2.5, texture=False)
+    entry, head = volume.landmarks_world["entry_left"], volume.landmarks_world["femoral_head_left"]
+    direction = (head - entry) / np.linalg.norm(head - entry)
+    return dataclasses.replace(case, volume=volume, plan=Plan("entry_left", entry, direction))
+
+
+@pytest.mark.parametrize(
+    "name", ["labels_mirrored", "labels_shifted_5mm", "fbg_beyond_range", "plan_other_femur"]
+)
+def test_the_shared_input_faults_are_named_by_the_preflight(phantom_case: NavigationCase, name: str) -> None:
+    """Each fault of an input every view shares is named by the preflight check it is for; the clean
+    case passes the same checks."""
+    from fluoronav.navigation.checks.preflight import preflight
+
+    def named(c: NavigationCase) -> list[str]:
+        return [
+            f.check
+            for f in preflight(c)
+            if f.kind != "note" and names_fault(FAULTS[name], "preflight", f.check)
+        ]
+
+    assert named(phantom_case) == []
+    out = apply_case_fault(phantom_case, FAULTS[name])
+    assert out is not phantom_case and named(out), [(f.check, f.reason) for f in preflight(out)]

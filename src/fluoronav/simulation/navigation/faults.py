@@ -74,6 +74,11 @@ class Fault:
         swap_labels: the pelvis and the case side's femur labels exchanged.
         plan_deeper_mm: the plan's target moved this far along its insertion direction.
         handeye_error_mm: the hand-eye matrix's translation error (mm) unless the study gives one.
+        mirror_labels: the label map flipped left-right (the CT and the landmarks unchanged).
+        shift_labels_mm: the label map shifted this far along the CT's first axis (x).
+        fbg_beyond_deg: the FBG reading's first control point set this far beyond the CM's bend.
+        plan_other_femur: the plan moved by the vector between the femoral heads (the case's
+            ``side`` unchanged), as a plan made on the other femur.
     """
 
     name: str
@@ -92,6 +97,10 @@ class Fault:
     swap_labels: bool = False
     plan_deeper_mm: float | None = None
     handeye_error_mm: float | None = None
+    mirror_labels: bool = False
+    shift_labels_mm: float | None = None
+    fbg_beyond_deg: float | None = None
+    plan_other_femur: bool = False
 
 
 #: the fault catalogue, by name (``none``: the baseline)
@@ -170,6 +179,34 @@ FAULTS: dict[str, Fault] = {
             plan_deeper_mm=300.0,
         ),
         Fault(
+            "labels_mirrored",
+            "the case's label map flipped left-right against its CT and landmarks",
+            "case",
+            handled_by=("labels_mirrored", "labels_on_bone", "landmark_in_femur"),
+            mirror_labels=True,
+        ),
+        Fault(
+            "labels_shifted_5mm",
+            "the case's label map shifted 5 mm along the CT's x axis",
+            "case",
+            handled_by=("labels_on_bone",),
+            shift_labels_mm=5.0,
+        ),
+        Fault(
+            "fbg_beyond_range",
+            "the FBG reading's first control point 2° beyond the CM's bend",
+            "case",
+            handled_by=("fbg_range",),
+            fbg_beyond_deg=2.0,
+        ),
+        Fault(
+            "plan_other_femur",
+            "the plan made on the other femur, the case's side unchanged",
+            "case",
+            handled_by=("plan_side",),
+            plan_other_femur=True,
+        ),
+        Fault(
             "inverted",
             "every first view's intensities inverted (MONOCHROME1 read as MONOCHROME2)",
             "first_views",
@@ -238,6 +275,50 @@ def swap_labels(volume: Volume, a: str, b: str) -> Volume:
     return volume.replace(labels=labels)
 
 
+def mirror_labels(volume: Volume) -> Volume:
+    """A copy of ``volume`` whose label map is flipped along the x index axis (left-right)."""
+    if volume.labels is None:
+        raise ValueError("the volume has no labels to mirror")
+    return volume.replace(labels=np.ascontiguousarray(volume.labels[:, :, ::-1]))
+
+
+def shift_labels(volume: Volume, mm: float) -> Volume:
+    """A copy of ``volume`` whose label map is moved ``mm`` along the x index axis (whole voxels,
+    background shifted in)."""
+    if volume.labels is None:
+        raise ValueError("the volume has no labels to shift")
+    k = round(mm / float(volume.spacing_mm[0]))
+    labels = np.zeros_like(volume.labels)
+    if k >= 0:
+        labels[:, :, k:] = volume.labels[:, :, : labels.shape[2] - k]
+    else:
+        labels[:, :, :k] = volume.labels[:, :, -k:]
+    return volume.replace(labels=labels)
+
+
+def fbg_beyond_range(
+    reading_deg: np.ndarray | None, n: int, max_bend_deg: float, beyond_deg: float
+) -> np.ndarray:
+    """The FBG reading (straight where None) with its first control point ``beyond_deg`` past
+    ``max_bend_deg``."""
+    q = np.zeros(n) if reading_deg is None else np.asarray(reading_deg, np.float64).copy()
+    q[0] = max_bend_deg + beyond_deg
+    return q
+
+
+def plan_on_other_femur(plan: Plan, volume: Volume, side: str) -> Plan:
+    """The plan moved by the vector from the ``side`` femur label's centroid to the other one's."""
+    other = "right" if side == "left" else "left"
+    values = [volume.label_value(f"femur_{s}") for s in (side, other)]
+    if volume.labels is None or None in values:
+        raise ValueError("the volume has no labels of both femurs")
+    here, there = (np.argwhere(volume.labels == v)[:, ::-1].mean(axis=0) for v in values)  # (i, j, k)
+    shift = volume.world_from_index[:3, :3] @ (there - here)
+    return dataclasses.replace(
+        plan, entry_point_world_mm=np.asarray(plan.entry_point_world_mm, np.float64) + shift
+    )
+
+
 def deepen_plan(plan: Plan, mm: float) -> Plan:
     """The plan with its target ``mm`` further along its own insertion direction (the entry kept)."""
     return dataclasses.replace(plan, insertion_depth_mm=float(plan.insertion_depth_mm) + float(mm))
@@ -286,6 +367,18 @@ def apply_case_fault(case: NavigationCase, fault: Fault | None) -> NavigationCas
         case = dataclasses.replace(case, volume=swap_labels(case.volume, "pelvis", f"femur_{case.side}"))
     if fault.plan_deeper_mm is not None:
         case = dataclasses.replace(case, plan=deepen_plan(case.plan, fault.plan_deeper_mm))
+    if fault.mirror_labels:
+        case = dataclasses.replace(case, volume=mirror_labels(case.volume))
+    if fault.shift_labels_mm is not None:
+        case = dataclasses.replace(case, volume=shift_labels(case.volume, fault.shift_labels_mm))
+    if fault.fbg_beyond_deg is not None:
+        n = case.cm_config.n_control_points
+        q = fbg_beyond_range(
+            case.fbg_control_points_deg, n, case.cm_config.max_bend_deg, fault.fbg_beyond_deg
+        )
+        case = dataclasses.replace(case, fbg_control_points_deg=q)
+    if fault.plan_other_femur:
+        case = dataclasses.replace(case, plan=plan_on_other_femur(case.plan, case.volume, case.side))
     return case
 
 
