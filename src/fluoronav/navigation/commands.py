@@ -428,9 +428,12 @@ def _ambiguity(cm_diag: Mapping[str, Any], left_out: Mapping[str, str], safety: 
         for v in cm_diag["views"].values()
         if v["landmark_residual_mm"] is not None
     ]
-    if len(res) < n or max(res) > safety.overrule_max_landmark_residual_mm:
+    if len(res) < n:
+        missing = [k for k, v in cm_diag["views"].items() if v["landmark_residual_mm"] is None]
+        return f"no CM detected in {', '.join(missing)} to check the registered landmarks against"
+    if max(res) > safety.overrule_max_landmark_residual_mm:
         return (
-            f"a view's landmarks are {max(res, default=float('nan')):.2f} mm from the detected ones "
+            f"a view's landmarks are {max(res):.2f} mm from the detected ones "
             f"(at most {safety.overrule_max_landmark_residual_mm:g} mm, overrule_max_landmark_residual_mm)"
         )
     return ""

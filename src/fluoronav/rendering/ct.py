@@ -32,7 +32,15 @@ from fluoronav.rendering._ct_numba import (
     march_rays,
 )
 
-__all__ = ["DEFAULT_STEP_VOXELS", "CTRenderer", "compile_kernels", "mipmap_factors", "render_line_integrals"]
+__all__ = [
+    "DEFAULT_STEP_VOXELS",
+    "QUANTISED_LEVELS",
+    "CTRenderer",
+    "compile_kernels",
+    "mipmap_factors",
+    "quantise_uint16",
+    "render_line_integrals",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -46,6 +54,12 @@ _NO_SKIP = np.zeros(0, np.uint8)
 
 #: Samples per torch chunk (bounds the (rays, samples, 3) grid to ~100 MB in float32).
 _TORCH_CHUNK_SAMPLES = 8_000_000
+
+#: The largest value of a quantised (uint16) volume.
+QUANTISED_LEVELS = 65535
+
+#: Voxels quantised at a time (bounds :func:`quantise_uint16`'s float64 temporaries to ~32 MB).
+_QUANTISE_CHUNK_VOXELS = 1 << 22
 
 Factors = tuple[int, int, int]
 
@@ -120,6 +134,34 @@ def _ray_setup(
     return index_from_pixel, mm_from_pixel, source_index
 
 
+def quantise_uint16(
+    values: np.ndarray, scale: float | None = None, *, out: np.ndarray | None = None
+) -> tuple[np.ndarray, float]:
+    """``values`` (any shape, ≥ 0) as uint16 multiples of ``scale``, ``round(values / scale)``, and the
+    scale; a ray march is linear in the voxels, so the quantised volume's integral times the scale
+    is the float one's to within half a step per sample. Default scale: the maximum over
+    :data:`QUANTISED_LEVELS` (1.0 for an all-zero volume), the finest step that represents every
+    value; values above ``QUANTISED_LEVELS · scale`` are clipped. Done in chunks, into ``out`` if
+    given (uint16, the shape of ``values``), so a fine volume needs no float temporary of its size.
+    """
+    flat = np.asarray(values).reshape(-1)
+    if flat.size and float(flat.min()) < 0.0:
+        raise ValueError("quantise_uint16 needs non-negative values")
+    if scale is None:
+        top = float(flat.max()) if flat.size else 0.0
+        scale = top / QUANTISED_LEVELS if top > 0.0 else 1.0
+    if not scale > 0.0 or not math.isfinite(scale):
+        raise ValueError(f"scale must be positive, got {scale}")
+    q = np.empty(np.shape(values), np.uint16) if out is None else out
+    if q.dtype != np.uint16 or q.shape != np.shape(values) or not q.flags.c_contiguous:
+        raise ValueError("out must be a C-contiguous uint16 array of the values' shape")
+    q_flat = q.reshape(-1)
+    for lo in range(0, flat.size, _QUANTISE_CHUNK_VOXELS):
+        part = np.rint(flat[lo : lo + _QUANTISE_CHUNK_VOXELS].astype(np.float64) / scale)
+        q_flat[lo : lo + _QUANTISE_CHUNK_VOXELS] = np.minimum(part, QUANTISED_LEVELS)
+    return q, float(scale)
+
+
 # ----- backends ---------------------------------------------------------------------------------
 def _march_numba(
     mu: torch.Tensor,
@@ -131,14 +173,15 @@ def _march_numba(
     skip: np.ndarray | None = None,
 ) -> None:
     vol = mu.detach()
-    if vol.dtype not in (torch.float32, torch.float64):
+    if vol.dtype not in (torch.float32, torch.float64, torch.uint16):
         vol = vol.float()
     vol_np = np.ascontiguousarray(vol.cpu().numpy())
+    image_dtype = torch.float32 if vol.dtype == torch.uint16 else vol.dtype  # uint16 is read as float32
     dist = _NO_SKIP if skip is None else skip
-    if out.is_contiguous() and out.device.type == "cpu" and out.dtype == vol.dtype:
+    if out.is_contiguous() and out.device.type == "cpu" and out.dtype == image_dtype:
         march_rays(vol_np, index_from_pixel, mm_from_pixel, source_index, float(step_mm), out.numpy(), dist)
     else:
-        tmp = np.empty(tuple(out.shape), dtype=vol_np.dtype)
+        tmp = np.empty(tuple(out.shape), dtype=np.float32 if vol.dtype == torch.uint16 else vol_np.dtype)
         march_rays(vol_np, index_from_pixel, mm_from_pixel, source_index, float(step_mm), tmp, dist)
         out.copy_(torch.from_numpy(tmp))
 
@@ -228,17 +271,27 @@ def compile_kernels() -> None:
 
 class _Pyramid:
     """The volume and its lazily built 2× box-downsampled versions, keyed by per-axis factors, with
-    each one's empty-space distance (numba backend) when ``skip_empty``."""
+    each one's empty-space distance (numba backend) when ``skip_empty``; a quantised volume's
+    rendered values are its integrals times ``scale`` (None: the volume holds the values)."""
 
-    def __init__(self, mu: torch.Tensor, world_from_index: np.ndarray, *, skip_empty: bool = False) -> None:
+    def __init__(
+        self,
+        mu: torch.Tensor,
+        world_from_index: np.ndarray,
+        *,
+        skip_empty: bool = False,
+        scale: float | None = None,
+    ) -> None:
         self.levels: dict[Factors, tuple[torch.Tensor, np.ndarray]] = {(1, 1, 1): (mu, world_from_index)}
         self.skip_empty = skip_empty
+        self.scale = scale
         self._skip: dict[Factors, np.ndarray] = {}
 
     def get(self, factors: Factors) -> tuple[torch.Tensor, np.ndarray]:
         if factors not in self.levels:
             mu, w = self.levels[(1, 1, 1)]
-            self.levels[factors] = _downsample(mu, w, factors)
+            # a uint16 level is averaged in float32, in the same units
+            self.levels[factors] = _downsample(mu if mu.is_floating_point() else mu.float(), w, factors)
             logger.debug("built mipmap level %s: shape %s", factors, tuple(self.levels[factors][0].shape))
         return self.levels[factors]
 
@@ -301,6 +354,8 @@ def _render(
             _march_numba(vol, A, W, s, step, target, pyramid.skip(f))
         else:
             _march_torch(vol, A, W, s, step, target)
+        if pyramid.scale is not None:
+            target.mul_(pyramid.scale)
         if sel is None:
             out[cams] = target
     return out
@@ -376,6 +431,11 @@ class CTRenderer:
         step_mm, backend, mipmap: see :func:`render_line_integrals`.
         skip_empty: skip the empty space of the volume (numba backend; the same integrals, see
             :mod:`fluoronav.rendering._ct_numba`); each level's distance map is built on first use.
+
+    Attributes:
+        mu: the stored volume (nz, ny, nx): float, or uint16 in units of ``scale``
+            (:meth:`from_tensor`'s ``quantise``).
+        scale: a uint16 ``mu``'s value per unit, or None (``mu`` holds the values).
     """
 
     def __init__(
@@ -410,14 +470,16 @@ class CTRenderer:
         backend: str,
         mipmap: bool,
         skip_empty: bool,
+        scale: float | None = None,
     ) -> None:
         self.mu = mu
+        self.scale = scale
         self.device = mu.device
         self.world_from_index = world_from_index
         self.step_mm = step_mm
         self.backend = backend
         self.mipmap = mipmap
-        self._pyramid = _Pyramid(self.mu, self.world_from_index, skip_empty=skip_empty)
+        self._pyramid = _Pyramid(self.mu, self.world_from_index, skip_empty=skip_empty, scale=scale)
 
     @classmethod
     def from_tensor(
@@ -429,11 +491,26 @@ class CTRenderer:
         backend: str = "auto",
         mipmap: bool = True,
         skip_empty: bool = True,
+        quantise: bool = False,
+        scale: float | None = None,
     ) -> CTRenderer:
         """Renderer of a (nz, ny, nx) μ tensor (1/mm, rendered on its device) with its (4, 4)
-        ``world_from_index``; the tensor is used as it is, not copied."""
+        ``world_from_index``; the tensor is used as it is, not copied.
+
+        With ``quantise``, a float ``mu`` on the CPU is stored as uint16 (:func:`quantise_uint16`,
+        a half or a quarter of its memory; the integrals change by at most half a step per sample
+        and stay float32); on another device (the torch march) ``mu`` is kept as it is. A uint16
+        ``mu`` is taken as quantised already, ``scale`` (default 1) per unit.
+        """
         if mu.ndim != 3:
             raise ValueError(f"mu must be (nz, ny, nx), got shape {tuple(mu.shape)}")
+        if scale is not None and mu.dtype != torch.uint16:
+            raise ValueError(f"scale is for a uint16 volume, got {mu.dtype}")
+        if quantise and mu.is_floating_point() and mu.device.type == "cpu":
+            q, scale = quantise_uint16(mu.detach().numpy())
+            mu = torch.from_numpy(q)
+        elif mu.dtype == torch.uint16 and scale is None:
+            scale = 1.0
         self = cls.__new__(cls)
         self._setup(
             mu.contiguous(),
@@ -442,8 +519,14 @@ class CTRenderer:
             backend=backend,
             mipmap=mipmap,
             skip_empty=skip_empty,
+            scale=scale,
         )
         return self
+
+    def mu_values(self) -> torch.Tensor:
+        """The volume the renderer integrates (nz, ny, nx): ``mu``, or a quantised one's values as
+        float32 (a new tensor, ``mu`` times ``scale``)."""
+        return self.mu if self.scale is None else self.mu.float() * self.scale
 
     @classmethod
     def from_hu(

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -25,9 +26,9 @@ from fluoronav.anatomy.volume import Volume
 from fluoronav.device import resolve_device
 from fluoronav.geometry.camera import Camera
 from fluoronav.manipulator.config import CMConfig
-from fluoronav.rendering.ct import CTRenderer
+from fluoronav.rendering.ct import QUANTISED_LEVELS, CTRenderer, quantise_uint16
 from fluoronav.simulation.instrument import BuiltCM
-from fluoronav.simulation.materials import MM_PER_CM, decompose_hu
+from fluoronav.simulation.materials import DECOMPOSE_CHUNK_VOXELS, MM_PER_CM, decompose_hu, hu_to_density
 from fluoronav.simulation.scene import Scene
 from fluoronav.simulation.xray import (
     RENDERED_CT_MATERIALS,
@@ -38,7 +39,7 @@ from fluoronav.simulation.xray import (
     imaged,
 )
 
-__all__ = ["FILLER_HU", "ArticulatedSimulator", "split_femur"]
+__all__ = ["FILLER_HU", "ArticulatedSimulator", "femur_in_box", "split_femur"]
 
 log = logging.getLogger(__name__)
 
@@ -52,22 +53,79 @@ def split_femur(volume: Volume, side: str, *, dilate_voxels: int = 1) -> tuple[n
     Raises:
         ValueError: the volume has no labels or no ``femur_<side>`` label.
     """
+    crop, box = femur_in_box(volume, side, dilate_voxels=dilate_voxels)
+    mask = np.zeros(np.shape(volume.data), dtype=np.bool_)
+    mask[box] = crop
+    return mask, box
+
+
+def femur_in_box(
+    volume: Volume, side: str, *, dilate_voxels: int = 1
+) -> tuple[np.ndarray, tuple[slice, ...]]:
+    """:func:`split_femur`'s ``mask[box]`` and ``box``, without a mask of the whole volume.
+
+    The mask (the label dilated by ``dilate_voxels``, minus other labels) is computed on the label's
+    bounding box grown by ``dilate_voxels + 1``: each voxel within ``dilate_voxels`` steps of the
+    femur is reached along a path inside the box spanned by the two, so the result is exact.
+
+    Raises:
+        ValueError: the volume has no labels or no ``femur_<side>`` label.
+    """
     if volume.labels is None:
         raise ValueError("the articulated simulator needs a labelled CT")
     value = volume.label_value(f"femur_{side}")
     if value is None:
         raise ValueError(f"the CT has no label 'femur_{side}' (labels: {volume.label_names})")
-    femur = volume.labels == value
-    if not femur.any():
+    labels = volume.labels
+    shape = np.asarray(labels.shape)
+    # the label's extent per axis (no coordinates of every femur voxel)
+    is_femur = labels == value
+    if not is_femur.any():
         raise ValueError(f"label 'femur_{side}' is empty")
+    extent = []
+    for axis in range(3):
+        hit = np.flatnonzero(np.any(is_femur, axis=tuple(a for a in range(3) if a != axis)))
+        extent.append((int(hit[0]), int(hit[-1])))
+    del is_femur
+    grow = max(dilate_voxels, 0) + 1
+    r_lo = np.maximum(np.array([a for a, _ in extent]) - grow, 0)
+    r_hi = np.minimum(np.array([b for _, b in extent]) + 1 + grow, shape)
+    region = labels[tuple(slice(int(a), int(b)) for a, b in zip(r_lo, r_hi, strict=True))]
+    femur = region == value
     mask = femur
     if dilate_voxels > 0:
-        other = (volume.labels > 0) & ~femur
+        other = (region > 0) & ~femur
         mask = ndimage.binary_dilation(femur, iterations=dilate_voxels) & ~other
-    idx = np.argwhere(mask)
+    idx = np.argwhere(mask) + r_lo
     lo = np.maximum(idx.min(0) - 1, 0)
-    hi = np.minimum(idx.max(0) + 2, mask.shape)
-    return mask, tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    hi = np.minimum(idx.max(0) + 2, shape)
+    local = tuple(slice(int(a - r), int(b - r)) for a, b, r in zip(lo, hi, r_lo, strict=True))
+    return np.ascontiguousarray(mask[local]), tuple(
+        slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True)
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class _BoxMask:
+    """A whole-volume bool mask that is False outside ``box``, held as ``mask`` (its values in
+    ``box``); indexing it by a box of slices gives the whole mask's values there."""
+
+    mask: np.ndarray
+    box: tuple[slice, ...]
+
+    def __getitem__(self, region: tuple[slice, ...]) -> np.ndarray:
+        """The mask in ``region`` (slices with start and stop inside the volume)."""
+        starts = [int(r.start) for r in region]
+        out = np.zeros([int(r.stop) - a for r, a in zip(region, starts, strict=True)], dtype=bool)
+        lo = [max(a, int(b.start)) for a, b in zip(starts, self.box, strict=True)]
+        hi = [min(int(r.stop), int(b.stop)) for r, b in zip(region, self.box, strict=True)]
+        if all(b > a for a, b in zip(lo, hi, strict=True)):
+            dst = tuple(slice(a - s, b - s) for a, b, s in zip(lo, hi, starts, strict=True))
+            src = tuple(
+                slice(a - int(m.start), b - int(m.start)) for a, b, m in zip(lo, hi, self.box, strict=True)
+            )
+            out[dst] = self.mask[src]
+        return out
 
 
 class _XrayHelpers(XraySimulator):
@@ -85,7 +143,7 @@ class _XrayHelpers(XraySimulator):
         config: SimulationConfig,
         device: torch.device,
         *,
-        filled: np.ndarray | bool = False,
+        filled: np.ndarray | _BoxMask | bool = False,
     ) -> None:
         # deliberately not calling super().__init__: it decomposes and uploads the whole CT
         self.volume = volume
@@ -120,14 +178,49 @@ def _body_renderers(
     }
 
 
-def _rest_densities(hu: np.ndarray, mask: np.ndarray) -> dict[str, np.ndarray]:
-    """The ``rest`` body's material densities: the CT's with the femur's voxels (``mask``) filled
-    with :data:`FILLER_HU`'s, set in place (no filled copy of a fine patient's CT)."""
+def _rest_densities(hu: np.ndarray, crop_mask: np.ndarray, box: tuple[slice, ...]) -> dict[str, np.ndarray]:
+    """The ``rest`` body's material densities: the CT's with the femur's voxels (``crop_mask`` in
+    ``box``) filled with :data:`FILLER_HU`'s, set in place (no filled copy of a fine patient's CT)."""
     rest = decompose_hu(hu, RENDERED_CT_MATERIALS)
     filler = decompose_hu(np.array([FILLER_HU], dtype=np.float32), RENDERED_CT_MATERIALS)
     for m, density in rest.items():
-        np.putmask(density, mask, filler[m][0])
+        density[box][crop_mask] = filler[m][0]
     return rest
+
+
+def _quantised_rest_renderers(
+    hu: np.ndarray, crop_mask: np.ndarray, box: tuple[slice, ...], world_from_index: np.ndarray
+) -> dict[str, CTRenderer]:
+    """:func:`_rest_densities`' renderers on the CPU with uint16 volumes (half the float32 ones'
+    memory), built slab by slab so that no float32 volume of the CT's size exists.
+
+    One step serves the three materials: every partial density lies in [0, ρ(HU)] and ρ
+    (:func:`~fluoronav.simulation.materials.hu_to_density`) is non-decreasing, so ρ of the highest HU
+    (or of the filler) bounds them all without clipping, known before any voxel is decomposed
+    (a per-material maximum would cost a second pass); the error is at most half a step per sample.
+    """
+    top_hu = max(float(np.max(hu)), FILLER_HU)
+    scale = float(hu_to_density(np.array([top_hu]))[0]) / QUANTISED_LEVELS
+    filler = decompose_hu(np.array([FILLER_HU], dtype=np.float32), RENDERED_CT_MATERIALS)
+    q = {m: np.empty(hu.shape, dtype=np.uint16) for m in RENDERED_CT_MATERIALS}
+    nz = hu.shape[0]
+    step = max(DECOMPOSE_CHUNK_VOXELS // max(hu[0].size, 1), 1)
+    for z0 in range(0, nz, step):
+        z1 = min(z0 + step, nz)
+        parts = decompose_hu(hu[z0:z1], RENDERED_CT_MATERIALS)
+        b0, b1 = max(z0, box[0].start), min(z1, box[0].stop)  # the femur's slices in this slab
+        for m, density in parts.items():
+            if b1 > b0:
+                femur = crop_mask[b0 - box[0].start : b1 - box[0].start]
+                density[b0 - z0 : b1 - z0, box[1], box[2]][femur] = filler[m][0]
+            quantise_uint16(density, scale, out=q[m][z0:z1])
+    return {
+        m: CTRenderer.from_tensor(
+            torch.from_numpy(q[m]), world_from_index, mipmap=False, skip_empty=True, scale=scale
+        )
+        for m in RENDERED_CT_MATERIALS
+        if q[m].any()
+    }
 
 
 class ArticulatedSimulator:
@@ -138,6 +231,10 @@ class ArticulatedSimulator:
         femur_side: which femur moves on its own.
         config: simulation settings (``image_size`` is overridden per call by ``simulate``).
         device: torch device for rendering and physics.
+        quantise: on the CPU, store the ``rest`` body's densities as uint16
+            (:func:`~fluoronav.rendering.ct.quantise_uint16`; half the float32 volumes' memory, for
+            a fine patient); its images change by the quantisation, at most half a step (the
+            density of the CT's highest HU over 65535) per sample. Ignored on CUDA (float32 there).
     """
 
     def __init__(
@@ -147,18 +244,22 @@ class ArticulatedSimulator:
         femur_side: str = "left",
         config: SimulationConfig | None = None,
         device: str | torch.device = "cpu",
+        quantise: bool = False,
     ) -> None:
         self.volume = volume
         self.femur_side = femur_side
         self.config = config or SimulationConfig()
         self.device = resolve_device(device)
-        mask, box = split_femur(volume, femur_side)
+        crop_mask, box = femur_in_box(volume, femur_side)
         hu = np.asarray(volume.data, dtype=np.float32)
         self.rest_world_from_index = np.asarray(volume.world_from_index, dtype=np.float64)
-        self._rest = _body_renderers(_rest_densities(hu, mask), self.rest_world_from_index, self.device)
+        if quantise and self.device.type == "cpu":
+            self._rest = _quantised_rest_renderers(hu, crop_mask, box, self.rest_world_from_index)
+        else:
+            rest = _rest_densities(hu, crop_mask, box)
+            self._rest = _body_renderers(rest, self.rest_world_from_index, self.device)
         # femur body: own densities minus the filler's, on the mask, cropped to the box
         crop_hu = hu[box]
-        crop_mask = mask[box]
         own = decompose_hu(crop_hu, RENDERED_CT_MATERIALS)
         filler = decompose_hu(np.array([FILLER_HU], dtype=np.float32), RENDERED_CT_MATERIALS)
         delta = {m: np.where(crop_mask, own[m] - filler[m][0], 0.0).astype(np.float32) for m in own}
@@ -172,10 +273,11 @@ class ArticulatedSimulator:
         box_volume = volume.replace(
             data=crop_hu, labels=None, origin_mm=tuple(self.femur_world_from_index[:3, 3])
         )
-        self._drill_rest = _XrayHelpers(volume, hu, self.config, self.device, filled=mask)
+        filled = _BoxMask(crop_mask, box)  # the femur's voxels, held in its box only
+        self._drill_rest = _XrayHelpers(volume, hu, self.config, self.device, filled=filled)
         self._drill_femur = _XrayHelpers(box_volume, crop_hu, self.config, self.device, filled=~crop_mask)
         self._drill_filler = _XrayHelpers(box_volume, crop_hu, self.config, self.device, filled=True)
-        log.debug("articulated split: femur box %s, %d femur voxels", box, int(mask.sum()))
+        log.debug("articulated split: femur box %s, %d femur voxels", box, int(crop_mask.sum()))
 
     # ----- geometry ------------------------------------------------------------------------
     def stored_camera(self, camera: Camera, image_size: int | None = None) -> Camera:
