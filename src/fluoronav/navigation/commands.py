@@ -13,7 +13,7 @@ disagreement named for its cause: the kinematics, a wrong detection, or one view
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +38,8 @@ __all__ = [
     "name_kinematics_disagreement",
     "name_one_view_disagreement",
     "refuse_wrong_detection",
+    "undetected_refused",
+    "undetected_warning",
     "wrong_detection_warning",
 ]
 
@@ -411,6 +413,30 @@ def wrong_detection_warning(offsets_mm: Mapping[str, float], gap_mm: float, safe
         f"detection_disagrees: {_wrong_detection_said(offsets_mm, gap_mm, safety)}. Corrected from the "
         "CM registered at the prediction, which passed every view's check; check the detection in "
         "those views"
+    )
+
+
+def undetected_refused(views: Sequence[Any], exc: NavigationRefused) -> NavigationRefused:
+    """The refusal of a verification whose views showed the detector no CM, after the CM registered
+    from the kinematic prediction on the images alone refused too (``exc``): check ``views_with_cm``
+    (stage ``verify_detect``), with that registration's failure as the evidence."""
+    names = ", ".join(v.name for v in views)
+    return NavigationRefused(
+        "verify_detect",
+        "views_with_cm",
+        f"the CM was found in 0 of {len(views)} views, and registered from the kinematic prediction "
+        f"on the images alone it failed its checks (stage {exc.stage}, check {exc.check}: {exc.detail})",
+        view=names,
+    )
+
+
+def undetected_warning(views: Sequence[Any]) -> str:
+    """The warning of a verification that went on without a detection (``register_undetected``)."""
+    names = ", ".join(v.name for v in views)
+    return (
+        f"views_with_cm: the CM was found in none of the verification views ({names}); "
+        "registered from the kinematic prediction on the images alone, it passed every view's check. "
+        "Check the detection in those views"
     )
 
 

@@ -78,6 +78,10 @@ class VerificationConfig:
             view's detection elsewhere (:mod:`~fluoronav.navigation.disagreement`) and the CM
             registered there passes every view's check, the verification goes on with that CM,
             with a warning naming the detection; False: it refuses (``detection_disagrees``).
+        register_undetected: where the detector finds the CM in no verification view, the CM is
+            registered from the kinematic prediction on the images alone, and its checks (each
+            view's outline, the agreement with the prediction) decide, with a warning; where it
+            fails them the refusal is ``views_with_cm``. False: refused at once (``views_with_cm``).
     """
 
     fuse_kinematics: bool = setting(
@@ -97,6 +101,9 @@ class VerificationConfig:
     )
     go_on_at_prediction: bool = setting(
         True, "where the images show the CM at the prediction and a detection elsewhere, go on with it"
+    )
+    register_undetected: bool = setting(
+        True, "with the CM found in no verification view, register it from the kinematic prediction"
     )
 
     @classmethod

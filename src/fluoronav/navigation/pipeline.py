@@ -30,6 +30,8 @@ from fluoronav.navigation.commands import (
     check_joint_readings,
     judge_kinematics,
     measure_command,
+    undetected_refused,
+    undetected_warning,
 )
 from fluoronav.navigation.config import NavigationConfig
 from fluoronav.navigation.detect import detect_views
@@ -416,17 +418,28 @@ def _register_verification(
     (:func:`~fluoronav.navigation.verification.register_verification`)."""
     assert case.verification is not None and result.first is not None
     cfg = result.config
-    views = _detect(stage, case.verification.views, cfg, prefix="verify_", need=1)
+    undetected_ok = cfg.verification.register_undetected and prior.femur_from_cm_predicted is not None
+    views = _detect(stage, case.verification.views, cfg, prefix="verify_", need=0 if undetected_ok else 1)
     views, local = moved_cameras(views, case.verification.views, result.first)
-    ver = register_verification(
-        views,
-        case,
-        result,
-        prior,
-        local=local and cfg.verification.local_bones,
-        seed=_stage_seed(cfg.seed, 1),
-        recorder=stage.within("verify_"),
-    )
+    undetected = all(v.detection is None for v in views)
+    try:
+        ver = register_verification(
+            views,
+            case,
+            result,
+            prior,
+            local=local and cfg.verification.local_bones,
+            seed=_stage_seed(cfg.seed, 1),
+            recorder=stage.within("verify_"),
+        )
+    except NavigationRefused as exc:
+        if not undetected:
+            raise
+        raise undetected_refused(views, exc) from exc
+    if undetected:
+        warning = undetected_warning(views)
+        log.warning("%s", warning)
+        result.warnings.append(warning)
     stage.emit("registration", prefix="verify_", registration=ver)
     result.verification = ver
     return ver

@@ -192,6 +192,8 @@ def _cause_named(exc: NavigationRefused, attempt: _Attempt) -> ViewSetRegistrati
     diag = attempt.cm_diagnostics
     if not float(diag.get("prediction_gap_mm", float("nan"))) > safety.max_motion_tip_mm:
         raise exc
+    if all(v.detection is None for v in attempt.views):  # no detection to disagree with
+        raise exc
     if len(attempt.views) == 1:
         raise _named(name_one_view_disagreement(exc, diag, safety), exc)
     bones = _bones(attempt)
