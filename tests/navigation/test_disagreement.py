@@ -70,16 +70,20 @@ def _moved(W: np.ndarray, shift_mm: np.ndarray) -> np.ndarray:
     return out
 
 
-def _views(scene: SimpleNamespace, n: int, detection_shift_mm: float) -> list[FluoroView]:
+def _views(
+    scene: SimpleNamespace, n: int, detection_shift_mm: float, shifted: tuple[int, ...] | None = None
+) -> list[FluoroView]:
     """The first ``n`` views, each with the landmarks of the CM moved by ``detection_shift_mm``
-    across the beams as its detection (consistent over the views)."""
+    across the beams as its detection (consistent over the views; only the views ``shifted`` where
+    given, the others right)."""
     kin = CMKinematics(scene.case.config.cm_config)
     ab_cm = kin.landmarks_cm(torch.as_tensor(scene.cp)).numpy()
     W = _moved(scene.W, detection_shift_mm * scene.across)
     ab = ab_cm @ W[:3, :3].T + W[:3, 3]
+    ab_true = ab_cm @ scene.W[:3, :3].T + scene.W[:3, 3]
     out = []
-    for v in scene.case.views[:n]:
-        lm = v.camera.project(ab)
+    for k, v in enumerate(scene.case.views[:n]):
+        lm = v.camera.project(ab if shifted is None or k in shifted else ab_true)
         det = ViewDetection(lm, lm.copy(), np.zeros(v.image.shape, bool), np.ones(2), "case")
         out.append(FluoroView(v.name, np.asarray(v.image, np.float32), v.camera, det))
     return out
@@ -94,12 +98,16 @@ def _verify(
     handeye_mm: float = 0.0,
     passed: dict[str, Any] | None = None,
     config: NavigationConfig | None = None,
+    shifted: tuple[int, ...] | None = None,
+    gap_mm: float | None = None,
 ) -> tuple[Any, NavigationResult, list[str]]:
     """``register_verification`` of the scene's views: its CM registration from the detections refuses
     (their landmarks ``prediction_gap_mm`` from the prediction, the views agreeing) or, with
-    ``passed`` (the CM stage's diagnostics), stands at a pose ``motion_tip_mm`` from the prediction.
+    ``passed`` (the CM stage's diagnostics), stands at a pose ``motion_tip_mm`` from the prediction;
+    ``shifted``: the views whose detections are moved (all by default); ``gap_mm``: the refusal's
+    ``prediction_gap_mm`` (default 10 mm with a shift or a hand-eye error, else 0.5 mm).
     → (the registration or the refusal, the result, what was registered: "bones")."""
-    views = _views(scene, n_views, detection_shift_mm)
+    views = _views(scene, n_views, detection_shift_mm, shifted)
     cameras = tuple(v.camera for v in views)
     femur = SimpleNamespace(world_from_bone=np.eye(4))
     bones = ViewSetBones(pelvis=(), cameras=cameras, femur=femur)  # type: ignore[arg-type]
@@ -111,7 +119,7 @@ def _verify(
                 rec.diagnostics.update(passed)
                 cm = SimpleNamespace(control_points_deg=scene.cp, name="from the detections")
                 return ViewSetRegistration(tuple(views_), (), cameras, femur, cm)  # type: ignore[arg-type]
-            gap = OFFSET_MM if detection_shift_mm or handeye_mm else 0.5
+            gap = gap_mm if gap_mm is not None else OFFSET_MM if detection_shift_mm or handeye_mm else 0.5
             rec.diagnostics.update(prediction_gap_mm=gap, init_cost_px=1.0, views={}, views_used=[])
             rec.passed = False
         raise RegistrationRefused("cm", "landmark_residual", "registered landmarks 11.9 mm off", view="view0")
@@ -214,12 +222,51 @@ def test_one_verification_view_says_it_cannot_tell(
     assert calls == [] and "at_prediction" not in res.stages["verify_cm"].diagnostics
 
 
-def test_a_refusal_without_a_disagreement_stands_unjudged(
+def test_a_view_check_refusal_where_the_detections_agree_goes_on_at_the_prediction(
     scene: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    exc, res, calls = _verify(scene, monkeypatch)
-    assert isinstance(exc, NavigationRefused) and exc.check == "landmark_residual" and calls == []
-    assert "at_prediction" not in res.stages["verify_cm"].diagnostics
+    """The detections' registration refused on a view's check, its detections 0.5 mm from the
+    prediction and right: the CM registered at the prediction fits every view, and it goes on with
+    that CM, saying why."""
+    reg, res, calls = _verify(scene, monkeypatch)
+    assert isinstance(reg, ViewSetRegistration), reg
+    assert calls == ["bones"] and res.stages["verify_cm"].passed is True
+    diag = res.stages["verify_cm"].diagnostics
+    assert diag["at_prediction"]["images_side_with"] == "neither" and diag["detection_disagrees"] == {}
+    assert len(res.warnings) == 1 and res.warnings[0].startswith(
+        "landmark_residual: the CM registered from the detections failed its checks in view0 "
+        "(registered landmarks 11.9 mm off); registered from the kinematic prediction on the images alone"
+    )
+
+
+def test_one_wrong_detection_that_failed_a_view_check_is_named(
+    scene: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One view's detection 10 mm off, the others right, the detections' CM within the bound of the
+    prediction and refused on that view's check: the CM at the prediction fits every view and that
+    view's detection is named."""
+    reg, res, calls = _verify(scene, monkeypatch, detection_shift_mm=OFFSET_MM, shifted=(1,), gap_mm=1.5)
+    assert isinstance(reg, ViewSetRegistration) and calls == ["bones"], reg
+    off = res.stages["verify_cm"].diagnostics["detection_disagrees"]
+    name = f"{scene.case.views[1].name} (verify)"
+    assert list(off) == [name] and off[name] > 5.0
+    assert len(res.warnings) == 1 and res.warnings[0].startswith(
+        "detection_disagrees: the landmarks detected in"
+    )
+    assert (
+        "the CM registered from the detections failed its checks (landmark_residual in view0"
+        in res.warnings[0]
+    )
+
+
+def test_a_view_check_refusal_stands_where_no_cm_fits_at_the_prediction(
+    scene: SimpleNamespace, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The prediction 10 mm from the CM and the refusal's gap within the bound: no CM at the
+    prediction, the refusal stands as it was."""
+    exc, res, calls = _verify(scene, monkeypatch, handeye_mm=OFFSET_MM, gap_mm=0.5)
+    assert isinstance(exc, NavigationRefused) and exc.check == "landmark_residual" and calls == ["bones"]
+    assert res.stages["verify_cm"].diagnostics["at_prediction"]["motion_tip_mm"] > 3.0 and not res.warnings
 
 
 def test_a_registration_that_stood_on_the_wrong_structure_is_replaced_by_the_cm_at_the_prediction(

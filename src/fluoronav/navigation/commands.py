@@ -40,6 +40,7 @@ __all__ = [
     "refuse_wrong_detection",
     "undetected_refused",
     "undetected_warning",
+    "view_check_warning",
     "wrong_detection_warning",
 ]
 
@@ -376,13 +377,28 @@ def at_prediction_said(at_prediction: Mapping[str, Any], min_edge_ncc: float) ->
     )
 
 
-def _wrong_detection_said(offsets_mm: Mapping[str, float], gap_mm: float, safety: SafetyConfig) -> str:
-    return (
-        f"the landmarks detected in {_offsets_said(offsets_mm)} lie elsewhere than the CM the images "
-        f"show where the robot's kinematics put it: the detections' CM is {gap_mm:.1f} mm from the "
-        f"prediction (at most {safety.max_motion_tip_mm:g} mm), while the CM registered there on the "
-        "images alone fits them; the detector found another structure, the hand-eye matrix and the "
-        "joint readings agree with the images"
+def _wrong_detection_said(
+    offsets_mm: Mapping[str, float],
+    gap_mm: float,
+    safety: SafetyConfig,
+    failed: NavigationRefused | None = None,
+) -> str:
+    """``failed``: the detections' registration refused on a view's check (their CM within
+    ``max_motion_tip_mm`` of the prediction); None: their CM lay beyond it."""
+    said = f"the landmarks detected in {_offsets_said(offsets_mm)} lie elsewhere than the CM the images show"
+    if failed is None:
+        said += (
+            f" where the robot's kinematics put it: the detections' CM is {gap_mm:.1f} mm from the "
+            f"prediction (at most {safety.max_motion_tip_mm:g} mm)"
+        )
+    else:
+        said += (
+            " where the robot's kinematics put it: the CM registered from the detections failed its "
+            f"checks ({failed.check} in {failed.view}: {failed.detail})"
+        )
+    return said + (
+        ", while the CM registered there on the images alone fits them; the detector found another "
+        "structure, the hand-eye matrix and the joint readings agree with the images"
     )
 
 
@@ -393,6 +409,7 @@ def refuse_wrong_detection(
     *,
     why: str,
     stage: str = "verify_cm",
+    failed: NavigationRefused | None = None,
 ) -> NavigationRefused:
     """The refusal (check ``detection_disagrees``) of a verification whose detections are wrong
     (:func:`~fluoronav.navigation.disagreement.images_side_with`): ``offsets_mm`` per view how far its
@@ -401,18 +418,35 @@ def refuse_wrong_detection(
     return NavigationRefused(
         stage,
         "detection_disagrees",
-        f"{_wrong_detection_said(offsets_mm, gap_mm, safety)}; not corrected from it: {why}",
+        f"{_wrong_detection_said(offsets_mm, gap_mm, safety, failed)}; not corrected from it: {why}",
         view=", ".join(offsets_mm),
     )
 
 
-def wrong_detection_warning(offsets_mm: Mapping[str, float], gap_mm: float, safety: SafetyConfig) -> str:
+def wrong_detection_warning(
+    offsets_mm: Mapping[str, float],
+    gap_mm: float,
+    safety: SafetyConfig,
+    *,
+    failed: NavigationRefused | None = None,
+) -> str:
     """The warning of a verification that goes on with the CM at the prediction where its
     detections are wrong (check ``detection_disagrees``; arguments as :func:`refuse_wrong_detection`)."""
+    said = _wrong_detection_said(offsets_mm, gap_mm, safety, failed)
     return (
-        f"detection_disagrees: {_wrong_detection_said(offsets_mm, gap_mm, safety)}. Corrected from the "
-        "CM registered at the prediction, which passed every view's check; check the detection in "
-        "those views"
+        f"detection_disagrees: {said}. Corrected from the CM registered at the prediction, which passed "
+        "every view's check; check the detection in those views"
+    )
+
+
+def view_check_warning(failed: NavigationRefused) -> str:
+    """The warning of a verification that goes on with the CM registered at the kinematic prediction
+    on the images alone after the detections' registration failed a view's check (``failed``) while
+    the detections agree with that CM."""
+    return (
+        f"{failed.check}: the CM registered from the detections failed its checks in {failed.view} "
+        f"({failed.detail}); registered from the kinematic prediction on the images alone it passed "
+        "every view's check, and the navigation goes on with it"
     )
 
 

@@ -29,6 +29,7 @@ from fluoronav.navigation.commands import (
     name_kinematics_disagreement,
     name_one_view_disagreement,
     refuse_wrong_detection,
+    view_check_warning,
     wrong_detection_warning,
 )
 from fluoronav.navigation.config import NavigationConfig
@@ -59,6 +60,8 @@ __all__ = ["moved_cameras", "register_verification"]
 
 #: the refusals that name a cause no second registration of the bones changes
 _FINAL_CHECKS = ("kinematics_disagree", "detection_disagrees", "detection_or_kinematics")
+#: a view's checks of the CM registration, which a wrong detection in that view can fail
+_VIEW_CHECKS = ("landmark_residual", "edge_ncc")
 #: the CM registration's name of a verification view (``register_view_set``'s ``name``)
 _TAG = " (verify)"
 
@@ -176,12 +179,13 @@ class _Attempt:
 
 
 def _cause_named(exc: NavigationRefused, attempt: _Attempt) -> ViewSetRegistration:
-    """After the verification's CM refused where its detections lie more than ``max_motion_tip_mm``
-    from the kinematic prediction (``prediction_gap_mm``): one view cannot tell; otherwise the
+    """After the verification's CM refused: where its detections lie more than ``max_motion_tip_mm``
+    from the kinematic prediction (``prediction_gap_mm``), one view cannot tell; otherwise the
     bones again (the same views, settings and seeds: the same bones) and the CM registered at the
     prediction decide. A wrong detection is refused naming it, or gone on with (the CM at the
     prediction, where it passed every check); else the kinematics are named where the views agree
-    (:func:`~fluoronav.navigation.commands.name_kinematics_disagreement`) or ``exc`` stands.
+    (:func:`~fluoronav.navigation.commands.name_kinematics_disagreement`) or ``exc`` stands. Where
+    the detections agree with the prediction and a view's check refused: :func:`_view_check_judged`.
 
     Raises:
         NavigationRefused: the refusal, named.
@@ -189,37 +193,81 @@ def _cause_named(exc: NavigationRefused, attempt: _Attempt) -> ViewSetRegistrati
     safety = attempt.result.config.safety
     if exc.stage != "verify_cm" or "verify_cm" not in attempt.result.stages:
         raise exc
-    diag = attempt.cm_diagnostics
-    if not float(diag.get("prediction_gap_mm", float("nan"))) > safety.max_motion_tip_mm:
-        raise exc
     if all(v.detection is None for v in attempt.views):  # no detection to disagree with
+        raise exc
+    diag = attempt.cm_diagnostics
+    gap = float(diag.get("prediction_gap_mm", float("nan")))
+    if gap <= safety.max_motion_tip_mm:
+        return _view_check_judged(exc, attempt)
+    if not gap > safety.max_motion_tip_mm:  # not measured
         raise exc
     if len(attempt.views) == 1:
         raise _named(name_one_view_disagreement(exc, diag, safety), exc)
-    bones = _bones(attempt)
-    predicted = None if bones is None else attempt.predicted(bones.femur.world_from_bone)
-    if bones is None or predicted is None:  # as without the images' decision
+    placed = _placed(attempt)
+    if placed is None:  # as without the images' decision
         raise _named(name_kinematics_disagreement(exc, diag, safety), exc)
-    views = attempt.views if bones.kept is None else [attempt.views[k] for k in bones.kept]
-    if len(views) == 1:
+    if len(placed[2]) == 1:
         raise _named(name_one_view_disagreement(exc, diag, safety), exc)
-    at = attempt.at_prediction(views, bones.cameras, predicted)
+    registration, at = _registered_at_prediction(attempt, *placed)
     if diag["at_prediction"]["images_side_with"] == "detection":
-        gap = float(diag["prediction_gap_mm"])
-        registration = ViewSetRegistration(
-            views=tuple(views),
-            pelvis=bones.pelvis,
-            cameras_ct=bones.cameras,
-            femur=bones.femur,
-            cm=at.cm,
-            left_out=dict(bones.left_out),
-        )
         return _go_on_at_prediction(registration, at, attempt, gap)
     evidence = ""
     if diag["at_prediction"]["images_side_with"] == "kinematics":
         assert attempt.settings.cm_checks is not None
         evidence = at_prediction_said(diag["at_prediction"], attempt.settings.cm_checks.min_edge_ncc)
     raise _named(name_kinematics_disagreement(exc, diag, safety, evidence=evidence), exc)
+
+
+def _view_check_judged(exc: NavigationRefused, attempt: _Attempt) -> ViewSetRegistration:
+    """After the verification's CM refused on a view's check (``landmark_residual``, ``edge_ncc``)
+    where its detections agree with the kinematic prediction: the CM registered at the prediction
+    on the images alone decides. Where it passes every view's check and stays at the prediction,
+    the verification goes on with it (a wrong detection named, :func:`_go_on_at_prediction`);
+    otherwise ``exc`` stands.
+
+    Raises:
+        NavigationRefused: ``exc``, or ``detection_disagrees`` where going on is switched off.
+    """
+    safety, checks = attempt.result.config.safety, attempt.settings.cm_checks
+    assert checks is not None
+    if exc.check not in _VIEW_CHECKS:
+        raise exc
+    placed = _placed(attempt)
+    if placed is None or len(placed[2]) < safety.detection_check_min_views:
+        raise exc
+    registration, at = _registered_at_prediction(attempt, *placed)
+    if at.motion_tip_mm > safety.max_motion_tip_mm or len(at.fitting(checks)) < len(at.edge_ncc):
+        raise exc
+    gap = float(attempt.cm_diagnostics["prediction_gap_mm"])
+    return _go_on_at_prediction(registration, at, attempt, gap, failed=exc)
+
+
+def _placed(attempt: _Attempt) -> tuple[ViewSetBones, PredictedCMPose, list[FluoroView]] | None:
+    """The verification's bones (:func:`_bones`), the kinematic prediction placed by their femur and
+    the views they kept; None where the bones refuse or there is no prediction."""
+    bones = _bones(attempt)
+    predicted = None if bones is None else attempt.predicted(bones.femur.world_from_bone)
+    if bones is None or predicted is None:
+        return None
+    views = attempt.views if bones.kept is None else [attempt.views[k] for k in bones.kept]
+    return bones, predicted, views
+
+
+def _registered_at_prediction(
+    attempt: _Attempt, bones: ViewSetBones, predicted: PredictedCMPose, views: list[FluoroView]
+) -> tuple[ViewSetRegistration, ImagesAtPrediction]:
+    """The registration of ``views`` in ``bones`` with the CM registered at ``predicted`` on their
+    images alone (:meth:`_Attempt.at_prediction`), and that CM judged view by view."""
+    at = attempt.at_prediction(views, bones.cameras, predicted)
+    registration = ViewSetRegistration(
+        views=tuple(views),
+        pelvis=bones.pelvis,
+        cameras_ct=bones.cameras,
+        femur=bones.femur,
+        cm=at.cm,
+        left_out=dict(bones.left_out),
+    )
+    return registration, at
 
 
 def _named(named: NavigationRefused, exc: NavigationRefused) -> NavigationRefused:
@@ -268,29 +316,41 @@ def _detections_judged(reg: ViewSetRegistration, attempt: _Attempt) -> ViewSetRe
 
 
 def _go_on_at_prediction(
-    registration: ViewSetRegistration, at: ImagesAtPrediction, attempt: _Attempt, gap_mm: float
+    registration: ViewSetRegistration,
+    at: ImagesAtPrediction,
+    attempt: _Attempt,
+    gap_mm: float,
+    *,
+    failed: NavigationRefused | None = None,
 ) -> ViewSetRegistration:
     """``registration`` (its CM the one at the prediction) where that CM passed every view's check
     and the settings allow (``VerificationConfig.go_on_at_prediction``): the ``verify_cm`` stage
     then records it (the detections' registration under ``from_detections``, the views whose
     detections are off under ``detection_disagrees``) and the result warns. Otherwise refused.
+    ``failed``: the refusal of the detections' registration on a view's check, where the
+    detections agree with the prediction (:func:`_view_check_judged`); it is said in the warning,
+    and stands where no detection lies off.
 
     Raises:
-        NavigationRefused: check ``detection_disagrees``, naming the views and how far off.
+        NavigationRefused: check ``detection_disagrees``, naming the views and how far off; or
+            ``failed``.
     """
     result, checks = attempt.result, attempt.settings.cm_checks
     assert checks is not None
     off = at.detections_off(checks)
     diag = attempt.cm_diagnostics
     diag["detection_disagrees"] = off
-    failed = [n for n in at.edge_ncc if n not in at.fitting(checks)]
+    unfit = [n for n in at.edge_ncc if n not in at.fitting(checks)]
     why = ""
-    if failed:
-        why = f"the CM there fails the edge check in {', '.join(failed)}"
+    if unfit:
+        why = f"the CM there fails the edge check in {', '.join(unfit)}"
     elif not result.config.verification.go_on_at_prediction:
         why = "verification.go_on_at_prediction is off"
+    if why and (off or failed is None):
+        raise refuse_wrong_detection(off, gap_mm, result.config.safety, why=why, failed=failed)
     if why:
-        raise refuse_wrong_detection(off, gap_mm, result.config.safety, why=why)
+        assert failed is not None
+        raise failed
     moved = ("views", "views_used", "tries", "left_out", "cost", "converged", "reason", "motion_tip_mm",
              "motion_rotation_deg", "image_motion_tip_mm")  # fmt: skip
     diag["from_detections"] = {k: diag.pop(k) for k in moved if k in diag}
@@ -304,7 +364,11 @@ def _go_on_at_prediction(
         reason=at.cm.reason,
     )
     result.stages["verify_cm"].passed = True
-    warning = wrong_detection_warning(off, gap_mm, result.config.safety)
+    warning = (
+        wrong_detection_warning(off, gap_mm, result.config.safety, failed=failed)
+        if off or failed is None
+        else view_check_warning(failed)
+    )
     log.warning("%s", warning)
     result.warnings.append(warning)
     return registration
