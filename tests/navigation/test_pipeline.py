@@ -494,9 +494,8 @@ def test_a_verification_with_local_bones_that_refuses_is_registered_again_with_t
     assert res.stages["verify_local_cm"].passed is False and res.stages["verify_cm"].passed is True
 
 
-@pytest.mark.parametrize("outcome", ["passes", "refuses", "off"])
 def test_a_verification_without_a_detection_is_registered_from_the_prediction(
-    make_no_cm_case, monkeypatch: pytest.MonkeyPatch, outcome: str
+    make_no_cm_case, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The detector finds the CM in no verification view (images without one, nothing given): the CM
     is registered from the kinematic prediction and goes on with a warning where that passes; where
@@ -505,8 +504,10 @@ def test_a_verification_without_a_detection_is_registered_from_the_prediction(
     assert case.verification is not None
     blind = tuple(dataclasses.replace(v, landmarks_px=None) for v in case.verification.views)
     case = dataclasses.replace(case, verification=dataclasses.replace(case.verification, views=blind))
+    names = ", ".join(v.name for v in blind)
     register = verification.register_view_set
     seen: list[int] = []
+    outcome = "passes"
 
     def blind_register(views, volume, **kw):
         if kw.get("prior") is not None:
@@ -516,28 +517,25 @@ def test_a_verification_without_a_detection_is_registered_from_the_prediction(
         return register(views, volume, **kw)
 
     monkeypatch.setattr(verification, "register_view_set", blind_register)
-    cfg = _CFG
-    if outcome == "off":
-        cfg = dataclasses.replace(
-            _CFG, verification=dataclasses.replace(_CFG.verification, register_undetected=False)
-        )
-    res = navigate(case, cfg)
-    names = ", ".join(v.name for v in blind)
-    if outcome == "passes":
-        assert res.status == "ok", res.reason
-        assert seen == [0] and res.joints_correction_deg is not None
-        assert len(res.warnings) == 1 and res.warnings[0].startswith(
-            f"views_with_cm: the CM was found in none of the verification views ({names})"
-        )
-        return
-    assert res.status == "refused" and res.joints_correction_deg is None
-    assert "stage verify_detect" in res.reason and "check views_with_cm" in res.reason
-    assert f"the CM was found in 0 of {len(blind)} views" in res.reason
-    if outcome == "refuses":
-        assert seen == [0]
-        assert (
-            "registered from the kinematic prediction on the images alone it failed its checks" in res.reason
-        )
-        assert "check edge_ncc: the registered CM's outline matches NCC 0.31" in res.reason
-    else:
-        assert seen == [] and "1 needed" in res.reason
+    res = navigate(case, _CFG)
+    assert res.status == "ok", res.reason
+    assert seen == [0] and res.joints_correction_deg is not None
+    assert len(res.warnings) == 1 and res.warnings[0].startswith(
+        f"views_with_cm: the CM was found in none of the verification views ({names})"
+    )
+    off = dataclasses.replace(_CFG.verification, register_undetected=False)
+    for outcome, cfg in (("refuses", _CFG), ("off", dataclasses.replace(_CFG, verification=off))):
+        seen.clear()
+        res = navigate(case, cfg)
+        assert res.status == "refused" and res.joints_correction_deg is None
+        assert "stage verify_detect" in res.reason and "check views_with_cm" in res.reason
+        assert f"the CM was found in 0 of {len(blind)} views" in res.reason
+        if outcome == "refuses":
+            assert seen == [0]
+            assert (
+                "registered from the kinematic prediction on the images alone it failed its checks"
+                in res.reason
+            )
+            assert "check edge_ncc: the registered CM's outline matches NCC 0.31" in res.reason
+        else:
+            assert seen == [] and "1 needed" in res.reason
