@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fluoronav.errors import InputError
 from fluoronav.runner import CsvLog, JsonlLog, run_tasks, task_seeds
 
 
@@ -60,6 +61,10 @@ def test_csv_log_round_trip(tmp_path: Path) -> None:
     assert [r["trial"] for r in rows] == ["0", "1"]
     assert json.loads(rows[0]["vec"]) == [1, 2]
     assert CsvLog(tmp_path / "trials.csv", ["trial"]).done_ids() == {0, 1}
+    # a later version's columns added at the end resume it; other columns are refused
+    CsvLog(tmp_path / "trials.csv", ["trial", "seed", "value", "vec", "cause"]).append({"trial": 2})
+    with pytest.raises(InputError, match=r"trials\.csv: written with other columns"):
+        CsvLog(tmp_path / "trials.csv", ["trial", "seed", "extra", "value", "vec"])
 
 
 def test_dask_local_cluster_gives_the_same_results_as_in_process(tmp_path: Path) -> None:

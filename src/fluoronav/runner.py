@@ -27,6 +27,8 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
+from fluoronav.errors import InputError
+
 log = logging.getLogger(__name__)
 
 __all__ = [
@@ -102,7 +104,12 @@ class JsonlLog(ResultLog):
 
 
 class CsvLog(ResultLog):
-    """CSV with a fixed header (``trials.csv``); values that are lists are JSON-encoded."""
+    """CSV with a fixed header (``trials.csv``); values that are lists are JSON-encoded.
+
+    A file resumed must have been started with these columns, or one list must begin with the
+    other (columns added at the end by a later version: the rows stay aligned); otherwise
+    :class:`InputError`, before any row is written out of line.
+    """
 
     def __init__(self, path: str | Path, columns: Sequence[str], *, id_key: str = "trial") -> None:
         self.path = Path(path)
@@ -111,6 +118,16 @@ class CsvLog(ResultLog):
         _drop_partial_last_line(self.path)
         if not self.path.exists() or self.path.stat().st_size == 0:
             _fsync_append(self.path, ",".join(self.columns) + "\n")
+            return
+        with open(self.path, newline="", encoding="utf-8") as fh:
+            header = next(csv.reader(fh), [])
+        n = min(len(header), len(self.columns))
+        if header[:n] != self.columns[:n]:
+            raise InputError(
+                self.path,
+                "written with other columns (another fluoronav version?): resume it with that version "
+                "or give a new --out",
+            )
 
     def read(self) -> list[dict[str, Any]]:
         if not self.path.exists():
