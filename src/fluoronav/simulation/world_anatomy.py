@@ -25,7 +25,10 @@ from fluoronav.simulation.clinical_ct import clinical_ct
 from fluoronav.simulation.world import CTWorld
 from fluoronav.simulation.xray import SimulationConfig
 
-__all__ = ["WorldAnatomy", "world_anatomy"]
+__all__ = ["QUANTISE_FINER_THAN_MM", "WorldAnatomy", "world_anatomy"]
+
+#: a phantom patient finer than this (the studies' phantom's spacing) is rendered from uint16 volumes
+QUANTISE_FINER_THAN_MM = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,14 +51,15 @@ def _fine_patient(
     phantom_seed: int, spacing_mm: float, image_size: int, device: str
 ) -> tuple[Volume, ArticulatedSimulator]:
     # one per process: a 0.5 mm phantom and its simulator take a few GB, its densities held as
-    # uint16 on the CPU (within 1e-5 of the image's range) so that a trial stays under 4 GB
+    # uint16 on the CPU (within 1e-5 of the image's range) so that a trial stays under 4 GB; a
+    # patient at the studies' phantom's spacing or coarser is that phantom, imaged as the ideal world
     patient = hip_phantom(seed=phantom_seed, spacing_mm=spacing_mm)
     sim = ArticulatedSimulator(
         patient,
         femur_side="left",
         config=SimulationConfig(image_size=image_size),
         device=device,
-        quantise=True,
+        quantise=spacing_mm < QUANTISE_FINER_THAN_MM,
     )
     return patient, sim
 
