@@ -6,30 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from fluoronav.anatomy.phantom import hip_phantom
 from fluoronav.anatomy.volume import Volume
 from fluoronav.geometry.carm import carm_camera
 from fluoronav.rendering.ct import render_line_integrals
 from fluoronav.simulation.articulated import ArticulatedSimulator
 from fluoronav.simulation.materials import MM_PER_CM
-from fluoronav.simulation.physics import XrayPhysics
-from fluoronav.simulation.scene import Scene, cm_pose_along
+from fluoronav.simulation.scene import Scene
 from fluoronav.simulation.xray import SimulationConfig, XraySimulator
-
-SIZE = 128
-
-
-@pytest.fixture(scope="module")
-def setup():
-    vol = hip_phantom(seed=0, spacing_mm=2.0)
-    cfg = SimulationConfig(physics=XrayPhysics(energy_bin_keV=3.0, photons_per_pixel=None), image_size=SIZE)
-    head = vol.landmarks_world["femoral_head_left"]
-    entry = vol.landmarks_world["entry_left"]
-    axis = (head - entry) / np.linalg.norm(head - entry)
-    world_from_cm = cm_pose_along(entry + 5.0 * axis, axis, 0.3)
-    cp = np.array([3.0, 2.0, 1.0, 0.0, -1.0])
-    camera = carm_camera(isocenter_world=head, source_to_isocenter_mm=450.0)
-    return vol, cfg, camera, world_from_cm, cp
 
 
 def _motion(rotvec_deg, center, t):
@@ -63,7 +46,7 @@ def test_empty_space_skipping_keeps_the_bodies_integrals(setup):
     those of the plain march over the whole grid (no skipping), to float32 rounding."""
     vol, cfg, camera, _, _ = setup
     art = ArticulatedSimulator(vol, config=cfg)
-    stored = art.stored_camera(camera, SIZE)
+    stored = art.stored_camera(camera)
     wp = _motion([2.0, -3.0, 1.0], vol.landmarks_world["pelvis_center"], [4.0, -2.0, 3.0])
     wf = wp @ _motion([6.0, 4.0, -5.0], vol.landmarks_world["femoral_head_left"], [0.0, 0.0, 0.0])
     got = art.areal_densities(camera, world_from_patient=wp, world_from_femur=wf, stored=stored)
@@ -105,7 +88,7 @@ def _femur_bone(art, camera, world_from_femur):
     """Areal density of the femur's cortical bone (its image minus the image without it)."""
     away = np.eye(4)
     away[:3, 3] = [0.0, 0.0, 1.0e4]  # femur far outside every ray
-    stored = art.stored_camera(camera, SIZE)
+    stored = art.stored_camera(camera)
     kw = {"world_from_patient": np.eye(4), "stored": stored}
     with_f = art.areal_densities(camera, world_from_femur=world_from_femur, **kw)["bone_cortical"]
     without = art.areal_densities(camera, world_from_femur=away, **kw)["bone_cortical"]

@@ -8,29 +8,10 @@ import pytest
 import torch
 from scipy import ndimage
 
-from fluoronav.anatomy.phantom import hip_phantom
-from fluoronav.geometry.carm import carm_camera
 from fluoronav.simulation.articulated import ArticulatedSimulator, _BoxMask, femur_in_box, split_femur
-from fluoronav.simulation.physics import XrayPhysics
-from fluoronav.simulation.scene import cm_pose_along
-from fluoronav.simulation.xray import SimulationConfig
 
-SIZE = 128
 #: a quantised simulator's largest image difference to the float32 one, relative to the image's maximum
 REL_TOL = 1e-4
-
-
-@pytest.fixture(scope="module")
-def setup():
-    vol = hip_phantom(seed=0, spacing_mm=2.0)
-    cfg = SimulationConfig(physics=XrayPhysics(energy_bin_keV=3.0, photons_per_pixel=None), image_size=SIZE)
-    head = vol.landmarks_world["femoral_head_left"]
-    entry = vol.landmarks_world["entry_left"]
-    axis = (head - entry) / np.linalg.norm(head - entry)
-    world_from_cm = cm_pose_along(entry + 5.0 * axis, axis, 0.3)
-    cp = np.array([3.0, 2.0, 1.0, 0.0, -1.0])
-    camera = carm_camera(isocenter_world=head, source_to_isocenter_mm=450.0)
-    return vol, cfg, camera, world_from_cm, cp
 
 
 def _whole_volume_split(vol, side: str, dilate_voxels: int) -> tuple[np.ndarray, tuple[slice, ...]]:
@@ -94,7 +75,7 @@ def test_quantised_rest_matches_the_float32_images(setup) -> None:
     assert float(np.abs(img.image - ref.image).max()) <= REL_TOL * float(np.abs(ref.image).max())
     np.testing.assert_array_equal(img.mask, ref.mask)
     np.testing.assert_array_equal(img.landmarks_px, ref.landmarks_px)
-    stored = plain.stored_camera(camera, SIZE)
+    stored = plain.stored_camera(camera)
     d_ref = plain.areal_densities(camera, world_from_patient=np.eye(4), world_from_femur=wf, stored=stored)
     d_q = quantised.areal_densities(camera, world_from_patient=np.eye(4), world_from_femur=wf, stored=stored)
     for m, v in d_ref.items():
