@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import fluoronav.registration.bone.checks as bone_checks
+import fluoronav.registration.cm.shared_causes as shared_causes
 import fluoronav.registration.view_set.bones as view_set_bones
 import fluoronav.registration.view_set.cm as view_set_cm
 import fluoronav.registration.view_set.views as view_set_views
@@ -412,6 +413,7 @@ def test_a_refusal_of_the_cm_marks_its_stage(monkeypatch: pytest.MonkeyPatch, ca
         raise RegistrationRefused("cm", "edge_ncc", "NCC 0.1", view="view1")
 
     monkeypatch.setattr(view_set_cm, "register_cm_checked", refuse)
+    monkeypatch.setattr(shared_causes, "register_cm_checked", refuse)  # nor does a shared input explain it
     records: dict[str, StageRecord] = {}
     with pytest.raises(RegistrationRefused, match="stage cm, view view1, check edge_ncc"):
         _register(ViewSetSettings(), recorder=timed_stages(records))

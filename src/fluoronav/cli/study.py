@@ -86,7 +86,8 @@ _FAULT_OPTION = typer.Option(
     "--fault",
     help="Inject an input fault (mirror_one, mirror_all, focal_10pct, verify_joints_3deg, "
     "handeye_10mm, verify_no_move, view_without_cm, labels_swapped, plan_inward_300, inverted, "
-    "labels_mirrored, labels_shifted_5mm, fbg_beyond_range, plan_other_femur, none).",
+    "labels_mirrored, labels_shifted_5mm, fbg_beyond_range, plan_other_femur, fbg_bent_3deg, "
+    "fbg_other_shape, ct_spacing_110, ct_spacing_090, view_other_patient, none).",
 )
 _HANDEYE_ERROR_MM_OPTION = typer.Option(
     None,

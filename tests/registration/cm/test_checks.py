@@ -24,11 +24,9 @@ from fluoronav.registration.cm.checks import (
     judge_motion,
     judge_shape,
     motion_agreement,
-    name_fbg_cause,
     register_cm_checked,
     shape_departure_sigmas,
 )
-from fluoronav.registration.cm.config import CMRegistrationConfig
 from fluoronav.registration.cm.diagnostics import CMViewDiagnostics
 
 GOOD: dict[str, Any] = {"landmark_residual_mm": 0.4, "edge_ncc": 0.9}
@@ -243,51 +241,3 @@ def test_a_continued_registration_keeps_its_prior_on_the_reading(monkeypatch: py
     bad = {(0, "orbit +20"): {"landmark_residual_mm": 0.3, "edge_ncc": 0.05}}
     _run(monkeypatch, bad, shape={0: settled}, priors=priors)
     assert len(priors) == 1 and np.array_equal(priors[0], np.zeros(5))
-
-
-def _named(monkeypatch: pytest.MonkeyPatch, free_shape: np.ndarray | None, check: str = "edge_ncc") -> Any:
-    """:func:`name_fbg_cause` of a refusal (``check``), the registration with the shape free giving
-    ``free_shape`` (None: refused too); also the settings it was run with."""
-    seen: dict[str, Any] = {}
-
-    def registered(views: Any, lms: Any, tries: Any, diag: Any, **kw: Any) -> _Reg:
-        seen.update(kw)
-        if free_shape is None:
-            raise RegistrationRefused("cm", "edge_ncc", "still no fit", view="AP")
-        return _Reg(["AP", "orbit +20"], 0, control_points_deg=free_shape)
-
-    monkeypatch.setattr(checks, "register_cm_checked", registered)
-    refused = RegistrationRefused("cm", check, "NCC 0.54 (at least 0.7)", view="orbit +20")
-    cfg = CMRegistrationConfig(control_point_sigma_deg=0.085, control_point_tolerance_deg=0.0)
-    out = name_fbg_cause(
-        refused,
-        [],
-        [],
-        [],
-        reading_deg=np.zeros(5),
-        config=cfg,
-        checks=CMCheckConfig(max_shape_departure_sigmas=4.0),
-        seed=0,
-    )
-    return out, refused, seen
-
-
-def test_a_view_that_fails_because_the_fbg_reading_is_off_names_the_reading(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """Held to a reading 1.5° off the CM fails a view; with the shape free it fits every view 1.5°
-    (18 σ) from the reading: the refusal names the FBG reading and keeps the view's failure."""
-    out, refused, seen = _named(monkeypatch, np.array([0.0, 1.5, 0.0, 0.0, 0.0]))
-    assert out is not refused and out.check == "fbg_shape" and out.view == ""
-    assert "+1.50° at control point 1" in out.detail and "orbit +20" in out.detail
-    assert seen["config"].control_point_tolerance_deg == 3.0  # searched ±3° of the reading
-    assert seen["checks"].max_shape_departure_sigmas is None
-
-
-def test_a_view_that_fails_for_another_reason_keeps_its_refusal(monkeypatch: pytest.MonkeyPatch) -> None:
-    near, _, _ = _named(monkeypatch, np.full(5, 0.1))  # the free shape agrees with the reading
-    assert near.check == "edge_ncc"
-    none, _, _ = _named(monkeypatch, None)  # nothing fits with the shape free either
-    assert none.check == "edge_ncc"
-    motion, refused, seen = _named(monkeypatch, np.full(5, 2.0), check="robot_motion")
-    assert motion is refused and not seen  # not a view's check: not searched

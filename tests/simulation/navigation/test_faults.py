@@ -132,7 +132,7 @@ def test_unknown_fault_name_is_an_input_error() -> None:
 
 
 def test_every_fault_but_the_baseline_is_named_by_some_check() -> None:
-    assert len(FAULTS) == 15
+    assert len(FAULTS) == 20
     assert all(f.handled_by for n, f in FAULTS.items() if n != "none")
     assert FAULTS["handeye_10mm"].handeye_error_mm == 10.0 and FAULTS["handeye_10mm"].landing_counts
 
@@ -208,3 +208,43 @@ def test_the_shared_input_faults_are_named_by_the_preflight(phantom_case: Naviga
     assert named(phantom_case) == []
     out = apply_case_fault(phantom_case, FAULTS[name])
     assert out is not phantom_case and named(out), [(f.check, f.reason) for f in preflight(out)]
+
+
+def test_fbg_faults_move_every_control_point_within_the_cms_range(case: NavigationCase) -> None:
+    """Bent: +3° at each point; another shape: ±5° alternately; a point the range would clip goes
+    the other way by the full offset, so each point is off by exactly the fault's size."""
+    reading = np.array([0.0, 1.0, -2.0, 6.0, -7.5])
+    base = dataclasses.replace(case, fbg_control_points_deg=reading)
+    bent = apply_case_fault(base, FAULTS["fbg_bent_3deg"]).fbg_control_points_deg
+    other = apply_case_fault(base, FAULTS["fbg_other_shape"]).fbg_control_points_deg
+    assert bent is not None and other is not None
+    np.testing.assert_allclose(bent, [3.0, 4.0, 1.0, 3.0, -4.5])
+    np.testing.assert_allclose(other, [5.0, -4.0, 3.0, 1.0, -2.5])
+    assert np.all(np.abs(other) <= 7.9) and np.all(np.abs(bent) <= 7.9)
+    assert np.array_equal(base.fbg_control_points_deg, reading)  # the case itself untouched
+
+
+def test_a_ct_spacing_fault_scales_every_point_made_in_the_cts_frame(phantom_case: NavigationCase) -> None:
+    """Spacing × 1.1: each voxel's world position, the landmarks and the plan's entry scale about the
+    origin, the plan's depth with them; each view's initial camera keeps its offset from the head."""
+    from fluoronav.geometry import se3
+
+    c = dataclasses.replace(phantom_case, side="left")
+    out = apply_case_fault(c, FAULTS["ct_spacing_110"])
+    v0, v1 = c.volume, out.volume
+    o = np.asarray(v0.origin_mm)
+    np.testing.assert_allclose(v1.spacing_mm, 1.1 * np.asarray(v0.spacing_mm))
+    ijk = np.array([10.0, 20.0, 5.0, 1.0])
+    np.testing.assert_allclose(
+        (v1.world_from_index @ ijk)[:3], o + 1.1 * ((v0.world_from_index @ ijk)[:3] - o)
+    )
+    for k, p in v0.landmarks_world.items():
+        np.testing.assert_allclose(v1.landmarks_world[k], o + 1.1 * (p - o))
+    np.testing.assert_allclose(out.plan.entry_point_world_mm, o + 1.1 * (c.plan.entry_point_world_mm - o))
+    assert out.plan.insertion_depth_mm == pytest.approx(1.1 * c.plan.insertion_depth_mm)
+    h0, h1 = v0.landmarks_world["femoral_head_left"], v1.landmarks_world["femoral_head_left"]
+    for a, b in zip(c.views, out.views, strict=True):
+        np.testing.assert_allclose(
+            se3.apply(b.camera.camera_from_world, h1), se3.apply(a.camera.camera_from_world, h0), atol=1e-9
+        )
+    np.testing.assert_array_equal(v1.data, v0.data)

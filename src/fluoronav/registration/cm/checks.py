@@ -13,7 +13,6 @@ docs/validation.md ("The checks' thresholds") gives the data they were chosen on
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -45,7 +44,6 @@ __all__ = [
     "judge_motion",
     "judge_shape",
     "motion_agreement",
-    "name_fbg_cause",
     "register_cm_checked",
     "shape_departure_sigmas",
 ]
@@ -69,8 +67,13 @@ class CMCheckConfig:
             registered control points may depart from it by at most the prior's tolerance plus this
             many of its σ (:func:`judge_shape`); None: not checked.
         shape_search_tolerance_deg: where such a registration fails a view's check, it is registered
-            once more with the shape free within this of the reading (:func:`name_fbg_cause`): a
-            shape the images accept that far from the reading names the reading as the cause.
+            once more with the shape free within this of the reading
+            (:func:`~fluoronav.registration.cm.shared_causes.name_fbg_cause`): a shape the images
+            accept that far from the reading names the reading as the cause.
+        min_scale_departure: where a view's check fails, the CM's size in the views (its
+            triangulated landmarks) must differ from its own by this fraction before the CM is
+            registered at that size to test the CT's scale
+            (:func:`~fluoronav.registration.cm.shared_causes.name_scale_cause`).
     """
 
     max_landmark_residual_mm: float = setting(
@@ -82,7 +85,10 @@ class CMCheckConfig:
         None, "the shape's departure from its measured prior beyond its tolerance; none: unchecked", ge=0
     )
     shape_search_tolerance_deg: float = setting(
-        3.0, "a failed view's second registration frees the shape this far from the reading", unit="deg", ge=0
+        6.0, "a failed view's second registration frees the shape this far from the reading", unit="deg", ge=0
+    )
+    min_scale_departure: float = setting(
+        0.03, "the CM's size in the views, off its own by this fraction, is tested as the CT's scale", ge=0
     )
 
 
@@ -400,63 +406,3 @@ def _judge(
         return diags, verdicts, extra or None, None
     motion = motion_agreement(predicted, cm, config.cm_config)
     return diags, verdicts, {**extra, **motion}, judge_motion(motion, predicted.max_tip_mm)
-
-
-def name_fbg_cause(
-    refused: RegistrationRefused,
-    views: Sequence[CMView],
-    landmarks_px: Sequence[np.ndarray | None],
-    tries: Sequence[Sequence[np.ndarray]],
-    *,
-    reading_deg: np.ndarray,
-    config: CMRegistrationConfig,
-    checks: CMCheckConfig,
-    seed: int,
-    stage: str = "cm",
-) -> RegistrationRefused:
-    """The refusal of a registration whose shape was held to an FBG reading, with its cause named
-    where the reading is it.
-
-    A reading that is off (its calibration lost) holds the shape where the images cannot fit it, and
-    a view's check fails (``edge_ncc``, ``landmark_residual``), which names a view, not the reading.
-    The CM is registered once more with its shape free within
-    ``checks.shape_search_tolerance_deg`` of the reading (flat, then the prior's σ): where that
-    registration passes every view's check with a shape further from the reading than its
-    stated accuracy allows (:func:`judge_shape`), the refusal names the FBG reading (check
-    ``fbg_shape``, with the view's failure after it); otherwise ``refused`` stands.
-
-    Args:
-        refused: the refusal of the registration held to the reading.
-        views, landmarks_px, tries, seed, stage: as :func:`register_cm_checked`.
-        reading_deg: (n_control_points,) the FBG reading.
-        config: the registration's settings (its control-point σ is the reading's).
-        checks: thresholds (``max_shape_departure_sigmas`` set).
-    """
-    sigma, max_sigmas = config.control_point_sigma_deg, checks.max_shape_departure_sigmas
-    if sigma is None or max_sigmas is None or refused.check not in ("edge_ncc", "landmark_residual"):
-        return refused
-    free = config.with_(control_point_tolerance_deg=checks.shape_search_tolerance_deg)
-    searched = dataclasses.replace(checks, max_shape_departure_sigmas=None)  # the views' checks alone
-    try:
-        cm = register_cm_checked(
-            views,
-            landmarks_px,
-            tries,
-            {},
-            initial_control_points_deg=reading_deg,
-            config=free,
-            checks=searched,
-            seed=seed,
-            stage=stage,
-        )
-    except RegistrationRefused:
-        return refused
-    dep, verdict = judge_shape(cm, reading_deg, config, max_sigmas)
-    if verdict is None:
-        return refused
-    log.warning("%s: with its shape free the CM fits every view, %.1f σ from the FBG reading", stage, dep)
-    detail = (
-        f"{verdict.detail}: with its shape free the CM fits every view, held to the reading it "
-        f"fails ({refused})"
-    )
-    return RegistrationRefused(stage, "fbg_shape", detail)

@@ -34,11 +34,11 @@ from fluoronav.registration.cm import CMRegistrationResult, CMView
 from fluoronav.registration.cm.checks import (
     PredictedCMPose,
     motion_agreement,
-    name_fbg_cause,
     register_cm_checked,
 )
 from fluoronav.registration.cm.config import CMRegistrationConfig, local_cm_levels
 from fluoronav.registration.cm.multistart import register_cm_multistart
+from fluoronav.registration.cm.shared_causes import name_shared_cause
 from fluoronav.registration.view_set.fusion import fuse_tip
 from fluoronav.registration.view_set.settings import ViewSetPrior, ViewSetSettings
 from fluoronav.registration.view_set.views import FluoroView
@@ -182,7 +182,8 @@ def _register_checked(
     diag: dict[str, Any],
 ) -> CMRegistrationResult:
     """The CM registered from the starts ``tries`` and checked; without a prediction a refusal that
-    the FBG reading explains is raised naming it (:func:`name_fbg_cause`)."""
+    an input every view shares explains is raised naming it (:func:`name_shared_cause`; what was
+    found in ``diag["shared_causes"]``)."""
     assert settings.cm_checks is not None
     try:
         return register_cm_checked(
@@ -198,8 +199,8 @@ def _register_checked(
     except RegistrationRefused as exc:
         if predicted is not None:
             raise
-        # a view's failure may be the FBG reading's: name it where it is
-        named = name_fbg_cause(
+        # a view's failure may be the FBG reading's or the CT's scale's: name it where it is
+        named = name_shared_cause(
             exc,
             cm_views,
             lm_views,
@@ -208,6 +209,7 @@ def _register_checked(
             config=cm_settings,
             checks=settings.cm_checks,
             seed=seed + 101,
+            record=diag.setdefault("shared_causes", {}),
         )
         if named is exc:
             raise

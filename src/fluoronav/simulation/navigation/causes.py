@@ -62,6 +62,9 @@ _NAMED: dict[str, NamedCause] = {
     "identical_views": "image",
     "verification_repeats_views": "image",
     "fbg_shape": "case_input",
+    "fbg_reading": "case_input",
+    "ct_scale": "case_input",
+    "other_patient": "image",
 }
 
 
@@ -93,7 +96,13 @@ def _fault_cause(fault: Fault) -> TrueCause | None:
         return "hand_eye"
     if fault.verify_joint_offset_deg is not None:
         return "joint_readings"
-    if fault.mirror or fault.invert or fault.focal_scale is not None or fault.without_cm:
+    if (
+        fault.mirror
+        or fault.invert
+        or fault.focal_scale is not None
+        or fault.without_cm
+        or fault.other_patient
+    ):
         return "image"
     if fault.verify_images_before_move:
         return "image"

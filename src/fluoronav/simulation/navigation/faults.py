@@ -40,7 +40,9 @@ __all__ = [
     "invert_image",
     "mirror_view",
     "names_fault",
+    "offset_fbg_reading",
     "offset_joint_reading",
+    "scale_ct",
     "scale_focal_length",
     "swap_labels",
     "view_without_cm",
@@ -79,6 +81,13 @@ class Fault:
         fbg_beyond_deg: the FBG reading's first control point set this far beyond the CM's bend.
         plan_other_femur: the plan moved by the vector between the femoral heads (the case's
             ``side`` unchanged), as a plan made on the other femur.
+        fbg_offset_deg: added to every control point of the FBG reading (a sensor whose calibration
+            was lost), alternately + and − where ``fbg_alternate`` (a reading of another shape);
+            kept within the CM's range.
+        ct_scale: the CT's spacing read this many times the true one, its labels, landmarks and plan
+            made in that frame (a wrong spacing or unit in the file).
+        other_patient: the image of ``view_index`` is another patient's (the next phantom seed), the CM
+            and the C-arm where they are.
     """
 
     name: str
@@ -101,6 +110,10 @@ class Fault:
     shift_labels_mm: float | None = None
     fbg_beyond_deg: float | None = None
     plan_other_femur: bool = False
+    fbg_offset_deg: float | None = None
+    fbg_alternate: bool = False
+    ct_scale: float | None = None
+    other_patient: bool = False
 
 
 #: the fault catalogue, by name (``none``: the baseline)
@@ -207,6 +220,44 @@ FAULTS: dict[str, Fault] = {
             plan_other_femur=True,
         ),
         Fault(
+            "fbg_bent_3deg",
+            "the FBG reading 3° off at every control point (its calibration lost)",
+            "case",
+            handled_by=("fbg_reading",),
+            fbg_offset_deg=3.0,
+        ),
+        Fault(
+            "fbg_other_shape",
+            "the FBG reading of another shape: its control points 5° off, alternately + and −",
+            "case",
+            handled_by=("fbg_reading",),
+            fbg_offset_deg=5.0,
+            fbg_alternate=True,
+        ),
+        Fault(
+            "ct_spacing_110",
+            "the CT's spacing read 10 % too large, its labels, landmarks and plan made in that frame",
+            "case",
+            handled_by=("ct_scale",),
+            ct_scale=1.1,
+        ),
+        Fault(
+            "ct_spacing_090",
+            "the CT's spacing read 10 % too small, its labels, landmarks and plan made in that frame",
+            "case",
+            handled_by=("ct_scale",),
+            ct_scale=0.9,
+        ),
+        Fault(
+            "view_other_patient",
+            "the second first view's image is another patient's, with the CM and the C-arm where they are",
+            "first_views",
+            handled_by=("pelvis:edge_ncc", "femur:edge_ncc", "other_patient"),
+            leave_out_counts=True,
+            view_index=1,
+            other_patient=True,
+        ),
+        Fault(
             "inverted",
             "every first view's intensities inverted (MONOCHROME1 read as MONOCHROME2)",
             "first_views",
@@ -306,6 +357,57 @@ def fbg_beyond_range(
     return q
 
 
+def offset_fbg_reading(
+    reading_deg: np.ndarray | None, n: int, offset_deg: float, *, alternate: bool, limit_deg: float
+) -> np.ndarray:
+    """The FBG reading (straight where None) with ``offset_deg`` added to each control point
+    (alternately + and − where ``alternate``), within ±``limit_deg``; where the limit takes part of a
+    point's offset, the point goes the other way instead."""
+    q = np.zeros(n) if reading_deg is None else np.asarray(reading_deg, np.float64).copy()
+    sign = np.where(np.arange(n) % 2 == 1, -1.0, 1.0) if alternate else np.ones(n)
+    moved = q + sign * offset_deg
+    other = q - sign * offset_deg
+    return np.where(np.abs(moved) <= limit_deg, moved, np.clip(other, -limit_deg, limit_deg))
+
+
+def scale_ct(case: NavigationCase, factor: float) -> NavigationCase:
+    """``case`` with its CT's spacing read ``factor`` times the true one: every point made in the CT's
+    frame (landmarks, the plan's entry and depth) scaled about the CT's origin with it, each view's
+    initial camera moved with the femoral-head landmark (its isocentre)."""
+    vol = case.volume
+    origin = np.asarray(vol.origin_mm, np.float64)
+
+    def scaled(p: np.ndarray) -> np.ndarray:
+        return origin + factor * (np.asarray(p, np.float64) - origin)
+
+    landmarks = {k: scaled(v) for k, v in vol.landmarks_world.items()}
+    volume = vol.replace(spacing_mm=tuple(factor * s for s in vol.spacing_mm), landmarks_world=landmarks)
+    plan = dataclasses.replace(
+        case.plan,
+        entry_point_world_mm=scaled(case.plan.entry_point_world_mm),
+        insertion_depth_mm=factor * float(case.plan.insertion_depth_mm),
+    )
+    head = vol.landmarks_world.get(f"femoral_head_{case.side}")
+    shift = np.zeros(3) if head is None else scaled(head) - np.asarray(head, np.float64)
+
+    def moved(v: CaseView) -> CaseView:
+        c = v.camera
+        camera_from_ct = np.asarray(c.camera_from_world, np.float64).copy()
+        camera_from_ct[:3, 3] -= camera_from_ct[:3, :3] @ shift
+        return dataclasses.replace(v, camera=Camera(c.rows, c.cols, c.K, camera_from_ct, c.pixel_spacing_mm))
+
+    verification = case.verification
+    if verification is not None:
+        verification = dataclasses.replace(verification, views=tuple(moved(v) for v in verification.views))
+    return dataclasses.replace(
+        case,
+        volume=volume,
+        plan=plan,
+        views=tuple(moved(v) for v in case.views),
+        verification=verification,
+    )
+
+
 def plan_on_other_femur(plan: Plan, volume: Volume, side: str) -> Plan:
     """The plan moved by the vector from the ``side`` femur label's centroid to the other one's."""
     other = "right" if side == "left" else "left"
@@ -379,6 +481,18 @@ def apply_case_fault(case: NavigationCase, fault: Fault | None) -> NavigationCas
         case = dataclasses.replace(case, fbg_control_points_deg=q)
     if fault.plan_other_femur:
         case = dataclasses.replace(case, plan=plan_on_other_femur(case.plan, case.volume, case.side))
+    if fault.fbg_offset_deg is not None:
+        cmc = case.cm_config
+        q = offset_fbg_reading(
+            case.fbg_control_points_deg,
+            cmc.n_control_points,
+            fault.fbg_offset_deg,
+            alternate=fault.fbg_alternate,
+            limit_deg=max(abs(r) for r in cmc.control_point_range_deg),
+        )
+        case = dataclasses.replace(case, fbg_control_points_deg=q)
+    if fault.ct_scale is not None:
+        case = scale_ct(case, fault.ct_scale)
     return case
 
 

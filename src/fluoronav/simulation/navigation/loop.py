@@ -60,6 +60,7 @@ from fluoronav.simulation.navigation.truth_errors import (
 )
 from fluoronav.simulation.robot_scene import verification_view_centre
 from fluoronav.simulation.world import case_fbg_reading
+from fluoronav.simulation.world_anatomy import world_anatomy
 
 log = logging.getLogger(__name__)
 
@@ -461,7 +462,39 @@ def _first_fault(s: Scenario, case: NavigationCase, seed: int) -> NavigationCase
         views = list(case.views)
         views[k] = view_without_cm(views[k], bare.image)
         case = dataclasses.replace(case, views=tuple(views))
+    if fault.other_patient and fault.view_index is not None:
+        case = _other_patient_view(s, case, fault.view_index, seed)
     return apply_case_fault(apply_first_fault(case, fault), fault)
+
+
+def _other_patient_view(s: Scenario, case: NavigationCase, k: int, seed: int) -> NavigationCase:
+    """The case with view ``k``'s image made of another patient (the next phantom seed, in the same
+    world), the CM, the C-arm and the patient's pose as they are."""
+    if not s.volume.name.startswith("phantom"):
+        raise InputError("--fault", "view_other_patient needs the phantom (--ct phantom)")
+    cfg, tr = s.config, s.sc.trial
+    other_seed = (cfg.seed if cfg.phantom_seed is None else cfg.phantom_seed) + 1
+    other = world_anatomy(
+        "phantom",
+        other_seed,
+        cfg.world.ct,
+        image_size=cfg.image_size,
+        device=cfg.device,
+        rng=np.random.default_rng(other_seed),
+    )
+    img = other.simulator.simulate(
+        s.cams[k],
+        world_from_patient=tr.world_from_patient,
+        world_from_femur=tr.world_from_femur,
+        cm=(s.W_regi, s.cp_true),
+        seed=seed + k,
+        image_size=cfg.image_size,
+        cm_config=s.sc.cm_config,
+        built_cm=s.built,
+    )
+    views = list(case.views)
+    views[k] = dataclasses.replace(views[k], image=np.asarray(img.image, np.float32))
+    return dataclasses.replace(case, views=tuple(views))
 
 
 def _ct_path(case_dir: Path) -> str | None:

@@ -1,0 +1,226 @@
+"""Whether an input every view shares explains a CM registration's refusal: the FBG reading, the CT's scale.
+
+A view's check names one view. Where the FBG reading (its calibration lost) or the CT's spacing (a
+wrong unit or header) is wrong, every view is wrong together and the view named is only the worst.
+Before such a refusal stands, the CM is registered once more with each shared input free: its shape
+within ``shape_search_tolerance_deg`` of the reading (:func:`name_fbg_cause`), and its size scaled
+by the factor its triangulated landmarks give (:func:`name_scale_cause`). Where that registration
+passes every view's check, the refusal names the input (check ``fbg_reading`` or ``ct_scale``) with
+the value found; otherwise the view's refusal stands, saying that neither input explains it.
+
+NOTE: a CT whose spacing reads ``s`` times the true one makes the registered scene ``s`` times larger,
+cameras included (each view's bone registration absorbs the scale as depth, exactly); the CM, whose
+size is known in mm, then looks ``s`` times its size in the CT's frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from fluoronav.errors import RegistrationRefused
+from fluoronav.geometry.camera import triangulate_points
+from fluoronav.manipulator.config import CMConfig
+from fluoronav.manipulator.kinematics import CMKinematics
+from fluoronav.registration.cm.checks import CMCheckConfig, judge_shape, register_cm_checked
+from fluoronav.registration.cm.config import CMRegistrationConfig
+from fluoronav.registration.cm.views import CMView
+
+__all__ = [
+    "SHARED_CAUSE_CHECKS",
+    "landmark_scale",
+    "name_fbg_cause",
+    "name_scale_cause",
+    "name_shared_cause",
+    "scaled_cm_config",
+]
+
+log = logging.getLogger(__name__)
+
+#: the view checks whose failure may be a shared input's
+SHARED_CAUSE_CHECKS = ("edge_ncc", "landmark_residual")
+
+
+def name_fbg_cause(
+    refused: RegistrationRefused,
+    views: Sequence[CMView],
+    landmarks_px: Sequence[np.ndarray | None],
+    tries: Sequence[Sequence[np.ndarray]],
+    *,
+    reading_deg: np.ndarray,
+    config: CMRegistrationConfig,
+    checks: CMCheckConfig,
+    seed: int,
+    stage: str = "cm",
+    record: dict[str, Any] | None = None,
+) -> RegistrationRefused:
+    """The refusal of a registration whose shape was held to an FBG reading, with its cause named
+    where the reading is it (check ``fbg_reading``); otherwise ``refused``.
+
+    The CM is registered once more with its shape free within ``checks.shape_search_tolerance_deg``
+    of the reading (flat, then the prior's σ): where that passes every view's check with a shape
+    further from the reading than its stated accuracy allows (:func:`judge_shape`), the reading is
+    the cause.
+
+    Args:
+        refused: the refusal of the registration held to the reading.
+        views, landmarks_px, tries, seed, stage: as :func:`register_cm_checked`.
+        reading_deg: (n_control_points,) the FBG reading.
+        config: the registration's settings (its control-point σ is the reading's).
+        checks: thresholds (``max_shape_departure_sigmas`` set).
+        record: filled in place where given: ``fits`` (the free shape passed every view),
+            ``departure_sigmas`` and ``control_points_deg`` of the free shape.
+    """
+    sigma, max_sigmas = config.control_point_sigma_deg, checks.max_shape_departure_sigmas
+    if sigma is None or max_sigmas is None or refused.check not in SHARED_CAUSE_CHECKS:
+        return refused
+    free = config.with_(control_point_tolerance_deg=checks.shape_search_tolerance_deg)
+    searched = dataclasses.replace(checks, max_shape_departure_sigmas=None)  # the views' checks alone
+    rec = record if record is not None else {}
+    try:
+        cm = register_cm_checked(
+            views,
+            landmarks_px,
+            tries,
+            {},
+            initial_control_points_deg=reading_deg,
+            config=free,
+            checks=searched,
+            seed=seed,
+            stage=stage,
+        )
+    except RegistrationRefused:
+        rec["fits"] = False
+        return refused
+    dep, verdict = judge_shape(cm, reading_deg, config, max_sigmas)
+    rec.update(
+        fits=True,
+        departure_sigmas=float(dep),
+        control_points_deg=[float(x) for x in np.asarray(cm.control_points_deg)],
+    )
+    if verdict is None:
+        return refused
+    log.warning("%s: with its shape free the CM fits every view, %.1f σ from the FBG reading", stage, dep)
+    detail = (
+        f"{verdict.detail}: with its shape free the CM fits every view, held to the reading it "
+        f"fails ({refused})"
+    )
+    return RegistrationRefused(stage, "fbg_reading", detail)
+
+
+def landmark_scale(
+    views: Sequence[CMView], landmarks_px: Sequence[np.ndarray | None], reading_deg: np.ndarray, cm: CMConfig
+) -> float | None:
+    """The CM's size in the views' frame over its size in mm: the distance of its landmarks A and B
+    triangulated over the views with both, over their distance at the reading's shape; None with
+    fewer than two such views."""
+    seen = [(v.camera, np.asarray(lm, np.float64)) for v, lm in zip(views, landmarks_px, strict=True)]
+    seen = [(c, lm) for c, lm in seen if lm is not None and lm.shape == (2, 2) and np.isfinite(lm).all()]
+    if len(seen) < 2:
+        return None
+    ab = triangulate_points([c for c, _ in seen], np.stack([lm for _, lm in seen]))
+    model = CMKinematics(cm).landmarks_cm(torch.as_tensor(reading_deg, dtype=torch.float64)).numpy()
+    return float(np.linalg.norm(ab[1] - ab[0]) / np.linalg.norm(model[1] - model[0]))
+
+
+def scaled_cm_config(cm: CMConfig, factor: float) -> CMConfig:
+    """The CM ``factor`` times its size (every length); its density over ``factor``, so that a ray's
+    line integral through it is the one of the CM itself."""
+    values = {k: getattr(cm, k) for k in type(cm).model_fields if k.endswith("_mm")}
+    lengths = {k: v * factor for k, v in values.items() if v is not None}
+    return cm.model_copy(update={**lengths, "density_g_cm3": cm.density_g_cm3 / factor})
+
+
+def name_scale_cause(
+    refused: RegistrationRefused,
+    views: Sequence[CMView],
+    landmarks_px: Sequence[np.ndarray | None],
+    tries: Sequence[Sequence[np.ndarray]],
+    *,
+    reading_deg: np.ndarray,
+    config: CMRegistrationConfig,
+    checks: CMCheckConfig,
+    seed: int,
+    stage: str = "cm",
+    record: dict[str, Any] | None = None,
+) -> RegistrationRefused:
+    """``refused`` named as the CT's scale (check ``ct_scale``) where the CM, registered at the size
+    its landmarks give (:func:`landmark_scale`, at least ``checks.min_scale_departure`` from 1),
+    passes every view's check; otherwise ``refused``.
+
+    Args: as :func:`name_fbg_cause`; ``record`` gets ``factor`` (the CM's size in the CT's frame over
+    its size; None where it cannot be measured) and ``fits``.
+    """
+    rec = record if record is not None else {}
+    if refused.check not in SHARED_CAUSE_CHECKS:
+        return refused
+    factor = landmark_scale(views, landmarks_px, reading_deg, config.cm_config)
+    rec["factor"] = factor
+    if factor is None or abs(factor - 1.0) < checks.min_scale_departure:
+        return refused
+    scaled = config.with_(cm_config=scaled_cm_config(config.cm_config, factor))
+    try:
+        register_cm_checked(
+            views,
+            landmarks_px,
+            tries,
+            {},
+            initial_control_points_deg=reading_deg,
+            config=scaled,
+            checks=checks,
+            seed=seed,
+            stage=stage,
+        )
+    except RegistrationRefused:
+        rec["fits"] = False
+        return refused
+    rec["fits"] = True
+    log.warning("%s: at %.3f× its size the CM fits every view: the CT's scale", stage, factor)
+    detail = (
+        f"the CM fits every view at {factor:.3f}× its size: the CT's spacing reads {factor:.3f}× the "
+        f"true one (check its spacing and unit); at its size it fails ({refused})"
+    )
+    return RegistrationRefused(stage, "ct_scale", detail)
+
+
+def name_shared_cause(
+    refused: RegistrationRefused,
+    views: Sequence[CMView],
+    landmarks_px: Sequence[np.ndarray | None],
+    tries: Sequence[Sequence[np.ndarray]],
+    *,
+    reading_deg: np.ndarray,
+    config: CMRegistrationConfig,
+    checks: CMCheckConfig,
+    seed: int,
+    stage: str = "cm",
+    record: dict[str, Any] | None = None,
+) -> RegistrationRefused:
+    """``refused`` named as the FBG reading's (:func:`name_fbg_cause`), else the CT's scale's
+    (:func:`name_scale_cause`), else as it was with "neither … explains it" added to its detail.
+
+    Args: as :func:`name_fbg_cause`; ``record`` gets ``fbg_reading`` and ``ct_scale`` (each one's
+    record).
+    """
+    if refused.check not in SHARED_CAUSE_CHECKS:
+        return refused
+    rec = record if record is not None else {}
+    kw: dict[str, Any] = dict(reading_deg=reading_deg, config=config, checks=checks, stage=stage)
+    named = name_fbg_cause(
+        refused, views, landmarks_px, tries, seed=seed, record=rec.setdefault("fbg_reading", {}), **kw
+    )
+    if named is refused:
+        named = name_scale_cause(
+            refused, views, landmarks_px, tries, seed=seed + 1, record=rec.setdefault("ct_scale", {}), **kw
+        )
+    if named is not refused:
+        return named
+    factor = rec["ct_scale"].get("factor")
+    size = "" if factor is None else f" (the CM's size in the views {factor:.3f}×)"
+    detail = f"{refused.detail}; neither the FBG reading nor the CT's scale{size} explains it"
+    return RegistrationRefused(refused.stage, refused.check, detail, view=refused.view)
