@@ -1,16 +1,15 @@
 """Whether an input every view shares explains a CM registration's refusal: the FBG reading, the CT's scale.
 
-A view's check names one view. Where the FBG reading (its calibration lost) or the CT's spacing (a
-wrong unit or header) is wrong, every view is wrong together and the view named is only the worst.
-Before such a refusal stands, the CM is registered once more with each shared input free: its shape
-within ``shape_search_tolerance_deg`` of the reading (:func:`name_fbg_cause`), and its size scaled
-by the factor its triangulated landmarks give (:func:`name_scale_cause`). Where that registration
-passes every view's check, the refusal names the input (check ``fbg_reading`` or ``ct_scale``) with
-the value found; otherwise the view's refusal stands, saying that neither input explains it.
+A view's check names one view. Where the FBG reading or the CT's spacing is wrong, every view is
+wrong together and the view named is only the worst. Before such a refusal stands, the CM is
+registered once more with each shared input free: its shape within ``shape_search_tolerance_deg``
+of the reading (:func:`name_fbg_cause`), its size scaled by the factor its triangulated landmarks
+give (:func:`name_scale_cause`). A fit of every view names the input (check ``fbg_reading`` or
+``ct_scale``) with the value found; otherwise the view's refusal stands, saying so.
 
-NOTE: a CT whose spacing reads ``s`` times the true one makes the registered scene ``s`` times larger,
-cameras included (each view's bone registration absorbs the scale as depth, exactly); the CM, whose
-size is known in mm, then looks ``s`` times its size in the CT's frame.
+NOTE: a CT whose spacing reads ``s`` times the true one makes the registered scene, cameras
+included, ``s`` times larger (each view's bone registration absorbs it as depth, exactly), so the
+CM, whose size is known in mm, looks ``s`` times its size in the CT's frame.
 """
 
 from __future__ import annotations
