@@ -7,9 +7,8 @@ of the reading (:func:`name_fbg_cause`), its size scaled by the factor its trian
 give (:func:`name_scale_cause`). A fit of every view names the input (check ``fbg_reading`` or
 ``ct_scale``) with the value found; otherwise the view's refusal stands, saying so.
 
-NOTE: a CT whose spacing reads ``s`` times the true one makes the registered scene, cameras
-included, ``s`` times larger (each view's bone registration absorbs it as depth, exactly), so the
-CM, whose size is known in mm, looks ``s`` times its size in the CT's frame.
+NOTE: a CT whose spacing reads ``s`` times the true one makes the registered scene, cameras included,
+``s`` times larger (the bones absorb it as depth, exactly): the CM looks ``s`` times its size.
 """
 
 from __future__ import annotations
