@@ -21,6 +21,7 @@ from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.cm.checks import CMCheckConfig
 from fluoronav.registration.cm.config import CMRegistrationConfig
 from fluoronav.registration.cm.shared_causes import (
+    RefusedCM,
     landmark_scale,
     name_fbg_cause,
     name_scale_cause,
@@ -98,6 +99,13 @@ def _refused(check: str = "edge_ncc") -> RegistrationRefused:
     return RegistrationRefused("cm", check, "NCC 0.54 (at least 0.7)", view="orbit +20")
 
 
+def _failed(
+    refused: RegistrationRefused, views: Any = (), lms: Any = (), reading: np.ndarray | None = None
+) -> RefusedCM:
+    reading = np.zeros(5) if reading is None else reading
+    return RefusedCM(refused, views, lms, [], reading, _CFG, _CHECKS, 0)
+
+
 def test_a_view_that_fails_because_the_fbg_reading_is_off_names_the_reading(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -105,9 +113,7 @@ def test_a_view_that_fails_because_the_fbg_reading_is_off_names_the_reading(
     (18 σ) from the reading: the refusal names the FBG reading and keeps the view's failure."""
     calls = _patched(monkeypatch, {"free_shape": np.array([0.0, 1.5, 0.0, 0.0, 0.0])})
     refused, rec = _refused(), {}
-    out = name_fbg_cause(
-        refused, [], [], [], reading_deg=np.zeros(5), config=_CFG, checks=_CHECKS, seed=0, record=rec
-    )
+    out = name_fbg_cause(_failed(refused), rec)
     assert out is not refused and out.check == "fbg_reading" and out.view == ""
     assert "+1.50° at control point 1" in out.detail and "orbit +20" in out.detail
     assert calls[0]["config"].control_point_tolerance_deg == 6.0  # searched ±6° of the reading
@@ -122,9 +128,7 @@ def test_a_ct_whose_spacing_is_off_is_named_with_the_factor(monkeypatch: pytest.
     views, lms = _views(1.1, reading)
     calls = _patched(monkeypatch, {"scaled": reading})
     rec: dict[str, Any] = {}
-    out = name_shared_cause(
-        _refused(), views, lms, [], reading_deg=reading, config=_CFG, checks=_CHECKS, seed=0, record=rec
-    )
+    out = name_shared_cause(_failed(_refused(), views, lms, reading), rec)
     assert out.check == "ct_scale" and "1.100×" in out.detail and "orbit +20" in out.detail
     assert [c["kind"] for c in calls] == ["free_shape", "scaled"]
     assert calls[1]["config"].cm_config.total_length_mm == pytest.approx(38.5)
@@ -138,7 +142,7 @@ def test_a_cm_of_its_own_size_is_not_tested_as_the_cts_scale(monkeypatch: pytest
     views, lms = _views(1.02, reading)  # within the 3 % the landmarks' error allows
     calls = _patched(monkeypatch, {"scaled": reading})
     refused = _refused()
-    out = name_scale_cause(refused, views, lms, [], reading_deg=reading, config=_CFG, checks=_CHECKS, seed=0)
+    out = name_scale_cause(_failed(refused, views, lms, reading))
     assert out is refused and not calls
 
 
@@ -148,21 +152,19 @@ def test_where_no_shared_input_explains_it_the_views_refusal_stands_and_says_so(
     reading = np.zeros(5)
     views, lms = _views(1.1, reading)
     _patched(monkeypatch, {})  # nothing fits
-    out = name_shared_cause(
-        _refused(), views, lms, [], reading_deg=reading, config=_CFG, checks=_CHECKS, seed=0
-    )
+    out = name_shared_cause(_failed(_refused(), views, lms, reading))
     assert out.check == "edge_ncc" and out.view == "orbit +20"
     assert "neither the FBG reading nor the CT's scale (the CM's size in the views 1.100×)" in out.detail
     # the free shape that agrees with the reading does not name it either
     _patched(monkeypatch, {"free_shape": np.full(5, 0.1)})
-    near = name_fbg_cause(_refused(), [], [], [], reading_deg=reading, config=_CFG, checks=_CHECKS, seed=0)
+    near = name_fbg_cause(_failed(_refused()))
     assert near.check == "edge_ncc"
 
 
 def test_a_failure_that_is_not_a_views_check_is_not_searched(monkeypatch: pytest.MonkeyPatch) -> None:
     calls = _patched(monkeypatch, {"free_shape": np.full(5, 2.0), "scaled": np.zeros(5)})
     refused = _refused("robot_motion")
-    out = name_shared_cause(refused, [], [], [], reading_deg=np.zeros(5), config=_CFG, checks=_CHECKS, seed=0)
+    out = name_shared_cause(_failed(refused))
     assert out is refused and not calls
 
 
@@ -206,8 +208,7 @@ def test_physics_images_of_a_scene_registered_in_a_scaled_ct_name_its_scale() ->
         register_cm_checked(views, lms, [[W0]], {}, **kw)
     assert refused.value.check in ("landmark_residual", "edge_ncc")
     rec: dict[str, Any] = {}
-    out = name_shared_cause(
-        refused.value, views, lms, [[W0]], reading_deg=reading, config=cfg, checks=checks, seed=1, record=rec
-    )
+    failed = RefusedCM(refused.value, views, lms, [[W0]], reading, cfg, checks, 1)
+    out = name_shared_cause(failed, rec)
     assert out.check == "ct_scale", out
     assert rec["ct_scale"]["factor"] == pytest.approx(1.1, abs=0.02)

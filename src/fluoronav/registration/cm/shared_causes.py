@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -27,10 +28,12 @@ from fluoronav.manipulator.config import CMConfig
 from fluoronav.manipulator.kinematics import CMKinematics
 from fluoronav.registration.cm.checks import CMCheckConfig, judge_shape, register_cm_checked
 from fluoronav.registration.cm.config import CMRegistrationConfig
+from fluoronav.registration.cm.result import CMRegistrationResult
 from fluoronav.registration.cm.views import CMView
 
 __all__ = [
     "SHARED_CAUSE_CHECKS",
+    "RefusedCM",
     "landmark_scale",
     "name_fbg_cause",
     "name_scale_cause",
@@ -44,19 +47,46 @@ log = logging.getLogger(__name__)
 SHARED_CAUSE_CHECKS = ("edge_ncc", "landmark_residual")
 
 
-def name_fbg_cause(
-    refused: RegistrationRefused,
-    views: Sequence[CMView],
-    landmarks_px: Sequence[np.ndarray | None],
-    tries: Sequence[Sequence[np.ndarray]],
-    *,
-    reading_deg: np.ndarray,
-    config: CMRegistrationConfig,
-    checks: CMCheckConfig,
-    seed: int,
-    stage: str = "cm",
-    record: dict[str, Any] | None = None,
-) -> RegistrationRefused:
+@dataclass(frozen=True, eq=False)
+class RefusedCM:
+    """A refused CM registration and what it was run on (:func:`register_cm_checked`'s inputs).
+
+    Attributes:
+        refused: its refusal.
+        views, landmarks_px, tries, seed, stage: as :func:`register_cm_checked`.
+        reading_deg: (n_control_points,) the FBG reading its shape was held to.
+        config: the registration's settings (its control-point σ is the reading's).
+        checks: its thresholds.
+    """
+
+    refused: RegistrationRefused
+    views: Sequence[CMView]
+    landmarks_px: Sequence[np.ndarray | None]
+    tries: Sequence[Sequence[np.ndarray]]
+    reading_deg: np.ndarray
+    config: CMRegistrationConfig
+    checks: CMCheckConfig
+    seed: int
+    stage: str = "cm"
+
+    def register_again(
+        self, config: CMRegistrationConfig, checks: CMCheckConfig, seed: int
+    ) -> CMRegistrationResult:
+        """The same registration with other settings (raises :class:`RegistrationRefused`)."""
+        return register_cm_checked(
+            self.views,
+            self.landmarks_px,
+            self.tries,
+            {},
+            initial_control_points_deg=self.reading_deg,
+            config=config,
+            checks=checks,
+            seed=seed,
+            stage=self.stage,
+        )
+
+
+def name_fbg_cause(failed: RefusedCM, record: dict[str, Any] | None = None) -> RegistrationRefused:
     """The refusal of a registration whose shape was held to an FBG reading, with its cause named
     where the reading is it (check ``fbg_reading``); otherwise ``refused``.
 
@@ -66,14 +96,11 @@ def name_fbg_cause(
     the cause.
 
     Args:
-        refused: the refusal of the registration held to the reading.
-        views, landmarks_px, tries, seed, stage: as :func:`register_cm_checked`.
-        reading_deg: (n_control_points,) the FBG reading.
-        config: the registration's settings (its control-point σ is the reading's).
-        checks: thresholds (``max_shape_departure_sigmas`` set).
+        failed: the registration held to the reading (its ``checks.max_shape_departure_sigmas`` set).
         record: filled in place where given: ``fits`` (the free shape passed every view),
             ``departure_sigmas`` and ``control_points_deg`` of the free shape.
     """
+    refused, config, checks = failed.refused, failed.config, failed.checks
     sigma, max_sigmas = config.control_point_sigma_deg, checks.max_shape_departure_sigmas
     if sigma is None or max_sigmas is None or refused.check not in SHARED_CAUSE_CHECKS:
         return refused
@@ -81,21 +108,11 @@ def name_fbg_cause(
     searched = dataclasses.replace(checks, max_shape_departure_sigmas=None)  # the views' checks alone
     rec = record if record is not None else {}
     try:
-        cm = register_cm_checked(
-            views,
-            landmarks_px,
-            tries,
-            {},
-            initial_control_points_deg=reading_deg,
-            config=free,
-            checks=searched,
-            seed=seed,
-            stage=stage,
-        )
+        cm = failed.register_again(free, searched, failed.seed)
     except RegistrationRefused:
         rec["fits"] = False
         return refused
-    dep, verdict = judge_shape(cm, reading_deg, config, max_sigmas)
+    dep, verdict = judge_shape(cm, failed.reading_deg, config, max_sigmas)
     rec.update(
         fits=True,
         departure_sigmas=float(dep),
@@ -103,12 +120,14 @@ def name_fbg_cause(
     )
     if verdict is None:
         return refused
-    log.warning("%s: with its shape free the CM fits every view, %.1f σ from the FBG reading", stage, dep)
+    log.warning(
+        "%s: with its shape free the CM fits every view, %.1f σ from the FBG reading", failed.stage, dep
+    )
     detail = (
         f"{verdict.detail}: with its shape free the CM fits every view, held to the reading it "
         f"fails ({refused})"
     )
-    return RegistrationRefused(stage, "fbg_reading", detail)
+    return RegistrationRefused(failed.stage, "fbg_reading", detail)
 
 
 def landmark_scale(
@@ -134,88 +153,51 @@ def scaled_cm_config(cm: CMConfig, factor: float) -> CMConfig:
     return cm.model_copy(update={**lengths, "density_g_cm3": cm.density_g_cm3 / factor})
 
 
-def name_scale_cause(
-    refused: RegistrationRefused,
-    views: Sequence[CMView],
-    landmarks_px: Sequence[np.ndarray | None],
-    tries: Sequence[Sequence[np.ndarray]],
-    *,
-    reading_deg: np.ndarray,
-    config: CMRegistrationConfig,
-    checks: CMCheckConfig,
-    seed: int,
-    stage: str = "cm",
-    record: dict[str, Any] | None = None,
-) -> RegistrationRefused:
-    """``refused`` named as the CT's scale (check ``ct_scale``) where the CM, registered at the size
-    its landmarks give (:func:`landmark_scale`, at least ``checks.min_scale_departure`` from 1),
-    passes every view's check; otherwise ``refused``.
+def name_scale_cause(failed: RefusedCM, record: dict[str, Any] | None = None) -> RegistrationRefused:
+    """``failed.refused`` named as the CT's scale (check ``ct_scale``) where the CM, registered (seed
+    ``failed.seed + 1``) at the size its landmarks give (:func:`landmark_scale`, at least
+    ``checks.min_scale_departure`` from 1), passes every view's check; otherwise ``failed.refused``.
 
     Args: as :func:`name_fbg_cause`; ``record`` gets ``factor`` (the CM's size in the CT's frame over
     its size; None where it cannot be measured) and ``fits``.
     """
     rec = record if record is not None else {}
+    refused, config = failed.refused, failed.config
     if refused.check not in SHARED_CAUSE_CHECKS:
         return refused
-    factor = landmark_scale(views, landmarks_px, reading_deg, config.cm_config)
+    factor = landmark_scale(failed.views, failed.landmarks_px, failed.reading_deg, config.cm_config)
     rec["factor"] = factor
-    if factor is None or abs(factor - 1.0) < checks.min_scale_departure:
+    if factor is None or abs(factor - 1.0) < failed.checks.min_scale_departure:
         return refused
     scaled = config.with_(cm_config=scaled_cm_config(config.cm_config, factor))
     try:
-        register_cm_checked(
-            views,
-            landmarks_px,
-            tries,
-            {},
-            initial_control_points_deg=reading_deg,
-            config=scaled,
-            checks=checks,
-            seed=seed,
-            stage=stage,
-        )
+        failed.register_again(scaled, failed.checks, failed.seed + 1)
     except RegistrationRefused:
         rec["fits"] = False
         return refused
     rec["fits"] = True
-    log.warning("%s: at %.3f× its size the CM fits every view: the CT's scale", stage, factor)
+    log.warning("%s: at %.3f× its size the CM fits every view: the CT's scale", failed.stage, factor)
     detail = (
         f"the CM fits every view at {factor:.3f}× its size: the CT's spacing reads {factor:.3f}× the "
         f"true one (check its spacing and unit); at its size it fails ({refused})"
     )
-    return RegistrationRefused(stage, "ct_scale", detail)
+    return RegistrationRefused(failed.stage, "ct_scale", detail)
 
 
-def name_shared_cause(
-    refused: RegistrationRefused,
-    views: Sequence[CMView],
-    landmarks_px: Sequence[np.ndarray | None],
-    tries: Sequence[Sequence[np.ndarray]],
-    *,
-    reading_deg: np.ndarray,
-    config: CMRegistrationConfig,
-    checks: CMCheckConfig,
-    seed: int,
-    stage: str = "cm",
-    record: dict[str, Any] | None = None,
-) -> RegistrationRefused:
+def name_shared_cause(failed: RefusedCM, record: dict[str, Any] | None = None) -> RegistrationRefused:
     """``refused`` named as the FBG reading's (:func:`name_fbg_cause`), else the CT's scale's
     (:func:`name_scale_cause`), else as it was with "neither … explains it" added to its detail.
 
     Args: as :func:`name_fbg_cause`; ``record`` gets ``fbg_reading`` and ``ct_scale`` (each one's
     record).
     """
+    refused = failed.refused
     if refused.check not in SHARED_CAUSE_CHECKS:
         return refused
     rec = record if record is not None else {}
-    kw: dict[str, Any] = dict(reading_deg=reading_deg, config=config, checks=checks, stage=stage)
-    named = name_fbg_cause(
-        refused, views, landmarks_px, tries, seed=seed, record=rec.setdefault("fbg_reading", {}), **kw
-    )
+    named = name_fbg_cause(failed, rec.setdefault("fbg_reading", {}))
     if named is refused:
-        named = name_scale_cause(
-            refused, views, landmarks_px, tries, seed=seed + 1, record=rec.setdefault("ct_scale", {}), **kw
-        )
+        named = name_scale_cause(failed, rec.setdefault("ct_scale", {}))
     if named is not refused:
         return named
     factor = rec["ct_scale"].get("factor")

@@ -38,7 +38,7 @@ from fluoronav.registration.cm.checks import (
 )
 from fluoronav.registration.cm.config import CMRegistrationConfig, local_cm_levels
 from fluoronav.registration.cm.multistart import register_cm_multistart
-from fluoronav.registration.cm.shared_causes import name_shared_cause
+from fluoronav.registration.cm.shared_causes import RefusedCM, name_shared_cause
 from fluoronav.registration.view_set.fusion import fuse_tip
 from fluoronav.registration.view_set.settings import ViewSetPrior, ViewSetSettings
 from fluoronav.registration.view_set.views import FluoroView
@@ -200,7 +200,7 @@ def _register_checked(
         if predicted is not None:
             raise
         # a view's failure may be the FBG reading's or the CT's scale's: name it where it is
-        named = name_shared_cause(
+        failed = RefusedCM(
             exc,
             cm_views,
             lm_views,
@@ -209,8 +209,8 @@ def _register_checked(
             config=cm_settings,
             checks=settings.cm_checks,
             seed=seed + 101,
-            record=diag.setdefault("shared_causes", {}),
         )
+        named = name_shared_cause(failed, diag.setdefault("shared_causes", {}))
         if named is exc:
             raise
         raise named from exc
