@@ -212,3 +212,33 @@ def test_physics_images_of_a_scene_registered_in_a_scaled_ct_name_its_scale() ->
     out = name_shared_cause(failed, rec)
     assert out.check == "ct_scale", out
     assert rec["ct_scale"]["factor"] == pytest.approx(1.1, abs=0.02)
+
+
+def test_where_the_readings_starts_fit_nothing_a_straight_cms_starts_are_searched(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A reading 3° off at every point: its own starts fit nothing with the shape free; the starts of
+    a straight CM, with the shape free about straight, fit every view 3° from the reading: named."""
+    reading = np.full(5, 3.0)
+    straight_pose = se3.make(np.eye(3), [1.0, 2.0, 3.0])
+    calls: list[dict[str, Any]] = []
+
+    def registered(views: Any, lms: Any, tries: Any, diag: Any, **kw: Any) -> _Reg:
+        calls.append({"tries": tries, **kw})
+        if np.any(kw["initial_control_points_deg"] != 0.0):
+            raise RegistrationRefused("cm", "edge_ncc", "still no fit", view="AP")
+        return _Reg(control_points_deg=np.zeros(5))
+
+    monkeypatch.setattr(shared_causes, "register_cm_checked", registered)
+    failed = dataclasses.replace(
+        _failed(_refused(), reading=reading), straight_starts=lambda: [[straight_pose]]
+    )
+    rec: dict[str, Any] = {}
+    out = name_fbg_cause(failed, rec)
+    assert out.check == "fbg_reading" and rec["fits"]
+    assert len(calls) == 2 and calls[1]["tries"][0][0] is straight_pose
+    assert calls[1]["config"].control_point_tolerance_deg == 6.0 and calls[1]["seed"] == 2
+    # without a straight CM's starts the reading's failure stands
+    calls.clear()
+    none = name_fbg_cause(_failed(_refused(), reading=reading))
+    assert none.check == "edge_ncc" and len(calls) == 1

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -57,6 +57,8 @@ class RefusedCM:
         reading_deg: (n_control_points,) the FBG reading its shape was held to.
         config: the registration's settings (its control-point σ is the reading's).
         checks: its thresholds.
+        straight_starts: where given, the starts of the CM held straight (its initialisation without
+            the reading), for the shape's free search where the reading's own starts fit nothing.
     """
 
     refused: RegistrationRefused
@@ -68,17 +70,25 @@ class RefusedCM:
     checks: CMCheckConfig
     seed: int
     stage: str = "cm"
+    straight_starts: Callable[[], list[list[np.ndarray]]] | None = None
 
     def register_again(
-        self, config: CMRegistrationConfig, checks: CMCheckConfig, seed: int
+        self,
+        config: CMRegistrationConfig,
+        checks: CMCheckConfig,
+        seed: int,
+        *,
+        tries: Sequence[Sequence[np.ndarray]] | None = None,
+        shape_deg: np.ndarray | None = None,
     ) -> CMRegistrationResult:
-        """The same registration with other settings (raises :class:`RegistrationRefused`)."""
+        """The same registration with other settings, starts or shape (the shape's prior centred on
+        it; default: the reading) (raises :class:`RegistrationRefused`)."""
         return register_cm_checked(
             self.views,
             self.landmarks_px,
-            self.tries,
+            self.tries if tries is None else tries,
             {},
-            initial_control_points_deg=self.reading_deg,
+            initial_control_points_deg=self.reading_deg if shape_deg is None else shape_deg,
             config=config,
             checks=checks,
             seed=seed,
@@ -91,9 +101,10 @@ def name_fbg_cause(failed: RefusedCM, record: dict[str, Any] | None = None) -> R
     where the reading is it (check ``fbg_reading``); otherwise ``refused``.
 
     The CM is registered once more with its shape free within ``checks.shape_search_tolerance_deg``
-    of the reading (flat, then the prior's σ): where that passes every view's check with a shape
-    further from the reading than its stated accuracy allows (:func:`judge_shape`), the reading is
-    the cause.
+    of the reading (flat, then the prior's σ), and where that fits nothing, from the starts of a
+    straight CM (``failed.straight_starts``) with its shape free as far about straight: where one
+    passes every view's check with a shape further from the reading than its stated accuracy allows
+    (:func:`judge_shape`), the reading is the cause.
 
     Args:
         failed: the registration held to the reading (its ``checks.max_shape_departure_sigmas`` set).
@@ -107,9 +118,8 @@ def name_fbg_cause(failed: RefusedCM, record: dict[str, Any] | None = None) -> R
     free = config.with_(control_point_tolerance_deg=checks.shape_search_tolerance_deg)
     searched = dataclasses.replace(checks, max_shape_departure_sigmas=None)  # the views' checks alone
     rec = record if record is not None else {}
-    try:
-        cm = failed.register_again(free, searched, failed.seed)
-    except RegistrationRefused:
+    cm = _free_shape(failed, free, searched)
+    if cm is None:
         rec["fits"] = False
         return refused
     dep, verdict = judge_shape(cm, failed.reading_deg, config, max_sigmas)
@@ -128,6 +138,25 @@ def name_fbg_cause(failed: RefusedCM, record: dict[str, Any] | None = None) -> R
         f"fails ({refused})"
     )
     return RegistrationRefused(failed.stage, "fbg_reading", detail)
+
+
+def _free_shape(
+    failed: RefusedCM, free: CMRegistrationConfig, searched: CMCheckConfig
+) -> CMRegistrationResult | None:
+    """The CM with its shape free (:func:`name_fbg_cause`): from the reading's starts, else from a
+    straight CM's; None where neither fits every view."""
+    try:
+        return failed.register_again(free, searched, failed.seed)
+    except RegistrationRefused:
+        pass
+    tries = [] if failed.straight_starts is None else failed.straight_starts()
+    if not tries:
+        return None
+    try:
+        straight = np.zeros_like(np.asarray(failed.reading_deg, np.float64))
+        return failed.register_again(free, searched, failed.seed + 2, tries=tries, shape_deg=straight)
+    except RegistrationRefused:
+        return None
 
 
 def landmark_scale(

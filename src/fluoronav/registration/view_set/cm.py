@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -115,6 +115,13 @@ def register_view_set_cm(
     if fast is not None:
         cm = fast
     else:
+
+        def straight_starts() -> list[list[np.ndarray]]:
+            """The starts of a straight CM (the initialisation without the reading)."""
+            init0, _ = _initialize(views, cameras, cm_config, np.zeros_like(initial_control_points_deg), {})
+            starts = [] if init0 is None else multiview_start_poses(init0, max_starts=settings.max_cm_starts)
+            return [starts] if starts else []
+
         cm = _register_checked(
             cm_views,
             lm_views,
@@ -125,6 +132,7 @@ def register_view_set_cm(
             initial_control_points_deg,
             seed,
             diag,
+            straight_starts,
         )
     if predicted is not None:  # reported, not judged here: the caller knows what a disagreement means
         sigma = None if prior is None else prior.prediction_sigma_mm
@@ -180,6 +188,7 @@ def _register_checked(
     initial_control_points_deg: np.ndarray,
     seed: int,
     diag: dict[str, Any],
+    straight_starts: Callable[[], list[list[np.ndarray]]] | None = None,
 ) -> CMRegistrationResult:
     """The CM registered from the starts ``tries`` and checked; without a prediction a refusal that
     an input every view shares explains is raised naming it (:func:`name_shared_cause`; what was
@@ -209,6 +218,7 @@ def _register_checked(
             config=cm_settings,
             checks=settings.cm_checks,
             seed=seed + 101,
+            straight_starts=straight_starts,
         )
         named = name_shared_cause(failed, diag.setdefault("shared_causes", {}))
         if named is exc:
