@@ -13,6 +13,7 @@ mm); the prior's poses are the femur's (``femur_from_cm``), placed via the regis
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -115,13 +116,6 @@ def register_view_set_cm(
     if fast is not None:
         cm = fast
     else:
-
-        def straight_starts() -> list[list[np.ndarray]]:
-            """The starts of a straight CM (the initialisation without the reading)."""
-            init0, _ = _initialize(views, cameras, cm_config, np.zeros_like(initial_control_points_deg), {})
-            starts = [] if init0 is None else multiview_start_poses(init0, max_starts=settings.max_cm_starts)
-            return [starts] if starts else []
-
         cm = _register_checked(
             cm_views,
             lm_views,
@@ -132,7 +126,7 @@ def register_view_set_cm(
             initial_control_points_deg,
             seed,
             diag,
-            straight_starts,
+            functools.partial(_straight_starts, views, cameras, cm_config, settings.max_cm_starts),
         )
     if predicted is not None:  # reported, not judged here: the caller knows what a disagreement means
         sigma = None if prior is None else prior.prediction_sigma_mm
@@ -224,6 +218,15 @@ def _register_checked(
         if named is exc:
             raise
         raise named from exc
+
+
+def _straight_starts(
+    views: Sequence[FluoroView], cameras: Sequence[Camera], cm_config: CMConfig, max_starts: int
+) -> list[list[np.ndarray]]:
+    """The starts of a straight CM (its initialisation without the reading), as one try."""
+    init, _ = _initialize(views, cameras, cm_config, np.zeros(cm_config.n_control_points), {})
+    starts = [] if init is None else multiview_start_poses(init, max_starts=max_starts)
+    return [starts] if starts else []
 
 
 def _tries(
