@@ -29,6 +29,10 @@ class InputError(FluoronavError):
         self.problem = " ".join(str(problem).split())
         super().__init__(f"{self.source}: {self.problem}")
 
+    def __reduce__(self) -> tuple[type[InputError], tuple[str, str]]:
+        """Pickled with its fields (it crosses process boundaries in studies' workers)."""
+        return (type(self), (self.source, self.problem))
+
 
 class RegistrationFailure(FluoronavError):
     """A registration or calibration that did not converge; carries the reason."""
@@ -48,6 +52,10 @@ class RegistrationRefused(FluoronavError):
         self.stage, self.check, self.view, self.detail = stage, check, view, detail
         where = f"stage {stage}" + (f", view {view}" if view else "")
         super().__init__(f"{where}, check {check}: {detail}")
+
+    def __reduce__(self) -> tuple[type[RegistrationRefused], tuple[str, str, str, str]]:
+        """Pickled with its fields (it crosses process boundaries in studies' workers)."""
+        return (type(self), (self.stage, self.check, self.detail, self.view))
 
 
 def read_json_object(path: str | Path, *, what: str) -> dict[str, Any]:

@@ -508,3 +508,34 @@ def test_a_mirrored_view_of_three_is_left_out_and_the_femur_registered_from_the_
     assert np.linalg.norm((bones.femur.world_from_bone @ entry - ct_from_femur @ entry)[:3]) < 1.0
     rot = bones.femur.world_from_bone[:3, :3] @ ct_from_femur[:3, :3].T
     assert np.degrees(np.arccos(np.clip((np.trace(rot) - 1) / 2, -1, 1))) < 1.0
+
+
+def test_a_refusal_no_shared_input_explains_is_tried_one_view_left_out(
+    monkeypatch: pytest.MonkeyPatch, calls: _Calls
+) -> None:
+    """The CM fails view0's check on all three views; no shared input explains it; registered on
+    view0 and view2 alone it passes and lies far off view1's landmarks: the refusal names view1
+    (check odd_view), what was tried recorded in the stage's ``odd_view``."""
+
+    def refuse(*a: Any, **kw: Any) -> Any:
+        raise RegistrationRefused("cm", "edge_ncc", "NCC 0.1", view="view0")
+
+    @dataclass
+    class _Far:
+        landmarks_world: np.ndarray = field(
+            default_factory=lambda: np.array([[[500.0, 0.0, 0.0], [510.0, 0.0, 0.0]]])
+        )
+
+    def without_view1(views: Any, *a: Any, **kw: Any) -> Any:
+        if [v.name for v in views] == ["view0", "view2"]:
+            return _Far()
+        refuse()
+
+    monkeypatch.setattr(view_set_cm, "register_cm_checked", refuse)
+    monkeypatch.setattr(shared_causes, "register_cm_checked", without_view1)
+    records: dict[str, StageRecord] = {}
+    with pytest.raises(RegistrationRefused) as err:
+        _register(ViewSetSettings(), recorder=timed_stages(records))
+    assert (err.value.check, err.value.view) == ("odd_view", "view1")
+    odd = records["cm"].diagnostics["odd_view"]
+    assert odd["view1"]["fits"] and odd["view1"]["miss_mm"] > 2.0 and not odd["view0"]["fits"]

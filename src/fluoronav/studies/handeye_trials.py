@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import re
 import time
 from dataclasses import dataclass, replace
 from typing import Any
@@ -451,6 +452,12 @@ def refusal_check(reason: str) -> tuple[str, str]:
     return refused_at(reason)
 
 
+def refused_view(reason: str) -> str:
+    """The view a refusal's reason names (``stage X, view V, check C: …``); "" where none."""
+    m = re.match(r"stage [^,]+, view (.+?), check ", reason or "")
+    return "" if m is None else m.group(1).split(" (")[0]  # the view's set tag, " (verification)", off
+
+
 def _cm_axis_deg(E: dict[str, float]) -> float:
     """The first registration's CM axis (z) against the true one, degrees, from the base rotation
     error's rotation vector (in the CM frame)."""
@@ -493,6 +500,7 @@ def _fault_fields(run: Any, row: dict[str, Any], name: str) -> dict[str, Any]:
         commanded="reposition_open_loop_mm" in row,
         left_out=left_out,
         faulty_view=faulty_view,
+        refused_view=refused_view(run.reason) if run.result is not None else "",
     )
     return {"fault": name, "fault_outcome": outcome, "fault_handled": handled, "left_out": list(left_out)}
 

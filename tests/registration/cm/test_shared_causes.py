@@ -22,6 +22,7 @@ from fluoronav.registration.cm.checks import CMCheckConfig
 from fluoronav.registration.cm.config import CMRegistrationConfig
 from fluoronav.registration.cm.shared_causes import (
     RefusedCM,
+    centreline_shape,
     landmark_scale,
     name_fbg_cause,
     name_scale_cause,
@@ -214,31 +215,63 @@ def test_physics_images_of_a_scene_registered_in_a_scaled_ct_name_its_scale() ->
     assert rec["ct_scale"]["factor"] == pytest.approx(1.1, abs=0.02)
 
 
-def test_where_the_readings_starts_fit_nothing_a_straight_cms_starts_are_searched(
+def test_centreline_shape_finds_the_shape_the_centrelines_favour() -> None:
+    """A centreline cost least at an offset of the reading (within the tolerance, on the half-step
+    grid): the search finds that shape and returns its starts."""
+    reading = np.array([1.0, -2.0, 4.0, 0.0, 3.0])
+    offset = np.array([-3.0, -1.5, 2.0, 0.5, -2.5])
+
+    def starts_for(shape: np.ndarray) -> tuple[list[list[np.ndarray]], float]:
+        return [[np.full((4, 4), float(shape.sum()))]], float(np.sum((shape - reading - offset) ** 2))
+
+    shape, tries = centreline_shape(starts_for, reading, 6.0, 1.0)
+    np.testing.assert_allclose(shape, reading + offset, atol=1e-9)
+    assert tries[0][0][0, 0] == pytest.approx((reading + offset).sum())
+    # never past the tolerance: a minimum 8° off stops at 6°
+    far, _ = centreline_shape(
+        lambda s: ([[np.eye(4)]], float(np.sum((s - reading - 8.0) ** 2))), reading, 6.0, 1.0
+    )
+    np.testing.assert_allclose(far, reading + 6.0, atol=1e-9)
+
+
+def test_the_free_shape_starts_where_the_centrelines_favour_then_from_a_straight_cm(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """A reading 3° off at every point: its own starts fit nothing with the shape free; the starts of
-    a straight CM, with the shape free about straight, fit every view 3° from the reading: named."""
+    """A reading 3° off at every point: the registration with the shape free starts from the shape
+    the centrelines favour (3° below the reading) and fits: named; where that fits nothing, a straight
+    CM's starts are searched; without ``starts_for`` the reading's own starts only."""
     reading = np.full(5, 3.0)
-    straight_pose = se3.make(np.eye(3), [1.0, 2.0, 3.0])
     calls: list[dict[str, Any]] = []
+
+    def starts_for(shape: np.ndarray) -> tuple[list[list[np.ndarray]], float]:
+        return [[se3.make(np.eye(3), shape[:3])]], float(np.sum(shape**2))
 
     def registered(views: Any, lms: Any, tries: Any, diag: Any, **kw: Any) -> _Reg:
         calls.append({"tries": tries, **kw})
-        if np.any(kw["initial_control_points_deg"] != 0.0):
+        if np.any(np.abs(kw["initial_control_points_deg"]) > fits_within):
             raise RegistrationRefused("cm", "edge_ncc", "still no fit", view="AP")
         return _Reg(control_points_deg=np.zeros(5))
 
     monkeypatch.setattr(shared_causes, "register_cm_checked", registered)
-    failed = dataclasses.replace(
-        _failed(_refused(), reading=reading), straight_starts=lambda: [[straight_pose]]
-    )
+    failed = dataclasses.replace(_failed(_refused(), reading=reading), starts_for=starts_for)
+    fits_within = 0.1
     rec: dict[str, Any] = {}
     out = name_fbg_cause(failed, rec)
-    assert out.check == "fbg_reading" and rec["fits"]
-    assert len(calls) == 2 and calls[1]["tries"][0][0] is straight_pose
-    assert calls[1]["config"].control_point_tolerance_deg == 6.0 and calls[1]["seed"] == 2
-    # without a straight CM's starts the reading's failure stands
+    assert out.check == "fbg_reading" and rec["fits"] and len(calls) == 1
+    assert rec["centreline_shape_deg"] == [0.0] * 5
+    np.testing.assert_allclose(calls[0]["tries"][0][0][:3, 3], 0.0)
+    assert calls[0]["config"].control_point_tolerance_deg == 6.0
+    # the favoured shape fits nothing: a straight CM's starts (seed + 2), then nothing
+    calls.clear()
+    failed = dataclasses.replace(failed, starts_for=lambda s: ([[np.eye(4)]], float(np.sum((s - 1.0) ** 2))))
+    fits_within = 0.5
+    assert name_fbg_cause(failed).check == "fbg_reading"
+    assert len(calls) == 2 and calls[1]["seed"] == 2
+    np.testing.assert_allclose(calls[1]["initial_control_points_deg"], 0.0)
+    fits_within = -1.0
+    calls.clear()
+    assert name_fbg_cause(failed).check == "edge_ncc" and len(calls) == 2
+    # without starts_for: the reading's own starts, once
     calls.clear()
     none = name_fbg_cause(_failed(_refused(), reading=reading))
     assert none.check == "edge_ncc" and len(calls) == 1

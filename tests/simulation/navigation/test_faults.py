@@ -162,6 +162,10 @@ def test_outcomes_name_the_fault_or_not() -> None:
         commanded=True,
     ) == ("unsafe", False)
     assert fault_outcome(mirror, status="failed") == ("failed", False)
+    # a check that blames one view names the fault only where that view is the faulty one
+    other = functools.partial(fault_outcome, FAULTS["view_other_patient"], status="refused", stage="cm")
+    assert other(check="odd_view", faulty_view="orbit +20", refused_view="orbit +20")[0] == "refused_named"
+    assert other(check="odd_view", faulty_view="orbit +20", refused_view="AP")[0] == "refused_other"
 
 
 def test_the_preflight_names_swapped_labels_and_a_plan_in_soft_tissue(case: NavigationCase) -> None:

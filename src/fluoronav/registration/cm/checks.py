@@ -70,6 +70,9 @@ class CMCheckConfig:
             once more with the shape free within this of the reading
             (:func:`~fluoronav.registration.cm.shared_causes.name_fbg_cause`): a shape the images
             accept that far from the reading names the reading as the cause.
+        shape_search_step_deg: that registration starts from the shape, within the same tolerance,
+            whose multi-view centreline initialisation costs least, searched on this step
+            (:func:`~fluoronav.registration.cm.shared_causes.centreline_shape`).
         min_scale_departure: where a view's check fails, the CM's size in the views (its
             triangulated landmarks) must differ from its own by this fraction before the CM is
             registered at that size to test the CT's scale
@@ -86,6 +89,9 @@ class CMCheckConfig:
     )
     shape_search_tolerance_deg: float = setting(
         6.0, "a failed view's second registration frees the shape this far from the reading", unit="deg", ge=0
+    )
+    shape_search_step_deg: float = setting(
+        1.0, "the step of the search for the shape the views' centrelines favour", unit="deg", gt=0
     )
     min_scale_departure: float = setting(
         0.03, "the CM's size in the views, off its own by this fraction, is tested as the CT's scale", ge=0

@@ -39,6 +39,7 @@ from fluoronav.registration.cm.checks import (
 )
 from fluoronav.registration.cm.config import CMRegistrationConfig, local_cm_levels
 from fluoronav.registration.cm.multistart import register_cm_multistart
+from fluoronav.registration.cm.odd_view import name_odd_view
 from fluoronav.registration.cm.shared_causes import RefusedCM, name_shared_cause
 from fluoronav.registration.view_set.fusion import fuse_tip
 from fluoronav.registration.view_set.settings import ViewSetPrior, ViewSetSettings
@@ -126,7 +127,7 @@ def register_view_set_cm(
             initial_control_points_deg,
             seed,
             diag,
-            functools.partial(_straight_starts, views, cameras, cm_config, settings.max_cm_starts),
+            functools.partial(_starts_for_shape, views, cameras, cm_config, settings.max_cm_starts),
         )
     if predicted is not None:  # reported, not judged here: the caller knows what a disagreement means
         sigma = None if prior is None else prior.prediction_sigma_mm
@@ -182,11 +183,12 @@ def _register_checked(
     initial_control_points_deg: np.ndarray,
     seed: int,
     diag: dict[str, Any],
-    straight_starts: Callable[[], list[list[np.ndarray]]] | None = None,
+    starts_for: Callable[[np.ndarray], tuple[list[list[np.ndarray]], float]] | None = None,
 ) -> CMRegistrationResult:
     """The CM registered from the starts ``tries`` and checked; without a prediction a refusal that
     an input every view shares explains is raised naming it (:func:`name_shared_cause`; what was
-    found in ``diag["shared_causes"]``)."""
+    found in ``diag["shared_causes"]``), else one that one view explains naming that view
+    (:func:`name_odd_view`, ``diag["odd_view"]``)."""
     assert settings.cm_checks is not None
     try:
         return register_cm_checked(
@@ -212,21 +214,27 @@ def _register_checked(
             config=cm_settings,
             checks=settings.cm_checks,
             seed=seed + 101,
-            straight_starts=straight_starts,
+            starts_for=starts_for,
         )
         named = name_shared_cause(failed, diag.setdefault("shared_causes", {}))
-        if named is exc:
-            raise
+        if named.check == exc.check:  # no shared input explains it: does one view?
+            odd = name_odd_view(failed, diag.setdefault("odd_view", {}))
+            named = named if odd is exc else odd
         raise named from exc
 
 
-def _straight_starts(
-    views: Sequence[FluoroView], cameras: Sequence[Camera], cm_config: CMConfig, max_starts: int
-) -> list[list[np.ndarray]]:
-    """The starts of a straight CM (its initialisation without the reading), as one try."""
-    init, _ = _initialize(views, cameras, cm_config, np.zeros(cm_config.n_control_points), {})
+def _starts_for_shape(
+    views: Sequence[FluoroView],
+    cameras: Sequence[Camera],
+    cm_config: CMConfig,
+    max_starts: int,
+    shape_deg: np.ndarray,
+) -> tuple[list[list[np.ndarray]], float]:
+    """The starts of the CM at ``shape_deg`` (its multi-view initialisation's, as one try) and their
+    centreline cost (px; inf without two views with a CM)."""
+    init, _ = _initialize(views, cameras, cm_config, np.asarray(shape_deg, np.float64), {})
     starts = [] if init is None else multiview_start_poses(init, max_starts=max_starts)
-    return [starts] if starts else []
+    return ([starts] if starts else []), (math.inf if init is None else float(init.cost_px))
 
 
 def _tries(

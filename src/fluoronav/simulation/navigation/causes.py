@@ -64,7 +64,7 @@ _NAMED: dict[str, NamedCause] = {
     "fbg_shape": "case_input",
     "fbg_reading": "case_input",
     "ct_scale": "case_input",
-    "other_patient": "image",
+    "odd_view": "image",
 }
 
 

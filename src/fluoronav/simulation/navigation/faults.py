@@ -29,6 +29,7 @@ from fluoronav.navigation.planning import Plan
 __all__ = [
     "FAULTS",
     "LANDING_MM",
+    "VIEW_BLAMING_CHECKS",
     "Fault",
     "Outcome",
     "apply_case_fault",
@@ -252,7 +253,7 @@ FAULTS: dict[str, Fault] = {
             "view_other_patient",
             "the second first view's image is another patient's, with the CM and the C-arm where they are",
             "first_views",
-            handled_by=("pelvis:edge_ncc", "femur:edge_ncc", "other_patient"),
+            handled_by=("pelvis:edge_ncc", "femur:edge_ncc", "cm:odd_view"),
             leave_out_counts=True,
             view_index=1,
             other_patient=True,
@@ -279,6 +280,10 @@ def get_fault(name: str | None) -> Fault | None:
     if name not in FAULTS:
         raise InputError("--fault", f"unknown fault {name!r}; one of: {', '.join(FAULTS)}")
     return FAULTS[name]
+
+
+#: refusal checks that blame one view as the cause (not only as the worst fitted)
+VIEW_BLAMING_CHECKS = ("odd_view",)
 
 
 def names_fault(fault: Fault, stage: str, check: str) -> bool:
@@ -524,6 +529,7 @@ def fault_outcome(
     commanded: bool = False,
     left_out: tuple[str, ...] = (),
     faulty_view: str | None = None,
+    refused_view: str = "",
 ) -> tuple[Outcome, bool]:
     """What a run with ``fault`` ended as, and whether that handled the fault.
 
@@ -535,6 +541,8 @@ def fault_outcome(
         first_tip_mm: the first registration's CM tip error against the truth (mm).
         commanded: the robot carried out the first command.
         left_out: the views the navigation left out; faulty_view: the view the fault changed.
+        refused_view: the view the refusal names ("" for none); a check that blames one view
+            (:data:`VIEW_BLAMING_CHECKS`) names the fault only where it is the faulty view.
 
     Returns:
         (outcome, handled). ``"unsafe"``: a first command from a registration more than
@@ -554,6 +562,7 @@ def fault_outcome(
             return "unsafe", False
         left = faulty_view is not None and faulty_view in left_out
         return "landed", fault.landing_counts or (fault.leave_out_counts and left)
-    if names_fault(fault, stage, check):
+    blames_other = check in VIEW_BLAMING_CHECKS and faulty_view is not None and refused_view != faulty_view
+    if names_fault(fault, stage, check) and not blames_other:
         return "refused_named", True
     return "refused_other", False
