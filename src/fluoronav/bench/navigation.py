@@ -1,14 +1,14 @@
-"""Navigation benchmarks (``fluoronav bench``): the pelvis on one view and the ``navigate`` pipeline.
+"""Navigation benchmarks (``fluoronav bench``): the pelvis on one view, the preflight and ``navigate``.
 
-The case is a simulated phantom case as ``fluoronav demo`` makes it (seed :data:`BENCH_SEED`, 768² views, the
-shipped detector). Keys: ``register_bone_view_s`` (the pelvis on the first view with the navigation's preset),
-``navigate_s`` (:func:`~fluoronav.navigation.pipeline.navigate`, detection to robot command, three views),
-``navigate_verify_s`` and ``navigate_verify2_s`` (the case run to its end with three or two verification
-views: the pipeline's stages summed, each run simulating its own verification images where its own command
-took the robot). Each has a ``_reference``, the same work with the reference settings (the CMA-ES presets
-without empty-space skipping, :data:`~fluoronav.bench.registration.REFERENCE_CONFIG`, the shipped settings
-``reference-0.4.1``), a ``_speedup`` and its errors against the truth (``*_pelvis_mm``, ``*_tip_mm``,
-``*_corrected_tip_mm``), so that a faster setting that got worse shows (docs/validation.md, "Speed").
+The case is a simulated phantom case as ``fluoronav demo`` makes it (seed :data:`BENCH_SEED`, 768²
+views, the shipped detector). Keys: ``register_bone_view_s`` (the pelvis on the first view with the
+navigation's preset), ``navigate_s`` (:func:`~fluoronav.navigation.pipeline.navigate`, detection to
+robot command, three views), ``preflight_s`` and ``preflight_cross_checks_s`` (:func:`preflight_times`),
+``navigate_verify_s`` and ``navigate_verify2_s`` (the case run to its end with three or two
+verification views: the pipeline's stages summed, each run simulating its own verification images).
+The registrations have a ``_reference`` (the reference settings, ``reference-0.4.1``), a
+``_speedup`` and their errors against the truth (``*_pelvis_mm``, ``*_tip_mm``,
+``*_corrected_tip_mm``): a faster setting that got worse shows (docs/validation.md, "Speed").
 """
 
 from __future__ import annotations
@@ -25,13 +25,17 @@ import numpy as np
 
 from fluoronav.bench.registration import REFERENCE_CONFIG
 from fluoronav.geometry import se3
+from fluoronav.navigation.case.model import NavigationCase
+from fluoronav.navigation.checks.preflight import check_shared_inputs, preflight
+from fluoronav.navigation.checks.preflight_config import PreflightConfig
+from fluoronav.navigation.checks.side import check_side
 from fluoronav.navigation.config import NavigationConfig, shipped_settings
 from fluoronav.navigation.pipeline import navigate
 from fluoronav.registration.bone import BoneView, register_pelvis
 from fluoronav.registration.bone.presets import PELVIS_CMAES_PRESET, BoneRegistrationConfig, femur_config
 from fluoronav.simulation.navigation.loop import SimulatedNavigationConfig, run_simulated_navigation
 
-__all__ = ["BENCH_SEED", "REFERENCE_SETTINGS", "navigate_startup", "run"]
+__all__ = ["BENCH_SEED", "REFERENCE_SETTINGS", "navigate_startup", "preflight_times", "run"]
 
 log = logging.getLogger(__name__)
 
@@ -104,11 +108,31 @@ def run(quick: bool = False, device: str = "cpu") -> dict[str, float]:
                 np.linalg.norm(np.asarray(result.first.tip_ct_mm) - np.asarray(truth["tip_ct_mm"]))
             )
         log.info("%s: %.1f s (%s)", key, out[key], result.status)
+    out.update(preflight_times(case))
     out.update(_navigate_verify(device))
     for key in ("register_bone_view_s", "navigate_s", "navigate_verify_s"):
         out[f"{key}_speedup"] = out[f"{key}_reference"] / out[key]
     out["navigate_verify2_s_speedup"] = out["navigate_verify_s_reference"] / out["navigate_verify2_s"]
     out.update(navigate_startup(quick))
+    return out
+
+
+def preflight_times(case: NavigationCase, repeats: int = 3) -> dict[str, float]:
+    """``preflight_s``: seconds of the whole preflight of ``case``; ``preflight_cross_checks_s``: of
+    its checks of the inputs against each other (:func:`check_shared_inputs`, :func:`check_side`);
+    each the median of ``repeats``."""
+    cfg = PreflightConfig()
+    whole, cross = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        preflight(case, cfg)
+        t1 = time.perf_counter()
+        check_shared_inputs(case, cfg)
+        check_side(case)
+        cross.append(time.perf_counter() - t1)
+        whole.append(t1 - t0)
+    out = {"preflight_s": statistics.median(whole), "preflight_cross_checks_s": statistics.median(cross)}
+    log.info("preflight_s: %.2f s (cross checks %.2f s)", out["preflight_s"], out["preflight_cross_checks_s"])
     return out
 
 

@@ -314,3 +314,11 @@ def test_a_plan_finding_comes_after_the_input_findings(case: NavigationCase) -> 
     findings = preflight(dataclasses.replace(case, plan=far, views=views), CFG)
     kinds = [f.kind for f in findings]
     assert kinds == sorted(kinds) and kinds[0] == "input" and kinds[-1] == "plan"
+
+
+def test_the_bench_times_the_whole_preflight_and_its_cross_checks(case: NavigationCase) -> None:
+    from fluoronav.bench.navigation import preflight_times
+
+    times = preflight_times(case, repeats=1)
+    assert set(times) == {"preflight_s", "preflight_cross_checks_s"}
+    assert all(np.isfinite(v) and v > 0.0 for v in times.values())

@@ -38,6 +38,7 @@ __all__ = [
     "check_intensities",
     "check_labels",
     "check_plan",
+    "check_shared_inputs",
     "check_views",
     "insertion_limit_mm",
     "preflight",
@@ -316,7 +317,7 @@ def _largest_ball(s: SampledCT, names: dict[str, int], cfg: PreflightConfig) -> 
     return best
 
 
-def _shared_inputs(case: NavigationCase, cfg: PreflightConfig) -> list[PreflightFinding]:
+def check_shared_inputs(case: NavigationCase, cfg: PreflightConfig) -> list[PreflightFinding]:
     """The inputs every view shares against their ranges and each other (:mod:`.inputs`,
     :mod:`.label_fit`): the FBG reading, the CT's geometry, the bone labels' size, HU and fit."""
     volume, side = case.volume, case.side
@@ -351,7 +352,7 @@ def preflight(case: NavigationCase, config: PreflightConfig | None = None) -> li
     cfg = config or PreflightConfig()
     volume, side = case.volume, case.side
     distance = _femur_distance(volume, side, cfg) if _has_label(volume, f"femur_{side}") else None
-    shared = _shared_inputs(case, cfg)
+    shared = check_shared_inputs(case, cfg)
     labels = check_labels(volume, side, cfg, distance=distance)
     sides = check_side(case)
     views = check_views(case.views, case.verification, cfg)
