@@ -350,7 +350,7 @@ def run_handeye_or_navigation_study(
     poses: Sequence[int] = (4, 8, 15),
     image_size: int = 768,
     corrections: int = 1,
-    oracle_landmarks: bool = True,
+    oracle_landmarks: bool = False,
     calibration_bend_deg: float | None = 2.5,
     fault: str | None = None,
     handeye_error_mm: float | None = None,

@@ -183,7 +183,7 @@ class HandEyeStudyConfig:
     corrections: int = 1
     tracker_sigma_mm: float = 0.1
     calibration_bend_deg: float | None = 2.5
-    oracle_landmarks: bool = True
+    oracle_landmarks: bool = False  # as the CLI: the detector
     fault: str | None = None
     world: World = IDEAL
     verify_views: int = 3
