@@ -20,6 +20,7 @@ def test_safety_config_keeps_its_fields_and_defaults() -> None:
             "min_views": 2,
             "max_shape_departure_sigmas": None,
             "shape_search_tolerance_deg": 6.0,
+            "shape_search_step_deg": 1.0,
             "min_scale_departure": 0.03,
         },
         "max_motion_tip_mm": 3.0,
