@@ -193,7 +193,8 @@ def centreline_shape(
 ) -> tuple[np.ndarray, list[list[np.ndarray]]]:
     """The shape within ``tolerance_deg`` of the reading whose multi-view centreline initialisation
     (``starts_for``) costs least, and its starts: one offset of every control point on a
-    ``step_deg`` grid, then each control point by ±``step_deg`` and ±``step_deg``/2.
+    ``step_deg`` grid, then each control point moved by ±``step_deg``, then ±``step_deg``/2, while
+    that lowers the cost.
 
     Why: a registration started from the reading's roll minima stays in their basin when the reading
     is off (a reading 3° off at every point leaves its best start 40° from the CM); the centrelines
@@ -203,12 +204,14 @@ def centreline_shape(
     reading = np.asarray(reading_deg, np.float64)
     seen: dict[tuple[float, ...], tuple[float, list[list[np.ndarray]]]] = {}
 
+    def key(shape: np.ndarray) -> tuple[float, ...]:
+        return tuple(np.round(shape, 6))
+
     def cost(shape: np.ndarray) -> float:
-        key = tuple(np.round(shape, 6))
-        if key not in seen:
+        if key(shape) not in seen:
             tries, c = starts_for(shape)
-            seen[key] = (c if tries else math.inf, tries)
-        return seen[key][0]
+            seen[key(shape)] = (c if tries else math.inf, tries)
+        return seen[key(shape)][0]
 
     n = math.floor(tolerance_deg / step_deg)
     best = min((reading + k * step_deg for k in range(-n, n + 1)), key=cost)
@@ -223,7 +226,7 @@ def centreline_shape(
                 )
                 if cost(trial) < cost(best):
                     best, moved = trial, True
-    return best, seen[tuple(np.round(best, 6))][1]
+    return best, seen[key(best)][1]
 
 
 def landmark_scale(
