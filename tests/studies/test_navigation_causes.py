@@ -58,11 +58,3 @@ def test_the_summary_gives_the_fraction_of_refusals_named_right() -> None:
         "none_known": {"unnamed": 1},
     }
     assert refusals_named_right([row("", "", "", status="ok")])["fraction"] is None
-
-
-def test_the_refused_view_is_read_off_the_reason_without_its_sets_tag() -> None:
-    from fluoronav.studies.handeye_trials import refused_view
-
-    assert refused_view("stage cm, view orbit +20, check odd_view: 3.1 mm") == "orbit +20"
-    assert refused_view("stage cm, view AP (verification), check edge_ncc: NCC 0.4") == "AP"
-    assert refused_view("stage cm, check fbg_reading: -3.4°") == ""

@@ -16,7 +16,6 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import re
 import time
 from dataclasses import dataclass, replace
 from typing import Any
@@ -45,7 +44,7 @@ from fluoronav.registration.cm import CMView
 from fluoronav.registration.metrics import cm_errors
 from fluoronav.runner import finish_row, mark_failed, new_row
 from fluoronav.simulation.articulated import anatomy_and_simulator
-from fluoronav.simulation.navigation.causes import refused_at
+from fluoronav.simulation.navigation.causes import refused_at, refused_view
 from fluoronav.simulation.navigation.faults import fault_outcome, get_fault
 from fluoronav.simulation.navigation.loop import SimulatedNavigationConfig, run_simulated_navigation
 from fluoronav.simulation.robot_scene import (
@@ -450,12 +449,6 @@ def refusal_check(reason: str) -> tuple[str, str]:
     """(stage, check) of a refusal's reason (``stage X[, view V], check C: detail``); ("", "") else
     (:func:`~fluoronav.simulation.navigation.causes.refused_at`)."""
     return refused_at(reason)
-
-
-def refused_view(reason: str) -> str:
-    """The view a refusal's reason names (``stage X, view V, check C: …``); "" where none."""
-    m = re.match(r"stage [^,]+, view (.+?), check ", reason or "")
-    return "" if m is None else m.group(1).split(" (")[0]  # the view's set tag, " (verification)", off
 
 
 def _cm_axis_deg(E: dict[str, float]) -> float:

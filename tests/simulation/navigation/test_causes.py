@@ -138,3 +138,11 @@ def test_a_refusals_stage_and_check_are_read_from_its_reason() -> None:
         "kinematics_disagree",
     )
     assert refused_at("") == ("", "")
+
+
+def test_the_refused_view_is_read_off_the_reason_without_its_sets_tag() -> None:
+    from fluoronav.simulation.navigation.causes import refused_view
+
+    assert refused_view("stage cm, view orbit +20, check odd_view: 3.1 mm") == "orbit +20"
+    assert refused_view("stage cm, view AP (verification), check edge_ncc: NCC 0.4") == "AP"
+    assert refused_view("stage cm, check fbg_reading: -3.4°") == ""

@@ -30,6 +30,7 @@ __all__ = [
     "named_right",
     "refusal_causes",
     "refused_at",
+    "refused_view",
     "true_cause",
 ]
 
@@ -206,3 +207,10 @@ def refused_at(reason: str) -> tuple[str, str]:
     stage = re.match(r"stage ([^,]+),", reason)
     check = re.search(r", check (\w+):", reason)
     return (stage.group(1) if stage else "", check.group(1) if check else "")
+
+
+def refused_view(reason: str) -> str:
+    """The view a refusal's reason names (``stage X, view V, check C: …``), its set's tag
+    (`` (verification)``) off; "" where none."""
+    m = re.match(r"stage [^,]+, view (.+?), check ", reason or "")
+    return "" if m is None else m.group(1).split(" (")[0]
